@@ -1,0 +1,272 @@
+"""Differentiable splatting of neural primitives and 3D Gaussians: one functional entry point.
+
+    render(prims, camera, background=...) -> Render(color (H,W,3), alpha (H,W), depth (H,W), meta)
+
+Pipeline (vectorised torch, no Python loop over pixels or primitives):
+1. per primitive, once per view: camera-space depth, frustum culling, a tight projected bound
+   (the dual conic of the bounding ellipsoid for neural primitives, 3σ of the EWA covariance for
+   Gaussians), and everything that depends only on the camera centre o (o', c_k, SH colour);
+2. binning: primitives sorted by depth; the pixels of each projected bound become flat
+   (primitive, pixel) pairs. The "tile" is a single pixel: on a CPU there is no shared memory to
+   amortise, and 16×16 tiles evaluated 3–6× more pairs than the pixel bounds on small splats;
+3. pairs are evaluated in depth-ordered chunks of at most `max_pairs` (bounded memory); pixels whose
+   transmittance fell below `t_min` drop out of later chunks (early termination);
+4. front-to-back compositing (paper eq. 4) with segmented cumulative sums of log-transmittance.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import NamedTuple
+
+import torch
+
+from radfield.core.cameras import Camera, pixel_rays
+from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, gaussian_alpha, neural_optical_depth, ray_ellipsoid
+from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat
+from radfield.core.sh import sh_to_color
+
+T_MIN = 1e-4            # 3DGS early termination threshold on transmittance
+EWA_BLUR = 0.3          # 3DGS low-pass filter added to the 2D covariance (pixels²)
+
+
+class Render(NamedTuple):
+    color: torch.Tensor  # (H, W, 3)
+    alpha: torch.Tensor  # (H, W) accumulated opacity 1 − T
+    depth: torch.Tensor  # (H, W) opacity-weighted mean camera-space depth of primitive centres (0 where empty)
+    meta: dict
+
+
+def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1.0, 1.0, 1.0), near: float = 0.01,
+           sh_degree: int | None = None, max_pairs: int = 1 << 20, t_min: float = T_MIN,
+           compiled: bool | None = None) -> Render:
+    """Render one view. Differentiable w.r.t. every tensor of `prims` (and `background` if a tensor).
+
+    sh_degree: use SH bands up to this degree (default: all the model has).
+    max_pairs: pixel-primitive pairs evaluated at once; bounds memory, not results.
+    compiled: run the pair kernel through torch.compile (default: env RADFIELD_COMPILE=1).
+    """
+    device, dtype = prims.means.device, prims.means.dtype
+    height, width = camera.height, camera.width
+    c2w = camera.c2w.to(device=device, dtype=dtype)
+    w2c = torch.linalg.inv(c2w)
+    campos = c2w[:3, 3]
+    means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
+    depth = means_cam[:, 2]
+    degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
+    view_dirs = torch.nn.functional.normalize(prims.means - campos, dim=-1)
+    colors = sh_to_color(prims.sh, view_dirs, degree)
+
+    if isinstance(prims, NeuralPrimitives):
+        bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
+        dirs, ray_norm = pixel_rays(camera, dtype=dtype, device=device)
+        view = _neural_view(prims, campos)
+        per_pixel = (dirs.reshape(-1, 3), near * ray_norm.reshape(-1))
+        kernel = _neural_pairs
+    elif isinstance(prims, Gaussians):
+        view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
+        jj, ii = torch.meshgrid(torch.arange(width, device=device, dtype=dtype) + 0.5,
+                                torch.arange(height, device=device, dtype=dtype) + 0.5, indexing="xy")
+        per_pixel = (torch.stack([jj, ii], -1).reshape(-1, 2),)
+        kernel = _gaussian_pairs
+    else:
+        raise TypeError(f"cannot render {type(prims).__name__}")
+    if compiled if compiled is not None else os.environ.get("RADFIELD_COMPILE") == "1":
+        kernel = _compiled(kernel)
+
+    ids = torch.nonzero(visible).squeeze(1)
+    ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back
+    x0, y0, x1, y1 = bounds[ids].unbind(-1)
+    bw, bh = x1 - x0 + 1, y1 - y0 + 1
+    counts = bw * bh
+
+    n_pix = height * width
+    log_t = torch.zeros(n_pix, device=device, dtype=torch.float64)   # log transmittance, included pairs
+    done = torch.zeros(n_pix, device=device, dtype=torch.bool)        # pixels that terminated early
+    acc_color = torch.zeros(n_pix, 3, device=device, dtype=dtype)
+    acc_depth = torch.zeros(n_pix, device=device, dtype=dtype)
+    n_pairs = n_contrib = 0
+    for lo, hi in _chunks(counts, max_pairs):
+        prim, pix = _expand_pairs(x0[lo:hi], y0[lo:hi], bw[lo:hi], counts[lo:hi], width)
+        prim = prim + lo
+        keep = ~done[pix]
+        prim, pix = prim[keep], pix[keep]
+        n_pairs += prim.numel()
+        gid = ids[prim]
+        alpha = kernel(gid, pix, *per_pixel, *view)
+        nz = alpha > 0
+        gid, pix, alpha = gid[nz], pix[nz], alpha[nz]
+        order = torch.argsort(pix, stable=True)   # pairs were generated front to back: stable keeps depth order
+        gid, pix, alpha = gid[order], pix[order], alpha[order]
+        log_t_before, log_1m_alpha = _segmented_log_transmittance(pix, alpha, log_t)
+        included = (log_t_before + log_1m_alpha >= math.log(t_min)).detach()
+        weight = (alpha * torch.exp(log_t_before).to(dtype)) * included
+        acc_color = acc_color.index_add(0, pix, weight[:, None] * colors[gid])
+        acc_depth = acc_depth.index_add(0, pix, weight * depth[gid])
+        log_t = log_t.index_add(0, pix, log_1m_alpha * included)
+        done[pix[~included]] = True
+        n_contrib += int(included.sum())
+
+    transmittance = torch.exp(log_t).to(dtype).reshape(height, width)
+    bg = torch.as_tensor(background, device=device, dtype=dtype)
+    color = acc_color.reshape(height, width, 3) + transmittance[..., None] * bg
+    alpha = 1.0 - transmittance
+    mean_depth = acc_depth.reshape(height, width) / torch.clamp_min(alpha, 1e-10)
+    meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
+            "candidate_pairs": int(counts.sum()), "terminated_pixels": int(done.sum())}
+    return Render(color, alpha, mean_depth, meta)
+
+
+# --- per-view preparation --------------------------------------------------------------------
+
+def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor) -> tuple:
+    """What depends only on the primitive and the camera centre o, computed once per view:
+    M = S⁻¹Rᵀ, o' = M(o − μ), a-matrix ω0 W1, c_k = ω0 (W1_k·u0 + b1_k) with u0 = (o − μ)/max(s)."""
+    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
+    rel = campos - prims.means
+    o_ell = (m * rel[:, None, :]).sum(-1)
+    w = prims.omega0 * prims.w1
+    c = (w * (rel / smax[:, None])[:, None, :]).sum(-1) + prims.omega0 * prims.b1
+    return m, o_ell, w, c, prims.w2, prims.b2, 1.0 / smax
+
+
+def _neural_bounds(prims: NeuralPrimitives, camera: Camera, w2c, means_cam, near):
+    """Tight pixel bounds of each projected bounding ellipsoid, from its dual conic
+    C* = K (μμᵀ − Σ) Kᵀ (camera frame, Σ = R S² Rᵀ). An ellipsoid that straddles the near plane
+    gets the whole image (the pair kernel clips rays at the near plane itself)."""
+    with torch.no_grad():
+        rot = w2c[:3, :3] @ quat_to_rotmat(prims.quats)
+        rs = rot * torch.exp(prims.log_scales)[:, None, :]
+        sigma = rs @ rs.transpose(1, 2)
+        z_ext = torch.sqrt(sigma[:, 2, 2])
+        z = means_cam[:, 2]
+        in_front = z - z_ext > near
+        visible = z + z_ext > near
+        k = camera.K.to(means_cam)
+        dual = k @ (means_cam[:, :, None] * means_cam[:, None, :] - sigma) @ k.T
+        full = torch.tensor([0, 0, camera.width - 1, camera.height - 1], device=means_cam.device)
+        box = _conic_box(dual, camera.width, camera.height)
+        bounds = torch.where(in_front[:, None], box, full)
+        return _clip_bounds(bounds, visible, camera)
+
+
+def _conic_box(dual: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Integer pixel bounds (x0, y0, x1, y1) of the points inside a conic, from its dual: the tangent
+    lines u = const solve C*_00 − 2u C*_02 + u² C*_22 = 0 (likewise for v)."""
+    def extent(i):
+        c_ii, c_i2, c_22 = dual[:, i, i], dual[:, i, 2], dual[:, 2, 2]
+        root = torch.sqrt(torch.clamp_min(c_i2 * c_i2 - c_ii * c_22, 0.0))
+        lo, hi = (c_i2 + root) / c_22, (c_i2 - root) / c_22
+        return torch.minimum(lo, hi), torch.maximum(lo, hi)
+
+    (u0, u1), (v0, v1) = extent(0), extent(1)
+    # pixel j covers centre j + 0.5: first/last centres inside [u0, u1]
+    box = torch.stack([torch.ceil(u0 - 0.5), torch.ceil(v0 - 0.5), torch.floor(u1 - 0.5), torch.floor(v1 - 0.5)], -1)
+    big = float(max(width, height) + 1)
+    return torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long()
+
+
+def _clip_bounds(bounds, visible, camera):
+    x0, y0 = bounds[:, 0].clamp_min(0), bounds[:, 1].clamp_min(0)
+    x1, y1 = bounds[:, 2].clamp_max(camera.width - 1), bounds[:, 3].clamp_max(camera.height - 1)
+    visible = visible & (x1 >= x0) & (y1 >= y0)
+    return torch.stack([x0, y0, x1, y1], -1), visible
+
+
+def _gaussian_view(prims: Gaussians, camera: Camera, w2c, means_cam, near):
+    """EWA splatting (Zwicker et al., as in 3DGS): 2D mean, conic of J W Σ Wᵀ Jᵀ + 0.3 I, opacity."""
+    x, y, z = means_cam.unbind(-1)
+    visible = z > near
+    zs = torch.where(visible, z, torch.ones_like(z))
+    # as 3DGS/gsplat: clamp the Jacobian's point to 1.3× the field of view, which keeps the
+    # affine approximation of far off-screen splats from exploding
+    margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
+    tx = zs * torch.clamp(x / zs, -camera.cx / camera.fx - margin_x, (camera.width - camera.cx) / camera.fx + margin_x)
+    ty = zs * torch.clamp(y / zs, -camera.cy / camera.fy - margin_y, (camera.height - camera.cy) / camera.fy + margin_y)
+    zero = torch.zeros_like(zs)
+    jac = torch.stack([camera.fx / zs, zero, -camera.fx * tx / zs**2,
+                       zero, camera.fy / zs, -camera.fy * ty / zs**2], -1).reshape(-1, 2, 3)
+    rot = w2c[:3, :3] @ quat_to_rotmat(prims.quats)
+    rs = rot * torch.exp(prims.log_scales)[:, None, :]
+    t = jac @ rs
+    cov = t @ t.transpose(1, 2)
+    a, b, c = cov[:, 0, 0] + EWA_BLUR, cov[:, 0, 1], cov[:, 1, 1] + EWA_BLUR
+    det = a * c - b * b
+    conic = torch.stack([c, -b, a], -1) / det[:, None]
+    mean2d = torch.stack([camera.fx * x / zs + camera.cx, camera.fy * y / zs + camera.cy], -1)
+    with torch.no_grad():
+        lam_max = 0.5 * (a + c) + torch.sqrt(torch.clamp_min(0.25 * (a - c) ** 2 + b * b, 0.0))
+        radius = torch.ceil(3.0 * torch.sqrt(lam_max))
+        cx, cy = mean2d[:, 0], mean2d[:, 1]
+        box = torch.stack([torch.ceil(cx - radius - 0.5), torch.ceil(cy - radius - 0.5),
+                           torch.floor(cx + radius - 0.5), torch.floor(cy + radius - 0.5)], -1)
+        big = float(max(camera.width, camera.height) + 1)
+        bounds, visible = _clip_bounds(torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long(), visible & (det > 0), camera)
+    return (mean2d, conic, torch.sigmoid(prims.opacities)), bounds, visible
+
+
+# --- pair kernels (elementwise over pairs; gathers by index fuse under torch.compile) -----------
+
+def _neural_pairs(prim, pix, dirs, l_near, m, o_ell, w, c, w2, b2, inv_smax):
+    d = dirs[pix]                                        # (Q, 3) unit ray direction d̂
+    d_ell = (m[prim] * d[:, None, :]).sum(-1)            # d' = S⁻¹Rᵀ d̂
+    l_in, l_out, hit = ray_ellipsoid(o_ell[prim], d_ell)
+    l_in = torch.maximum(l_in, l_near[pix])              # camera inside: start at the near plane
+    a = (w[prim] * d[:, None, :]).sum(-1)                # a_k = ω0 W1_k · d̂
+    optical_depth = neural_optical_depth(l_in, l_out, hit, a, c[prim], w2[prim], b2[prim], inv_smax[prim])
+    return alpha_from_optical_depth(optical_depth)
+
+
+def _gaussian_pairs(prim, pix, pix_xy, mean2d, conic, opacity):
+    delta = pix_xy[pix] - mean2d[prim]
+    return gaussian_alpha(delta[:, 0], delta[:, 1], conic[prim], opacity[prim])
+
+
+_COMPILED = {}
+
+
+def _compiled(fn):
+    if fn not in _COMPILED:
+        _COMPILED[fn] = torch.compile(fn, dynamic=True)
+    return _COMPILED[fn]
+
+
+# --- binning and compositing helpers ---------------------------------------------------------
+
+def _chunks(counts: torch.Tensor, max_pairs: int):
+    """Consecutive ranges [lo, hi) of depth-sorted primitives holding about max_pairs pairs each
+    (a primitive larger than max_pairs gets a chunk of its own)."""
+    if counts.numel() == 0:
+        return []
+    ends = torch.cumsum(counts, 0)
+    chunk = ((ends - counts) // max_pairs).tolist()
+    out, lo = [], 0
+    for i in range(1, len(chunk) + 1):
+        if i == len(chunk) or chunk[i] != chunk[lo]:
+            out.append((lo, i))
+            lo = i
+    return out
+
+
+def _expand_pairs(x0, y0, bw, counts, width):
+    """Flat (primitive index, pixel index) pairs covering each primitive's pixel bounds, in primitive order."""
+    prim = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
+    start = torch.cumsum(counts, 0) - counts
+    local = torch.arange(prim.numel(), device=counts.device) - start[prim]
+    row = y0[prim] + local // bw[prim]
+    col = x0[prim] + local % bw[prim]
+    return prim, row * width + col
+
+
+def _segmented_log_transmittance(pix: torch.Tensor, alpha: torch.Tensor, log_t: torch.Tensor):
+    """For pairs sorted by (pixel, depth): log T before each pair = the pixel's log T from earlier
+    chunks + the exclusive segmented cumsum of log(1 − α). float64: a running sum over a million
+    pairs would lose the per-pixel values to cancellation in float32."""
+    log_1m_alpha = torch.log1p(-alpha.double())
+    csum = torch.cumsum(log_1m_alpha, 0) - log_1m_alpha              # exclusive running sum
+    first = torch.ones_like(pix, dtype=torch.bool)
+    first[1:] = pix[1:] != pix[:-1]
+    seg = torch.cumsum(first, 0) - 1
+    seg_start = torch.nonzero(first).squeeze(1)
+    return log_t[pix] + csum - csum[seg_start][seg], log_1m_alpha

@@ -1,0 +1,3 @@
+from radfield.cli.main import main
+
+main()

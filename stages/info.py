@@ -1,0 +1,125 @@
+"""What a run directory holds, for `radfield info RUN [--json]`.
+
+The JSON of `run_info` is a stable interface (scripts and the README rely on it)::
+
+    {
+      "run": "/abs/path/RUN",
+      "input": "/abs/path/DATASET" | null,       # the INPUT the run was made from
+      "model": "/abs/path/RUN/train/model.safetensors" | null,   # the final model, once trained
+      "stages": {                                 # in pipeline order
+        "<stage>": {
+          "done": true | false,                   # finished (its manifest exists)
+          "seconds": 12.3 | null,                 # wall time of its last run; null if never run
+          "applicable": true | false | null,      # false: nothing to do for this input; null: never run
+          "reason": "...",                        # only when applicable is false
+          ...figures                              # the stage's own key figures, e.g.
+        }                                         #   data: images; train: primitives, params,
+      }                                           #   iterations, train_psnr
+    }
+
+Keys are only ever added, never renamed or removed. A stage shown as done may be stale if the
+config changed since (`radfield reconstruct` on the run brings it up to date).
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+from radfield.core.errors import RadfieldError
+from radfield.stages.config import parse_yaml
+from radfield.stages.pipeline import (
+    CONFIG_FILE,
+    MANIFEST,
+    RESERVED_FIGURES,
+    format_figures,
+    is_run_dir,
+    read_manifest,
+    read_marker,
+)
+
+MODEL_STAGE = "train"  # the stage that writes the final model
+MODEL_FILE = "model.safetensors"  # its file name inside RUN/train/ (the train stage's output)
+
+
+def model_path(run_dir: Path) -> Path:
+    """Where the final model of a run lives (whether or not it exists yet)."""
+    return Path(run_dir) / MODEL_STAGE / MODEL_FILE
+
+
+def run_info(run_dir: Path) -> dict[str, Any]:
+    """The documented JSON summary of a run directory (see the module docstring)."""
+    run_dir = Path(run_dir)
+    if not is_run_dir(run_dir):
+        raise RadfieldError(f"{run_dir} is not a radfield run directory")
+    stages: dict[str, Any] = {}
+    for name in _stage_names(run_dir):
+        manifest = read_manifest(run_dir / name)
+        if manifest is None:
+            stages[name] = {"done": False, "seconds": None, "applicable": None}
+            continue
+        entry: dict[str, Any] = {
+            "done": True,
+            "seconds": manifest.get("seconds"),
+            "applicable": manifest.get("applicable"),
+        }
+        if not manifest.get("applicable"):
+            entry["reason"] = manifest.get("reason")
+        entry.update(manifest.get("figures") or {})
+        stages[name] = entry
+    model = model_path(run_dir)
+    return {
+        "run": str(run_dir.resolve()),
+        "input": read_marker(run_dir).get("input"),
+        "model": str(model.resolve()) if model.is_file() else None,
+        "stages": stages,
+    }
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """`run_info` as a readable table (plain text, no colour codes)."""
+    table = Table(title=f"run {info['run']}", title_justify="left")
+    table.add_column("stage")
+    table.add_column("status")
+    table.add_column("time", justify="right")
+    table.add_column("figures")
+    for name, entry in info["stages"].items():
+        figures = {k: v for k, v in entry.items() if k not in RESERVED_FIGURES}
+        table.add_row(name, _status(entry), _seconds(entry["seconds"]), format_figures(figures))
+    buffer = io.StringIO()
+    console = Console(file=buffer, width=110, no_color=True, highlight=False)
+    console.print(table)
+    console.print(f"input: {info['input'] or '-'}")
+    console.print(f"model: {info['model'] or '- (not trained yet)'}")
+    return buffer.getvalue()
+
+
+def _stage_names(run_dir: Path) -> list[str]:
+    """Stages in the order of the run's config, then any other stage directory with a manifest."""
+    names: list[str] = []
+    try:
+        config = parse_yaml((run_dir / CONFIG_FILE).read_text(encoding="utf-8"))
+        names = [str(name) for name in config.get("stages", [])]
+    except (OSError, yaml.YAMLError, AttributeError):
+        pass  # no readable config: fall back to what is on disk
+    extra = sorted(p.parent.name for p in run_dir.glob(f"*/{MANIFEST}") if p.parent.name not in names)
+    return names + extra
+
+
+def _status(entry: dict[str, Any]) -> str:
+    if not entry["done"]:
+        return "not run"
+    if entry["applicable"] is False:
+        return f"n/a: {entry.get('reason')}"
+    return "done"
+
+
+def _seconds(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    return f"{seconds:.1f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
