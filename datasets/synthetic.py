@@ -1,0 +1,259 @@
+"""Tiny synthetic scenes with exact ground truth, ray traced analytically (no network, no data files).
+
+`generate_scene(name, out_dir)` writes a NeRF-synthetic folder:
+
+    transforms_train.json, transforms_test.json   camera_angle_x + OpenGL camera-to-world per frame
+    train/r_i.png, test/r_i.png                   RGBA, transparent background, 2x2 supersampled
+    train/r_i_depth.exr, test/r_i_depth.exr       z-depth of the pixel-centre ray (0 on background)
+    mesh.ply                                      the scene triangulated, with vertex colours
+    scene.json                                    the exact analytic shapes, light and cameras
+
+Shading is Lambertian under one fixed directional light plus ambient, so colour is view-independent
+and a radiance field can fit it exactly. Cameras sit on a sphere around the origin, looking at it:
+a golden-angle (Fibonacci) spiral over the upper hemisphere, with the test views interleaved in it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from radfield.core.cameras import Camera, look_at, opencv_to_opengl
+from radfield.core.errors import RadfieldError
+from radfield.datasets.images import write_image
+from radfield.datasets.shapes import Box, Cylinder, Material, Sphere
+
+LIGHT = tuple(np.array([0.3, 0.5, 1.0]) / np.linalg.norm([0.3, 0.5, 1.0]))
+AMBIENT = 0.35
+CAMERA_RADIUS = 4.0
+CAMERA_ANGLE_X = 0.69  # about 40 degrees: a scene of radius ~1.2 fills the frame
+# Sine of the lowest and highest camera elevation: the lowest stays above every scene's objects
+# below the top sphere of 'blobs', the highest keeps look_at's up vector well defined.
+_ELEVATION_SIN = (0.15, 0.95)
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    description: str
+    primitives: tuple
+
+
+def _solid(r, g, b) -> Material:
+    return Material((r, g, b))
+
+
+def _wire_cube(half: float, radius: float) -> tuple:
+    """Rods on the 12 edges of a cube (coloured by axis) and a small sphere on each corner."""
+    corners = [(2 * np.array(c, dtype=float) - 1) * half for c in np.ndindex(2, 2, 2)]
+    axis_colours = [_solid(0.9, 0.2, 0.2), _solid(0.2, 0.8, 0.25), _solid(0.25, 0.35, 0.95)]
+    rods = [
+        Cylinder(tuple(a), tuple(b), radius, axis_colours[int(np.argmax(np.abs(b - a)))])
+        for k, a in enumerate(corners)
+        for b in corners[k + 1 :]
+        if np.count_nonzero(a != b) == 1
+    ]
+    joints = [Sphere(tuple(c), 1.8 * radius, _solid(0.9, 0.9, 0.85)) for c in corners]
+    return tuple(rods + joints)
+
+
+SCENES: dict[str, Scene] = {
+    scene.name: scene
+    for scene in (
+        Scene(
+            "blobs",
+            "a few coloured spheres on a box: the default demo, easy",
+            (
+                Box((0.0, 0.0, -0.3), (0.55, 0.55, 0.2), _solid(0.9, 0.55, 0.15), yaw=20.0),
+                Sphere((0.0, 0.0, 0.45), 0.35, _solid(0.85, 0.15, 0.15)),
+                Sphere((0.6, -0.45, 0.1), 0.25, _solid(0.2, 0.75, 0.3)),
+                Sphere((-0.55, 0.4, 0.05), 0.3, _solid(0.2, 0.35, 0.9)),
+                Sphere((0.45, 0.55, -0.35), 0.15, _solid(0.75, 0.3, 0.8)),
+            ),
+        ),
+        Scene(
+            "thin",
+            "a wire-frame cube of sub-pixel rods with a diagonal brace: thin structures",
+            _wire_cube(0.7, 0.025) + (Cylinder((-0.7, -0.7, -0.7), (0.7, 0.7, 0.7), 0.02, _solid(0.95, 0.8, 0.2)),),
+        ),
+        Scene(
+            "checker",
+            "a checkered sphere and slab, a striped cylinder and box: high-frequency textures",
+            (
+                Box((0.0, 0.0, -0.35), (0.9, 0.9, 0.05), Material((0.95, 0.95, 0.95), "checker", (0.1, 0.1, 0.1), 6.0)),
+                Sphere((0.0, 0.0, 0.15), 0.45, Material((0.95, 0.9, 0.8), "checker", (0.6, 0.05, 0.1), 8.0)),
+                Cylinder(
+                    (0.6, 0.5, -0.3),
+                    (0.6, 0.5, 0.55),
+                    0.15,
+                    Material((0.95, 0.85, 0.1), "stripes", (0.1, 0.2, 0.7), 10.0),
+                ),
+                Box(
+                    (-0.55, -0.5, -0.12),
+                    (0.18, 0.18, 0.18),
+                    Material((0.2, 0.7, 0.3), "stripes", (0.95, 0.95, 0.95), 12.0, (1.0, 0.0, 0.0)),
+                    yaw=35.0,
+                ),
+            ),
+        ),
+    )
+}
+
+
+def get_scene(name: str) -> Scene:
+    if name not in SCENES:
+        raise RadfieldError(f"unknown synthetic scene {name!r} (available: {', '.join(SCENES)})")
+    return SCENES[name]
+
+
+def trace(scene: Scene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shaded colour (R, 3) and hit distance (R,) (inf on a miss) of rays from o (3,) along unit d (R, 3)."""
+    t = np.full(len(d), np.inf)
+    normal = np.zeros_like(d)
+    index = np.full(len(d), -1)
+    for k, primitive in enumerate(scene.primitives):
+        # Only rays through the bounding sphere: thin rods cover a few pixels of a view.
+        centre, radius = primitive.bounding_sphere
+        oc = o - centre
+        b = d @ oc
+        rows = np.flatnonzero(b * b - oc @ oc + radius**2 >= 0)
+        t_k, n_k = primitive.intersect(o, d[rows])
+        closer = t_k < t[rows]
+        rows, t_k, n_k = rows[closer], t_k[closer], n_k[closer]
+        t[rows], normal[rows], index[rows] = t_k, n_k, k
+    colour = np.zeros_like(d)
+    for k, primitive in enumerate(scene.primitives):
+        rows = index == k
+        colour[rows] = primitive.material.albedo(o + t[rows, None] * d[rows])
+    shade = AMBIENT + (1 - AMBIENT) * np.clip(normal @ np.asarray(LIGHT), 0.0, None)
+    return colour * shade[:, None], t
+
+
+def render_view(scene: Scene, camera: Camera, samples: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Premultiplied RGBA (H, W, 4) float32 averaged over samples x samples rays per pixel, and
+    the z-depth (H, W) float32 of the pixel-centre ray (0 where it misses)."""
+    grid = (np.arange(samples) + 0.5) / samples
+    offsets = np.stack(np.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2)
+    offsets = np.vstack([offsets, [0.5, 0.5]])  # last: the pixel centre, for depth
+    i = np.arange(camera.height)[:, None, None] + offsets[None, None, :, 0]
+    j = np.arange(camera.width)[None, :, None] + offsets[None, None, :, 1]
+    i, j = np.broadcast_arrays(i, j)
+    d_cam = np.stack([(j - camera.cx) / camera.fx, (i - camera.cy) / camera.fy, np.ones_like(i)], -1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    c2w = camera.c2w.numpy()
+    d = d_cam.reshape(-1, 3) @ c2w[:3, :3].T
+    colour, t = trace(scene, c2w[:3, 3], d)
+    colour, t = colour.reshape(d_cam.shape), t.reshape(d_cam.shape[:-1])
+    hit = np.isfinite(t)
+    rgba = np.concatenate([colour[:, :, :-1], hit[:, :, :-1, None]], -1).mean(axis=2)
+    depth = np.where(hit[:, :, -1], t[:, :, -1] * d_cam[:, :, -1, 2], 0.0)
+    return rgba.astype(np.float32), depth.astype(np.float32)
+
+
+def orbit_cameras(n_train: int, n_test: int, size: int, seed: int = 0) -> tuple[list[Camera], list[Camera]]:
+    """Train and test cameras (size x size pixels) on one golden-angle spiral over the upper
+    hemisphere (radius CAMERA_RADIUS, looking at the origin, +z up); the seed turns the spiral."""
+    n = n_train + n_test
+    k = np.arange(n)
+    z = _ELEVATION_SIN[0] + (_ELEVATION_SIN[1] - _ELEVATION_SIN[0]) * (k + 0.5) / n
+    azimuth = np.random.default_rng(seed).uniform(0, 2 * math.pi) + k * math.pi * (3 - math.sqrt(5))
+    ring = np.sqrt(1 - z**2)
+    eyes = CAMERA_RADIUS * np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], -1)
+    # Test views spread evenly through the spiral (so over all heights), never on a train view.
+    is_test = np.zeros(n, dtype=bool)
+    is_test[np.round(np.linspace(0, n - 1, n_test)).astype(int)] = True
+    focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
+
+    def camera(index: int, name: str) -> Camera:
+        return Camera(focal, focal, size / 2, size / 2, size, size, look_at(eyes[index], (0, 0, 0), (0, 0, 1)), name)
+
+    train = [camera(idx, f"r_{m}") for m, idx in enumerate(np.flatnonzero(~is_test))]
+    test = [camera(idx, f"r_{m}") for m, idx in enumerate(np.flatnonzero(is_test))]
+    return train, test
+
+
+def write_mesh(scene: Scene, path: Path) -> None:
+    """The scene's shapes triangulated into one PLY, each vertex coloured by its albedo."""
+    import pyvista as pv  # VTK is slow to import; only mesh writing needs it
+
+    parts = []
+    for primitive in scene.primitives:
+        part = primitive.mesh().triangulate()
+        part.point_data["colors"] = np.rint(
+            primitive.material.albedo(np.asarray(part.points, dtype=np.float64)) * 255
+        ).astype(np.uint8)
+        parts.append(part)
+    pv.merge(parts).save(path, texture="colors")
+
+
+def generate_scene(
+    name: str, out_dir: str | os.PathLike, n_train: int = 40, n_test: int = 8, size: int = 64, seed: int = 0
+) -> Path:
+    """Render scene `name` into a new NeRF-synthetic folder `out_dir` (see the module docstring).
+    Written to a temporary sibling folder and renamed, so `out_dir` is either complete or absent;
+    an existing non-empty `out_dir` is refused."""
+    scene = get_scene(name)
+    out_dir = Path(out_dir)
+    if n_train < 1 or n_test < 1 or size < 8:
+        raise RadfieldError(
+            f"generate_scene: need n_train >= 1, n_test >= 1 and size >= 8 (got {n_train}, {n_test}, {size})"
+        )
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise RadfieldError(f"{out_dir}: already exists and is not an empty folder; refusing to overwrite it")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        train, test = orbit_cameras(n_train, n_test, size, seed)
+        for split, cameras in (("train", train), ("test", test)):
+            _write_split(scene, tmp, split, cameras)
+        write_mesh(scene, tmp / "mesh.ply")
+        (tmp / "scene.json").write_text(json.dumps(_describe(scene, seed), indent=2))
+        tmp.chmod(0o755)  # mkdtemp makes it private
+        if out_dir.exists():
+            out_dir.rmdir()
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def _write_split(scene: Scene, root: Path, split: str, cameras: list[Camera]) -> None:
+    (root / split).mkdir()
+    frames = []
+    for camera in cameras:
+        rgba, depth = render_view(scene, camera)
+        write_image(root / split / f"{camera.name}.png", rgba)
+        write_image(root / split / f"{camera.name}_depth.exr", depth)
+        frames.append(
+            {
+                "file_path": f"./{split}/{camera.name}",
+                "depth_file_path": f"./{split}/{camera.name}_depth.exr",
+                "transform_matrix": opencv_to_opengl(camera.c2w).tolist(),
+            }
+        )
+    meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
+    (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+
+
+def _describe(scene: Scene, seed: int) -> dict:
+    """scene.json: the exact shapes (type + parameters), light and camera rig."""
+    return {
+        "name": scene.name,
+        "description": scene.description,
+        "seed": seed,
+        "light_direction": list(LIGHT),
+        "ambient": AMBIENT,
+        "camera_radius": CAMERA_RADIUS,
+        "camera_angle_x": CAMERA_ANGLE_X,
+        "depth": "z-depth along the camera axis of the pixel-centre ray, 0 on background",
+        "primitives": [{"type": type(p).__name__.lower(), **dataclasses.asdict(p)} for p in scene.primitives],
+    }

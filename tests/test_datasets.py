@@ -1,0 +1,447 @@
+"""Datasets: image I/O, the four readers, validation errors, and the synthetic scene generator."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import meshio
+import numpy as np
+import OpenImageIO as oiio
+import pycolmap
+import pytest
+import torch
+
+from radfield.core.cameras import Camera, look_at, opencv_to_opengl
+from radfield.core.errors import RadfieldError
+from radfield.datasets import detect_format, load_dataset, read_image, resize_area, validate, write_image
+from radfield.datasets.synthetic import SCENES, generate_scene, orbit_cameras, render_view
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+RED_SPHERE = SCENES["blobs"].primitives[1]  # on top of 'blobs': no other object can hide its centre
+
+
+def raises_naming(path, fn, *args, match: str = ""):
+    """Run fn(*args); it must raise a one-line RadfieldError that names `path` (and `match`)."""
+    with pytest.raises(RadfieldError) as info:
+        fn(*args)
+    message = str(info.value)
+    assert "\n" not in message
+    assert str(path) in message, message
+    assert match in message, message
+    return message
+
+
+def project(camera: Camera, point) -> tuple[float, float, float]:
+    """(u, v, z) of a world point: continuous pixel coordinates and OpenCV depth, written out by hand."""
+    x, y, z = (camera.w2c.numpy() @ np.append(point, 1.0))[:3]
+    return camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy, z
+
+
+def write_raw_png(path: Path, pixels: np.ndarray, unassociated: bool = False) -> None:
+    """Write integer pixels exactly as given (no conversion by radfield's writer)."""
+    spec = oiio.ImageSpec(
+        pixels.shape[1], pixels.shape[0], pixels.shape[2], "uint16" if pixels.dtype == np.uint16 else "uint8"
+    )
+    if unassociated:
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(pixels)
+    out.close()
+
+
+def write_transforms(root: Path, frames: list[dict], **meta) -> Path:
+    path = root / "transforms.json"
+    path.write_text(json.dumps({**meta, "frames": frames}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def blobs(tmp_path_factory) -> Path:
+    return generate_scene("blobs", tmp_path_factory.mktemp("gen") / "blobs", n_train=8, n_test=3, size=48)
+
+
+@pytest.fixture
+def blobs_copy(blobs, tmp_path) -> Path:
+    return Path(shutil.copytree(blobs, tmp_path / "blobs"))
+
+
+# ---------------------------------------------------------------- synthetic scenes through the reader
+
+
+def test_generated_layout(blobs):
+    assert detect_format(blobs) == "nerf_synthetic"
+    for split, count in (("train", 8), ("test", 3)):
+        meta = json.loads((blobs / f"transforms_{split}.json").read_text())
+        assert len(meta["frames"]) == count
+        assert (blobs / split / "r_0.png").is_file() and (blobs / split / "r_0_depth.exr").is_file()
+    rgba = read_image(blobs / "train" / "r_0.png")
+    assert rgba.shape == (48, 48, 4)
+    assert rgba[0, 0, 3] == 0 and (rgba[..., 3] == 1).mean() > 0.1  # transparent background, opaque objects
+    mesh = meshio.read(blobs / "mesh.ply")
+    assert mesh.cells_dict["triangle"].shape[0] > 100
+    scene = json.loads((blobs / "scene.json").read_text())
+    assert scene["primitives"][1]["center"] == list(RED_SPHERE.center)
+    assert not list(blobs.parent.glob(".blobs.tmp-*"))
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_synthetic_round_trip_camera_convention(blobs, split):
+    """The red sphere's centre, projected by hand with the loaded camera, lands amid red pixels
+    (an OpenGL/OpenCV or transpose mistake moves or mirrors it off the sphere)."""
+    data = load_dataset(blobs, split, background=(0.0, 0.0, 0.0))
+    validate(data)
+    rgbs, masks = data.load_images()
+    for camera, rgb, mask in zip(data.cameras, rgbs.numpy(), masks.numpy()):
+        u, v, z = project(camera, RED_SPHERE.center)
+        assert z > 0
+        around = (slice(int(v) - 1, int(v) + 2), slice(int(u) - 1, int(u) + 2))  # the sphere is ~9 px wide
+        r, g, b = rgb[around].transpose(2, 0, 1)
+        assert (mask[around] == 1).all() and (r > 2 * g).all() and (r > 2 * b).all()
+
+
+def test_synthetic_rerender_matches_files(blobs):
+    """Re-rendering with the cameras as loaded reproduces the files up to 8-bit quantisation."""
+    data = load_dataset(blobs, "test", background=(0.2, 0.4, 0.6))
+    for i, camera in enumerate(data.cameras):
+        rgba, depth = render_view(SCENES["blobs"], camera)
+        expected = rgba[..., :3] + (1 - rgba[..., 3:]) * np.array([0.2, 0.4, 0.6])
+        rgb, mask = data.load_image(i)
+        assert np.abs(rgb.numpy() - expected).max() < 2.5 / 255
+        assert np.abs(mask.numpy() - rgba[..., 3]).max() < 0.6 / 255
+        stored = read_image(blobs / "test" / f"r_{i}_depth.exr")[..., 0]
+        assert np.array_equal(stored, depth)
+        u, v, z = project(camera, RED_SPHERE.center)
+        assert depth[int(v), int(u)] == pytest.approx(z - RED_SPHERE.radius, abs=0.03)
+
+
+def test_generate_is_deterministic_and_atomic(blobs, tmp_path):
+    again = generate_scene("blobs", tmp_path / "again", n_train=8, n_test=3, size=48)
+    for name in ("transforms_train.json", "transforms_test.json", "train/r_3.png", "test/r_1.png"):
+        assert (again / name).read_bytes() == (blobs / name).read_bytes()
+    (tmp_path / "empty").mkdir()
+    generate_scene("blobs", tmp_path / "empty", n_train=2, n_test=1, size=16)  # an empty folder is fine
+    raises_naming(tmp_path / "again", generate_scene, "blobs", tmp_path / "again", match="not an empty folder")
+    with pytest.raises(RadfieldError, match="unknown synthetic scene 'nope'"):
+        generate_scene("nope", tmp_path / "nope")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again", "empty"]
+
+
+def test_orbit_cameras_distinct_and_seeded():
+    train, test = orbit_cameras(40, 8, 64, seed=0)
+    centres = torch.stack([c.center for c in train + test])
+    assert len(train) == 40 and len(test) == 8
+    assert torch.cdist(centres, centres).add(torch.eye(48) * 10).min() > 0.1  # all distinct
+    assert (centres[:, 2] > 0).all() and torch.allclose(
+        centres.norm(dim=1), torch.full((48,), 4.0, dtype=torch.float64)
+    )
+    other, _ = orbit_cameras(40, 8, 64, seed=1)
+    assert not torch.allclose(train[0].c2w, other[0].c2w)
+
+
+@pytest.mark.parametrize("name", ["thin", "checker"])
+def test_other_scenes(name, tmp_path):
+    root = generate_scene(name, tmp_path / name, n_train=3, n_test=1, size=32)
+    data = load_dataset(root, "all")
+    assert len(data) == 4
+    rgb, mask = data.load_images()
+    coverage = mask.mean().item()
+    assert 0.02 < coverage < 0.6
+    points = meshio.read(root / "mesh.ply").points
+    assert np.abs(points).max() < 1.0 and np.abs(points).max() > 0.6
+
+
+# ---------------------------------------------------------------- image I/O
+
+
+def test_png_16_bit_and_exr(tmp_path):
+    raw = np.array([[[0, 32768, 65535]]], dtype=np.uint16)
+    write_raw_png(tmp_path / "a.png", raw)
+    assert np.allclose(read_image(tmp_path / "a.png"), raw / 65535.0, atol=1e-7)
+    hdr = np.array([[[0.25, 1.5, 10.0]]], dtype=np.float32)
+    write_image(tmp_path / "b.exr", hdr)
+    assert np.array_equal(read_image(tmp_path / "b.exr"), hdr)  # linear, not clipped
+    smooth = np.random.default_rng(0).random((5, 6, 3)).astype(np.float32)
+    write_image(tmp_path / "c.png", smooth, bits=16)
+    assert np.abs(read_image(tmp_path / "c.png") - smooth).max() <= 0.5 / 65535 + 1e-7
+    write_image(tmp_path / "c.png", smooth)  # 8-bit, rounded, replaces the file
+    assert np.abs(read_image(tmp_path / "c.png") - smooth).max() <= 0.5 / 255 + 1e-7
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.exr", "c.png"]  # no temporaries left
+
+
+def test_rgba_composited_and_grey(tmp_path):
+    """PNG stores straight alpha: loaded RGB is colour * a + background * (1 - a), mask = a."""
+    straight = np.array([[[200, 100, 0, 255], [200, 100, 0, 51], [10, 20, 30, 0]]], dtype=np.uint8)
+    write_raw_png(tmp_path / "r_0.png", straight, unassociated=True)
+    write_raw_png(tmp_path / "g.png", np.full((1, 3, 1), 128, dtype=np.uint8))
+    frame = {"file_path": "r_0", "transform_matrix": np.eye(4).tolist()}
+    write_transforms(tmp_path, [frame], fl_x=2.0)
+    for background in ((0.0, 0.0, 0.0), (1.0, 0.5, 0.25)):
+        rgb, mask = load_dataset(tmp_path, "all", background=background).load_image(0)
+        a = straight[..., 3:] / 255.0
+        expected = straight[..., :3] / 255.0 * a + np.array(background) * (1 - a)
+        assert np.abs(rgb.numpy() - expected).max() < 1e-6
+        assert np.allclose(mask.numpy(), a[..., 0])
+    grey = read_image(tmp_path / "g.png")
+    assert grey.shape == (1, 3, 1)
+    image_folder = tmp_path / "photos"
+    image_folder.mkdir()
+    shutil.copy(tmp_path / "g.png", image_folder / "g.png")
+    rgb, mask = load_dataset(image_folder, "all").load_image(0)
+    assert rgb.shape == (1, 3, 3) and mask is None and torch.allclose(rgb, torch.tensor(128 / 255))
+
+
+def test_downscale_matches_area_average_and_camera(blobs):
+    full, half = load_dataset(blobs, "train"), load_dataset(blobs, "train", downscale=2)
+    rgb_full, _ = full.load_image(1)
+    rgb_half, mask_half = half.load_image(1)
+    assert rgb_half.shape == (24, 24, 3) and mask_half.shape == (24, 24)
+    assert torch.allclose(rgb_half, rgb_full.reshape(24, 2, 24, 2, 3).mean((1, 3)), atol=1e-5)
+    c_full, c_half = full.cameras[1], half.cameras[1]
+    assert (c_half.width, c_half.fx, c_half.cx) == (24, c_full.fx / 2, c_full.cx / 2)
+    odd = resize_area(np.ones((45, 31, 4), dtype=np.float32), 2)
+    assert odd.shape == (22, 16, 4) and np.allclose(odd, 1)
+    assert c_full.scaled(0.5).width == 24 and Camera(1, 1, 1, 1, 31, 45, torch.eye(4)).scaled(1 / 2).width == 16
+
+
+# ---------------------------------------------------------------- nerfstudio / instant-ngp
+
+
+def _nerfstudio_scene(root: Path, n: int, size=(12, 10), **meta) -> list[torch.Tensor]:
+    """n images (named so that sorting differs from list order) with OpenCV poses looking at the origin."""
+    root.mkdir(exist_ok=True)
+    (root / "images").mkdir()
+    poses, frames = [], []
+    for k in reversed(range(n)):
+        c2w = look_at((3 * math.cos(k), 3 * math.sin(k), 1.0), (0, 0, 0))
+        poses.insert(0, c2w)
+        write_image(root / "images" / f"f{k:02d}.png", np.full((size[1], size[0], 3), k / n, dtype=np.float32))
+        frames.append({"file_path": f"images/f{k:02d}.png", "transform_matrix": opencv_to_opengl(c2w).tolist()})
+    write_transforms(root, frames, **meta)
+    return poses
+
+
+def test_nerfstudio_reader(tmp_path):
+    poses = _nerfstudio_scene(tmp_path, 10, fl_x=11.0, fl_y=12.0, cx=6.5, cy=4.5, w=12, h=10)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta["frames"][0].update(fl_x=20.0, cx=5.0)  # per-frame override on f09
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    assert detect_format(tmp_path) == "nerfstudio"
+    train, test, every = (load_dataset(tmp_path, s) for s in ("train", "test", "all"))
+    assert [v.image_path.name for v in test.views] == ["f00.png", "f08.png"]  # every 8th by file name
+    assert len(train) == 8 and len(every) == 10
+    for k, camera in enumerate(every.cameras):
+        assert torch.allclose(camera.c2w, poses[k])
+        assert camera.name == f"f{k:02d}" and (camera.width, camera.height) == (12, 10)
+        assert (camera.fx, camera.cx) == ((20.0, 5.0) if k == 9 else (11.0, 6.5)) and camera.fy == 12.0
+    assert every.views[0].distortion is None
+    assert load_dataset(tmp_path / "transforms.json", "test").image_paths == test.image_paths
+    raises_naming(tmp_path / "transforms.json", load_dataset, tmp_path, "val", match="no 'val' split")
+
+
+def test_nerfstudio_split_lists_and_camera_angle(tmp_path):
+    _nerfstudio_scene(
+        tmp_path,
+        4,
+        camera_angle_x=1.0,
+        train_filenames=["images/f00.png", "./images/f01.png"],
+        val_filenames=["images/f02.png"],
+        test_filenames=["images/f03.png"],
+    )
+    assert [v.image_path.name for v in load_dataset(tmp_path, "val").views] == ["f02.png"]
+    assert len(load_dataset(tmp_path, "train")) == 2
+    camera = load_dataset(tmp_path, "test").cameras[0]  # no w/h/fl_x: size from the image, fx from the angle
+    assert (camera.width, camera.height, camera.cx) == (12, 10, 6.0)
+    assert camera.fx == pytest.approx(6 / math.tan(0.5)) and camera.fy == camera.fx
+
+
+def test_nerfstudio_undistorts(tmp_path):
+    """An image distorted with k1/k2/p1/p2 loads back as the pinhole image it came from."""
+    w, h, f = 80, 60, 70.0
+    ii, jj = np.mgrid[0:h, 0:w].astype(np.float32)
+    pinhole = np.stack([0.5 + 0.4 * np.sin(jj / 2), 0.5 + 0.4 * np.cos(ii / 2), np.full_like(ii, 0.5)], -1)
+    coeffs = np.array([0.3, -0.05, 0.002, -0.003])
+    # Distorted pixel p shows the pinhole image at undistort(p) (cv2: pixel centres at integers).
+    K = np.array([[f, 0, w / 2 - 0.5], [0, f, h / 2 - 0.5], [0, 0, 1]])
+    points = np.stack([jj, ii], -1).reshape(-1, 1, 2).astype(np.float64)
+    source = cv2.undistortPoints(points, K, coeffs, P=K).reshape(h, w, 2).astype(np.float32)
+    distorted = cv2.remap(pinhole, source[..., 0], source[..., 1], cv2.INTER_LINEAR)
+    (tmp_path / "images").mkdir()
+    write_image(tmp_path / "images" / "a.png", distorted, bits=16)
+    frame = {"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist()}
+    write_transforms(tmp_path, [frame], fl_x=f, fl_y=f, w=w, h=h, k1=0.3, k2=-0.05, p1=0.002, p2=-0.003)
+    data = load_dataset(tmp_path, "all")
+    assert np.allclose(data.views[0].distortion, coeffs)
+    rgb, _ = data.load_image(0)
+    inner = (slice(10, -10), slice(10, -10))
+    assert np.abs(distorted - pinhole)[inner].max() > 0.2
+    assert np.abs(rgb.numpy() - pinhole)[inner].max() < 0.03
+
+
+@pytest.mark.skipif(not (SHARED / "fox_small").is_dir(), reason=f"shared datasets not found in {SHARED}")
+@pytest.mark.parametrize(
+    "name, counts, size, distorted",
+    [
+        ("fox_small", (43, 7), (225, 400), True),
+        ("fern", (17, 3), (504, 378), True),
+        ("lego_small", (100, 25), (400, 400), False),
+    ],
+)
+def test_shared_datasets(name, counts, size, distorted):
+    for split, count in zip(("train", "test"), counts):
+        data = load_dataset(SHARED / name, split)
+        validate(data)
+        assert len(data) == count
+        assert {(c.width, c.height) for c in data.cameras} == {size}
+        assert (data.views[0].distortion is not None) == distorted
+    rgb, mask = data.load_image(0)
+    assert rgb.shape == (size[1], size[0], 3) and (mask is not None) == (name == "lego_small")
+    if name == "lego_small":
+        assert data.cameras[0].fx == pytest.approx(555.555, abs=0.01)
+
+
+# ---------------------------------------------------------------- COLMAP
+
+
+def _colmap_scene(root: Path, model: str = "PINHOLE", text: bool = False) -> tuple[list[Camera], np.ndarray]:
+    """A reconstruction written with pycolmap: 9 views of 'blobs' rendered from known cameras, 5 points."""
+    train, test = orbit_cameras(6, 3, 32)
+    cameras = train + test
+    rec = pycolmap.Reconstruction()
+    c = cameras[0]
+    params = {
+        "PINHOLE": [c.fx, c.fy, c.cx, c.cy],
+        "SIMPLE_RADIAL": [c.fx, c.cx, c.cy, 0.05],
+        "OPENCV_FISHEYE": [c.fx, c.fy, c.cx, c.cy, 0.1, 0, 0, 0],
+    }[model]
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(camera_id=1, model=model, width=c.width, height=c.height, params=params)
+    )
+    (root / "images").mkdir(parents=True)
+    for k, camera in enumerate(cameras):
+        name = f"v{k}.png"
+        write_image(root / "images" / name, render_view(SCENES["blobs"], camera)[0])
+        pose = pycolmap.Rigid3d(camera.w2c.numpy()[:3])
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1, image_id=k + 1), pose)
+    xyz = np.random.default_rng(0).uniform(-1, 1, (5, 3))
+    for k, p in enumerate(xyz):
+        rec.add_point3D(p, pycolmap.Track(), np.array([50 * k, 255, 0], dtype=np.uint8))
+    model_dir = root / "sparse" / "0"
+    model_dir.mkdir(parents=True)
+    if text:
+        rec.write_text(model_dir)
+    else:
+        rec.write(model_dir)
+    return cameras, xyz
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_colmap_reader(tmp_path, text):
+    cameras, xyz = _colmap_scene(tmp_path, text=text)
+    assert detect_format(tmp_path) == "colmap"
+    data = load_dataset(tmp_path, "all", background=(0, 0, 0))
+    validate(data)
+    assert len(data) == 9 and len(load_dataset(tmp_path, "test")) == 2  # v0, v8
+    for camera, expected in zip(data.cameras, cameras):
+        assert torch.allclose(camera.c2w, expected.c2w, atol=1e-9) and camera.fx == pytest.approx(expected.fx)
+    rgbs, _ = data.load_images()
+    for camera, rgb in zip(data.cameras, rgbs.numpy()):
+        u, v, _ = project(camera, RED_SPHERE.center)
+        r, g, b = rgb[int(v), int(u)]
+        assert r > 2 * g and r > 2 * b
+    order = data.points.xyz[:, 0].argsort()  # COLMAP keeps points in a hash map
+    expected = np.argsort(xyz[:, 0])
+    assert torch.allclose(data.points.xyz[order], torch.tensor(xyz[expected], dtype=torch.float32))
+    assert torch.allclose(
+        data.points.rgb[order], torch.tensor([[50 * k / 255, 1.0, 0.0] for k in expected], dtype=torch.float32)
+    )
+
+
+def test_colmap_radial_is_undistorted_on_load(tmp_path):
+    _colmap_scene(tmp_path, model="SIMPLE_RADIAL")
+    data = load_dataset(tmp_path, "test")
+    assert np.array_equal(data.views[0].distortion, [0.05, 0.0, 0.0, 0.0])
+    assert data.load_image(0)[0].shape == (32, 32, 3)
+
+
+def test_colmap_refuses_fisheye(tmp_path):
+    _colmap_scene(tmp_path, model="OPENCV_FISHEYE")
+    raises_naming(tmp_path / "sparse" / "0", load_dataset, tmp_path, "train", match="undistort")
+
+
+# ---------------------------------------------------------------- detection and errors
+
+
+def test_image_folder(tmp_path):
+    (tmp_path / "images").mkdir()
+    for k in range(9):
+        write_image(tmp_path / "images" / f"{k}.jpg", np.full((8, 10, 3), 0.5, dtype=np.float32))
+    assert detect_format(tmp_path) == "images"
+    data = load_dataset(tmp_path, "train", downscale=2)
+    assert len(data) == 7 and not data.posed  # 0.jpg and 8.jpg are test views
+    assert data.load_images()[0].shape == (7, 4, 5, 3)
+    raises_naming(tmp_path, lambda: data.cameras, match="sfm")
+    write_image(tmp_path / "images" / "5.jpg", np.zeros((9, 10, 3), dtype=np.float32))
+    raises_naming(tmp_path / "images" / "5.jpg", validate, data, match="10x9 but 1.jpg is 10x8")
+    raises_naming(tmp_path / "images" / "5.jpg", load_dataset(tmp_path, "train").load_images, match="10x9 but 1.jpg")
+    (tmp_path / "images" / "5.jpg").unlink()
+    raises_naming(tmp_path / "images" / "5.jpg", validate, data, match="not found")
+
+
+def test_detect_errors(tmp_path):
+    raises_naming(tmp_path, detect_format, tmp_path, match="not a dataset")  # empty folder
+    raises_naming(tmp_path / "nope", load_dataset, tmp_path / "nope", match="not found")
+    with pytest.raises(RadfieldError, match="unknown split"):
+        load_dataset(tmp_path, "validation")
+    with pytest.raises(RadfieldError, match="downscale"):
+        load_dataset(tmp_path, "train", downscale=0)
+
+
+def test_missing_image(blobs_copy):
+    (blobs_copy / "train" / "r_2.png").unlink()
+    raises_naming(blobs_copy / "train" / "r_2", load_dataset, blobs_copy, "train", match="frames[2].file_path")
+    load_dataset(blobs_copy, "test")  # other splits unaffected
+
+
+def test_unreadable_and_truncated_images(blobs_copy):
+    data = load_dataset(blobs_copy, "train")
+    bad = blobs_copy / "train" / "r_1.png"
+    bad.write_bytes(b"not an image")
+    raises_naming(bad, validate, data)
+    raises_naming(bad, data.load_image, 1)
+    truncated = blobs_copy / "train" / "r_3.png"
+    truncated.write_bytes(truncated.read_bytes()[:200])
+    raises_naming(truncated, data.load_image, 3)
+
+
+def test_size_mismatch(blobs_copy):
+    write_image(blobs_copy / "test" / "r_1.png", np.zeros((40, 48, 4), dtype=np.float32))
+    data = load_dataset(blobs_copy, "test")
+    raises_naming(blobs_copy / "test" / "r_1.png", validate, data, match="48x40 but its camera is 48x48")
+    raises_naming(blobs_copy / "test" / "r_1.png", data.load_image, 1)
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda m: "{", "invalid JSON"),
+        (lambda m: {k: v for k, v in m.items() if k != "frames"}, "missing key 'frames'"),
+        (lambda m: {**m, "camera_angle_x": None}, "missing key 'fl_x' (or 'camera_angle_x')"),
+        (lambda m: {**m, "camera_angle_x": "wide"}, "'camera_angle_x' must be a finite number"),
+        (lambda m: {**m, "frames": [{"file_path": "./test/r_0"}]}, "frames[0] is missing key 'transform_matrix'"),
+        (
+            lambda m: {**m, "frames": [{**m["frames"][0], "transform_matrix": [[1, 2]]}]},
+            "frames[0].transform_matrix must be a 4x4",
+        ),
+        (lambda m: {**m, "frames": [{"transform_matrix": np.eye(4).tolist()}]}, "frames[0] is missing key 'file_path'"),
+        (lambda m: {**m, "frames": []}, "split 'test' has no images"),
+    ],
+)
+def test_bad_json(blobs_copy, edit, match):
+    path = blobs_copy / "transforms_test.json"
+    meta = edit(json.loads(path.read_text()))
+    path.write_text(meta if isinstance(meta, str) else json.dumps(meta))
+    raises_naming(path, load_dataset, blobs_copy, "test", match=match)
