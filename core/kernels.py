@@ -6,8 +6,6 @@ flat batches and `torch.compile` can fuse it into one loop.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat
@@ -37,8 +35,54 @@ def ray_ellipsoid(o_ell: torch.Tensor, d_ell: torch.Tensor) -> tuple[torch.Tenso
 
 
 def sinc(x: torch.Tensor) -> torch.Tensor:
-    """Unnormalised sinc, sin(x)/x (torch.sinc is the normalised sin(πx)/(πx))."""
-    return torch.sinc(x / math.pi)
+    """Unnormalised sinc, sin(x)/x, with its Taylor series near 0 (exact there to rounding, and
+    differentiable: the division never sees x = 0). torch.sinc is the normalised sin(πx)/(πx) and
+    much slower on the CPU."""
+    return _sinc_and_slope(x)[0]
+
+
+def _sinc_and_slope(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """sinc(x) and its derivative (cos x − sinc x)/x, by series for |x| < 1e-3."""
+    small = x.abs() < 1e-3
+    safe = torch.where(small, torch.ones_like(x), x)
+    x2 = x * x
+    value = torch.where(small, 1.0 - x2 / 6.0 + x2 * x2 / 120.0, torch.sin(safe) / safe)
+    slope = torch.where(small, x * (x2 / 30.0 - 1.0 / 3.0), (torch.cos(safe) - value) / safe)
+    return value, slope
+
+
+def _sum_to(grad: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    """Undo broadcasting: sum `grad` over the dimensions where `shape` has size 1."""
+    dims = [i for i, (g, s) in enumerate(zip(grad.shape, shape)) if s == 1 and g != 1]
+    return grad.sum(dims, keepdim=True) if dims else grad
+
+
+class _CosMLPIntegral(torch.autograd.Function):
+    """Σ_k W2_k Δ cos(a_k τ_m + c_k) sinc(a_k Δ / 2) over the last dim (N), with a hand-written
+    backward that recomputes the trigonometry instead of letting autograd store a dozen (…, N)
+    intermediates: it roughly halves the time and memory of training's backward pass."""
+
+    @staticmethod
+    def forward(ctx, a, c, w2, tau_m, delta):
+        d = delta[..., None]
+        ctx.save_for_backward(a, c, w2, tau_m, delta)
+        return (w2 * d * torch.cos(a * tau_m[..., None] + c) * sinc(0.5 * a * d)).sum(-1)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        a, c, w2, tau_m, delta = ctx.saved_tensors
+        d, t, g = delta[..., None], tau_m[..., None], grad[..., None]
+        phase = a * t + c
+        cos_p, sin_p = torch.cos(phase), torch.sin(phase)
+        s, slope = _sinc_and_slope(0.5 * a * d)
+        gw = g * w2
+        g_phase = -gw * d * sin_p * s         # ∂/∂(a τ_m + c)
+        g_x = gw * d * cos_p * slope          # ∂/∂(a Δ / 2)
+        grad_a = g_phase * t + 0.5 * g_x * d
+        grad_tau = (g_phase * a).sum(-1)
+        grad_delta = (gw * cos_p * s + 0.5 * g_x * a).sum(-1)
+        return grad_a, _sum_to(g_phase, c.shape), _sum_to(g * d * cos_p * s, w2.shape), grad_tau, grad_delta
 
 
 def neural_optical_depth(l_in, l_out, hit, a, c, w2, b2, inv_smax) -> torch.Tensor:
@@ -52,8 +96,7 @@ def neural_optical_depth(l_in, l_out, hit, a, c, w2, b2, inv_smax) -> torch.Tens
     """
     delta = torch.clamp_min(l_out - l_in, 0.0) * inv_smax
     tau_m = 0.5 * (l_in + l_out) * inv_smax
-    d = delta[..., None]
-    integral = (w2 * d * torch.cos(a * tau_m[..., None] + c) * sinc(0.5 * a * d)).sum(-1) + b2 * delta
+    integral = _CosMLPIntegral.apply(a, c, w2, tau_m, delta) + b2 * delta
     return torch.where(hit, integral, torch.zeros_like(integral))
 
 

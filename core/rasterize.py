@@ -17,12 +17,11 @@ Pipeline (vectorised torch, no Python loop over pixels or primitives):
 from __future__ import annotations
 
 import math
-import os
 from typing import NamedTuple
 
 import torch
 
-from radfield.core.cameras import Camera, pixel_rays
+from radfield.core.cameras import Camera
 from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, gaussian_alpha, neural_optical_depth, ray_ellipsoid
 from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat
 from radfield.core.sh import sh_to_color
@@ -39,13 +38,11 @@ class Render(NamedTuple):
 
 
 def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1.0, 1.0, 1.0), near: float = 0.01,
-           sh_degree: int | None = None, max_pairs: int = 1 << 20, t_min: float = T_MIN,
-           compiled: bool | None = None) -> Render:
+           sh_degree: int | None = None, max_pairs: int = 1 << 20, t_min: float = T_MIN) -> Render:
     """Render one view. Differentiable w.r.t. every tensor of `prims` (and `background` if a tensor).
 
     sh_degree: use SH bands up to this degree (default: all the model has).
     max_pairs: pixel-primitive pairs evaluated at once; bounds memory, not results.
-    compiled: run the pair kernel through torch.compile (default: env RADFIELD_COMPILE=1).
     """
     device, dtype = prims.means.device, prims.means.dtype
     height, width = camera.height, camera.width
@@ -60,26 +57,21 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
 
     if isinstance(prims, NeuralPrimitives):
         bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
-        dirs, ray_norm = pixel_rays(camera, dtype=dtype, device=device)
-        view = _neural_view(prims, campos)
-        per_pixel = (dirs.reshape(-1, 3), near * ray_norm.reshape(-1))
-        kernel = _neural_pairs
+        view = _neural_view(prims, campos, c2w[:3, :3])
+        kernel = _neural_block
     elif isinstance(prims, Gaussians):
         view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
-        jj, ii = torch.meshgrid(torch.arange(width, device=device, dtype=dtype) + 0.5,
-                                torch.arange(height, device=device, dtype=dtype) + 0.5, indexing="xy")
-        per_pixel = (torch.stack([jj, ii], -1).reshape(-1, 2),)
-        kernel = _gaussian_pairs
+        kernel = _gaussian_block
     else:
         raise TypeError(f"cannot render {type(prims).__name__}")
-    if compiled if compiled is not None else os.environ.get("RADFIELD_COMPILE") == "1":
-        kernel = _compiled(kernel)
+    intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)
 
     ids = torch.nonzero(visible).squeeze(1)
-    ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back
+    ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
     x0, y0, x1, y1 = bounds[ids].unbind(-1)
-    bw, bh = x1 - x0 + 1, y1 - y0 + 1
-    counts = bw * bh
+    bw = x1 - x0 + 1
+    counts = bw * (y1 - y0 + 1)
+    padded = _padded_sizes(counts)
 
     n_pix = height * width
     log_t = torch.zeros(n_pix, device=device, dtype=torch.float64)   # log transmittance, included pairs
@@ -88,17 +80,26 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     acc_depth = torch.zeros(n_pix, device=device, dtype=dtype)
     n_pairs = n_contrib = 0
     for lo, hi in _chunks(counts, max_pairs):
-        prim, pix = _expand_pairs(x0[lo:hi], y0[lo:hi], bw[lo:hi], counts[lo:hi], width)
-        prim = prim + lo
-        keep = ~done[pix]
-        prim, pix = prim[keep], pix[keep]
-        n_pairs += prim.numel()
-        gid = ids[prim]
-        alpha = kernel(gid, pix, *per_pixel, *view)
-        nz = alpha > 0
-        gid, pix, alpha = gid[nz], pix[nz], alpha[nz]
-        order = torch.argsort(pix, stable=True)   # pairs were generated front to back: stable keeps depth order
-        gid, pix, alpha = gid[order], pix[order], alpha[order]
+        # within a depth chunk, primitives of similar footprint are evaluated as dense blocks
+        # (primitive × its bounding-box pixels): parameters broadcast instead of being gathered per pair
+        ranks, pix, alpha = [], [], []
+        for size in torch.unique(padded[lo:hi]).tolist():
+            sel = lo + torch.nonzero(padded[lo:hi] == size).squeeze(1)
+            k = torch.arange(size, device=device)
+            row = y0[sel, None] + k // bw[sel, None]
+            col = x0[sel, None] + k % bw[sel, None]
+            block_pix = torch.where(k < counts[sel, None], row * width + col, -1)   # -1: padding
+            live = (block_pix >= 0) & ~done[block_pix.clamp_min(0)]
+            n_pairs += int(live.sum())
+            gid = ids[sel]
+            block_alpha = kernel(col.to(dtype) + 0.5, row.to(dtype) + 0.5, intrinsics, *(t[gid] for t in view))
+            p, q = torch.nonzero(live & (block_alpha > 0), as_tuple=True)
+            ranks.append(sel[p])
+            pix.append(block_pix[p, q])
+            alpha.append(block_alpha[p, q])
+        ranks, pix, alpha = torch.cat(ranks), torch.cat(pix), torch.cat(alpha)
+        order = torch.argsort(pix * ids.numel() + ranks)               # by pixel, then depth
+        gid, pix, alpha = ids[ranks[order]], pix[order], alpha[order]
         log_t_before, log_1m_alpha = _segmented_log_transmittance(pix, alpha, log_t)
         included = (log_t_before + log_1m_alpha >= math.log(t_min)).detach()
         weight = (alpha * torch.exp(log_t_before).to(dtype)) * included
@@ -120,15 +121,17 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
 
 # --- per-view preparation --------------------------------------------------------------------
 
-def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor) -> tuple:
-    """What depends only on the primitive and the camera centre o, computed once per view:
-    M = S⁻¹Rᵀ, o' = M(o − μ), a-matrix ω0 W1, c_k = ω0 (W1_k·u0 + b1_k) with u0 = (o − μ)/max(s)."""
+def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor, cam_rot: torch.Tensor) -> tuple:
+    """What depends only on the primitive and the camera, computed once per view:
+    M = S⁻¹Rᵀ, o' = M(o − μ), c_k = ω0 (W1_k·u0 + b1_k) with u0 = (o − μ)/max(s); and, because a
+    pair's world direction is d̂ = R_cam d_cam/|d_cam|, the per-pair products M d̂ and ω0 W1 d̂
+    become M R_cam and ω0 W1 R_cam applied to the camera-space pixel direction."""
     m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
     rel = campos - prims.means
     o_ell = (m * rel[:, None, :]).sum(-1)
     w = prims.omega0 * prims.w1
     c = (w * (rel / smax[:, None])[:, None, :]).sum(-1) + prims.omega0 * prims.b1
-    return m, o_ell, w, c, prims.w2, prims.b2, 1.0 / smax
+    return m @ cam_rot, o_ell, w @ cam_rot, c, prims.w2, prims.b2, 1.0 / smax
 
 
 def _neural_bounds(prims: NeuralPrimitives, camera: Camera, w2c, means_cam, near):
@@ -208,28 +211,28 @@ def _gaussian_view(prims: Gaussians, camera: Camera, w2c, means_cam, near):
 
 # --- pair kernels (elementwise over pairs; gathers by index fuse under torch.compile) -----------
 
-def _neural_pairs(prim, pix, dirs, l_near, m, o_ell, w, c, w2, b2, inv_smax):
-    d = dirs[pix]                                        # (Q, 3) unit ray direction d̂
-    d_ell = (m[prim] * d[:, None, :]).sum(-1)            # d' = S⁻¹Rᵀ d̂
-    l_in, l_out, hit = ray_ellipsoid(o_ell[prim], d_ell)
-    l_in = torch.maximum(l_in, l_near[pix])              # camera inside: start at the near plane
-    a = (w[prim] * d[:, None, :]).sum(-1)                # a_k = ω0 W1_k · d̂
-    optical_depth = neural_optical_depth(l_in, l_out, hit, a, c[prim], w2[prim], b2[prim], inv_smax[prim])
+def _camera_directions(u, v, intrinsics):
+    """Unit camera-space directions (P, A, 3) through image points (u, v) (P, A), and the ray
+    distance of the near plane along each."""
+    fx, fy, cx, cy, near = intrinsics.unbind()
+    d = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)
+    norm = torch.linalg.vector_norm(d, dim=-1)
+    return d / norm[..., None], near * norm
+
+
+def _neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax):
+    """α of primitives (P,) over blocks of image points (P, A)."""
+    d, l_near = _camera_directions(u, v, intrinsics)
+    d_ell = d @ m_cam.transpose(1, 2)                    # d' = S⁻¹Rᵀ d̂
+    l_in, l_out, hit = ray_ellipsoid(o_ell[:, None, :], d_ell)
+    l_in = torch.maximum(l_in, l_near)                   # camera inside: start at the near plane
+    a = d @ w_cam.transpose(1, 2)                        # a_k = ω0 W1_k · d̂
+    optical_depth = neural_optical_depth(l_in, l_out, hit, a, c[:, None, :], w2[:, None, :], b2[:, None], inv_smax[:, None])
     return alpha_from_optical_depth(optical_depth)
 
 
-def _gaussian_pairs(prim, pix, pix_xy, mean2d, conic, opacity):
-    delta = pix_xy[pix] - mean2d[prim]
-    return gaussian_alpha(delta[:, 0], delta[:, 1], conic[prim], opacity[prim])
-
-
-_COMPILED = {}
-
-
-def _compiled(fn):
-    if fn not in _COMPILED:
-        _COMPILED[fn] = torch.compile(fn, dynamic=True)
-    return _COMPILED[fn]
+def _gaussian_block(u, v, intrinsics, mean2d, conic, opacity):
+    return gaussian_alpha(u - mean2d[:, None, 0], v - mean2d[:, None, 1], conic[:, None, :], opacity[:, None])
 
 
 # --- binning and compositing helpers ---------------------------------------------------------
@@ -249,14 +252,15 @@ def _chunks(counts: torch.Tensor, max_pairs: int):
     return out
 
 
-def _expand_pairs(x0, y0, bw, counts, width):
-    """Flat (primitive index, pixel index) pairs covering each primitive's pixel bounds, in primitive order."""
-    prim = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
-    start = torch.cumsum(counts, 0) - counts
-    local = torch.arange(prim.numel(), device=counts.device) - start[prim]
-    row = y0[prim] + local // bw[prim]
-    col = x0[prim] + local % bw[prim]
-    return prim, row * width + col
+def _padded_sizes(counts: torch.Tensor) -> torch.Tensor:
+    """Block size of each primitive: its pixel count rounded up a ×1.25 ladder (≤ 25% padding,
+    and few distinct sizes, so few blocks)."""
+    top = max(int(counts.max()) if counts.numel() else 1, 1)
+    ladder = [4]
+    while ladder[-1] < top:
+        ladder.append(max(ladder[-1] + 1, int(ladder[-1] * 1.25)))
+    ladder = torch.tensor(ladder, device=counts.device)
+    return ladder[torch.searchsorted(ladder, counts)]
 
 
 def _segmented_log_transmittance(pix: torch.Tensor, alpha: torch.Tensor, log_t: torch.Tensor):

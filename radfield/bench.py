@@ -55,18 +55,18 @@ class Timing:
     contributing: float  # pairs that added to a pixel
 
 
-def time_model(prims, cams, repeats: int, device: str, compiled: bool) -> Timing:
+def time_model(prims, cams, repeats: int, device: str) -> Timing:
     prims = prims.to(device)
-    for cam in cams[:1]:  # warm-up (and compile, when asked)
-        render(prims, cam, compiled=compiled)
+    for cam in cams[:1]:  # warm-up
+        render(prims, cam)
         p = prims.map(lambda t: t.clone().requires_grad_(True))
-        render(p, cam, compiled=compiled).color.sum().backward()
+        render(p, cam).color.sum().backward()
     fwd, pairs, contrib = [], [], []
     with torch.no_grad():
         for _ in range(repeats):
             for cam in cams:
                 t = time.perf_counter()
-                out = render(prims, cam, compiled=compiled)
+                out = render(prims, cam)
                 fwd.append(time.perf_counter() - t)
                 pairs.append(out.meta["pairs"])
                 contrib.append(out.meta["contributing_pairs"])
@@ -75,7 +75,7 @@ def time_model(prims, cams, repeats: int, device: str, compiled: bool) -> Timing
     for _ in range(repeats):
         for cam in cams:
             t = time.perf_counter()
-            out = render(params, cam, compiled=compiled)
+            out = render(params, cam)
             (out.color - 0.5).abs().mean().backward()
             bwd.append(time.perf_counter() - t)
     mean = lambda xs: sum(xs) / len(xs)
@@ -83,14 +83,14 @@ def time_model(prims, cams, repeats: int, device: str, compiled: bool) -> Timing
 
 
 def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int = 4, repeats: int = 2,
-              device: str = "cpu", compiled: bool = False, profile: bool = False, echo=print) -> dict:
+              device: str = "cpu", profile: bool = False, echo=print) -> dict:
     neural, gauss = bench_scene(num)
     cams = bench_cameras(views, width, height)
     echo(f"bench-render: {num} primitives, {views} views of {width}x{height}, {repeats} repeats, "
-         f"device={device}, threads={torch.get_num_threads()}, kernel={'compiled' if compiled else 'eager'}")
+         f"device={device}, threads={torch.get_num_threads()}")
     results = {}
     for name, prims in (("neural", neural), ("gaussian", gauss)):
-        t = time_model(prims, cams, repeats, device, compiled)
+        t = time_model(prims, cams, repeats, device)
         results[name] = t
         echo(f"  {name:9s} forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame   "
              f"{t.pairs / 1e6:.2f} M pairs/frame ({t.contributing / 1e6:.2f} M contributing)   "
@@ -103,7 +103,7 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
         for name, prims in (("neural", neural), ("gaussian", gauss)):
             params = prims.to(device).map(lambda t: t.clone().requires_grad_(True))
             with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
-                render(params, cams[0], compiled=compiled).color.sum().backward()
+                render(params, cams[0]).color.sum().backward()
             echo(f"\n  top costs, {name}, one forward+backward:")
             echo(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
     return {k: vars(v) for k, v in results.items()}
