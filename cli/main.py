@@ -73,6 +73,93 @@ def resolve_model(path: Path) -> Path:
 
 
 @app.command()
+def reconstruct(
+    input_path: Annotated[Path, typer.Argument(metavar="INPUT", help="Dataset folder: NeRF-synthetic, nerfstudio/instant-ngp, COLMAP (or a folder of photos).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Run directory (created). Run again on it to resume or to redo only what changed.")],
+    primitive: Annotated[Optional[str], typer.Option(help="neural (splattable neural primitives) or gaussian (3DGS baseline). (config key train.primitive)")] = None,
+    max_primitives: Annotated[Optional[int], typer.Option(help="Hard primitive budget, initialised exactly (the paper's memory-budget protocol). (config key train.max_primitives)")] = None,
+    iterations: Annotated[Optional[int], typer.Option(help="Optimisation steps. (config key train.iterations)")] = None,
+    downscale: Annotated[Optional[int], typer.Option(help="Integer image downscale factor. (config key data.downscale)")] = None,
+    background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] for RGBA images and renders. (config key data.background)")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Random seed. (config key seed)")] = None,
+    device: Annotated[Optional[str], typer.Option(help="cpu or cuda[:N]; not part of the cache key. (config key device)")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="YAML file overriding pipeline.yaml (a partial copy).")] = None,
+    sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Override one config key, e.g. --set train.iterations=500 (repeatable; wins over the flags).")] = None,
+    force: Annotated[Optional[list[str]], typer.Option("--force", metavar="STAGE", help="Re-run this stage even if cached (repeatable).")] = None,
+    from_stage: Annotated[Optional[str], typer.Option("--from", metavar="STAGE", help="Re-run this stage and every later one.")] = None,
+    until_stage: Annotated[Optional[str], typer.Option("--until", metavar="STAGE", help="Stop after this stage.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output (for CI); the summary is still printed.")] = False,
+):
+    """Reconstruct a radiance field from a dataset and print its held-out PSNR.
+
+    Runs the cached stages data → sfm → envelope → tetra → init → train → eval in the run
+    directory; a stage re-runs only when its inputs or its config keys changed."""
+    from radfield.stages import registry
+    from radfield.stages.config import load_config
+    from radfield.stages.info import run_info
+    from radfield.stages.pipeline import run_pipeline
+
+    flags = {"train.primitive": primitive, "train.max_primitives": max_primitives, "train.iterations": iterations,
+             "data.downscale": downscale, "seed": seed, "device": device,
+             "data.background": list(parse_background(background)) if background is not None else None}
+    cfg = load_config(config, sets or [], {key: value for key, value in flags.items() if value is not None})
+    resolve_device(cfg["device"])
+    registry.check(cfg, input_path)
+    status = run_pipeline(registry.stages(), output, cfg, input_path=input_path, force=force or [],
+                          from_stage=from_stage, until_stage=until_stage, quiet=quiet,
+                          log=lambda line: typer.echo(line, err=True))
+    typer.echo("stages: " + ", ".join(f"{name} {outcome}" for name, outcome in status.items()))
+    info = run_info(output)
+    evaluation = info["stages"].get("eval", {})
+    if status.get("eval") in ("ran", "cached") and "psnr" in evaluation:
+        split = cfg["eval"]["split"]
+        what = "held-out" if split != "train" else "training-view"
+        typer.echo(f"{what} PSNR {evaluation['psnr']:.2f} dB, SSIM {evaluation['ssim']:.4f} "
+                   f"({evaluation['views']} {split} views); report {output / 'eval'}")
+    if info["model"]:
+        typer.echo(f"model: {info['model']}")
+
+
+@app.command("eval")
+def eval_command(
+    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (its final model) or a .safetensors model file.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created): metrics.json and renders/.")],
+    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth (default: the run's input).")] = None,
+    split: Annotated[str, typer.Option(help="train, val or test.")] = "test",
+    downscale: Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")] = None,
+    background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+):
+    """Measure a trained model on a dataset split: PSNR, SSIM, FPS.
+
+    Writes OUTPUT/metrics.json (per view and mean) and the renders to OUTPUT/renders/."""
+    from radfield.stages.evaluate import eval_report
+
+    options = {"data.downscale": downscale,
+               "data.background": list(parse_background(background)) if background is not None else None}
+    metrics = eval_report(target, dataset, split, output, options={k: v for k, v in options.items() if v is not None},
+                          device=str(resolve_device(device)), quiet=quiet)
+    typer.echo(f"{metrics['split']}: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, "
+               f"{metrics['fps']:.1f} fps over {metrics['views']} views ({metrics['num_primitives']} "
+               f"{metrics['kind']} primitives); report in {output}")
+
+
+@app.command()
+def info(
+    run_dir: Annotated[Path, typer.Argument(metavar="RUN", help="A run directory.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Machine-readable JSON (a stable interface).")] = False,
+):
+    """Stages done, their timings and key figures, and the main artifacts of a run."""
+    import json
+
+    from radfield.stages.info import format_info, run_info
+
+    summary = run_info(run_dir)
+    typer.echo(json.dumps(summary, indent=2) if as_json else format_info(summary).rstrip())
+
+
+@app.command()
 def render(
     model_or_run: Annotated[Path, typer.Argument(help="A .safetensors model file, or a run directory (its final model).")],
     dataset: Annotated[Path, typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP).")],
@@ -81,7 +168,6 @@ def render(
     background: Annotated[str, typer.Option(help="Background colour R,G,B in [0, 1].")] = "1,1,1",
     downscale: Annotated[int, typer.Option(help="Render at 1/K of the dataset's resolution.")] = 1,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    compiled: Annotated[bool, typer.Option("--compiled/--eager", help="torch.compile the pair kernels (faster after a ~1 min first compile, cached on disk).")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ):
     """Render every camera of a dataset split to OUTPUT/<frame name>.png."""
@@ -106,7 +192,7 @@ def render(
         for view, cam in zip(data.views, cameras):
             start = time.perf_counter()
             with torch.no_grad():
-                out = render_view(model, cam, background=bg, compiled=compiled)
+                out = render_view(model, cam, background=bg)
             seconds.append(time.perf_counter() - start)
             write_image(output / f"{view.image_path.stem}.png", out.color.clamp(0, 1).cpu().numpy())
             progress.advance(task)
@@ -122,7 +208,6 @@ def bench_render(
     views: Annotated[int, typer.Option(help="Cameras on an orbit.")] = 4,
     repeats: Annotated[int, typer.Option(help="Timed passes over the cameras.")] = 2,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    compiled: Annotated[bool, typer.Option("--compiled/--eager", help="torch.compile the pair kernels (compile time excluded).")] = False,
     profile: Annotated[bool, typer.Option(help="Also print the torch profiler's top costs.")] = False,
 ):
     """Benchmark (not a test): forward and forward+backward time of neural primitives and 3D
@@ -131,7 +216,23 @@ def bench_render(
 
     if min(primitives, width, height, views, repeats) < 1:
         raise RadfieldError("--primitives, --width, --height, --views and --repeats must be positive")
-    run_bench(primitives, width, height, views, repeats, str(resolve_device(device)), compiled, profile, echo=typer.echo)
+    run_bench(primitives, width, height, views, repeats, str(resolve_device(device)), profile, echo=typer.echo)
+
+
+@app.command("demo-scene")
+def demo_scene(
+    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods) or checker (high-frequency texture).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create (must not exist or be empty).")],
+    train_views: Annotated[int, typer.Option(help="Training views.")] = 40,
+    test_views: Annotated[int, typer.Option(help="Held-out test views.")] = 8,
+    size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
+    seed: Annotated[int, typer.Option(help="Turns the camera spiral.")] = 0,
+):
+    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply)."""
+    from radfield.datasets.synthetic import generate_scene
+
+    generate_scene(name, output, n_train=train_views, n_test=test_views, size=size, seed=seed)
+    typer.echo(f"wrote {name}: {train_views} train + {test_views} test views of {size}x{size} to {output}")
 
 
 def _progress(quiet: bool):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import save_file
+from safetensors.torch import save
 
 from radfield.core.errors import RadfieldError
 from radfield.core.primitives import Gaussians, NeuralPrimitives
@@ -43,13 +43,23 @@ def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dic
     meta.update({k: v if isinstance(v, str) else json.dumps(v) for k, v in (extra or {}).items()})
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
     try:
-        save_file(tensors, tmp, metadata=meta)
+        with os.fdopen(fd, "wb") as f:
+            f.write(_canonical_header(save(tensors, metadata=meta)))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _canonical_header(blob: bytes) -> bytes:
+    """The same safetensors file with its JSON header keys sorted. safetensors writes metadata in
+    hash-map order, so equal models would give different bytes, and the stage cache (which hashes
+    file contents) would see a change that is not there."""
+    n = int.from_bytes(blob[:8], "little")
+    header = json.dumps(json.loads(blob[8 : 8 + n]), separators=(",", ":"), sort_keys=True).encode()
+    header += b" " * (-len(header) % 8)  # the format pads the header with spaces to 8-byte alignment
+    return len(header).to_bytes(8, "little") + header + blob[8 + n :]
 
 
 def read_metadata(path: str | Path) -> dict[str, str]:

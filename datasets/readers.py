@@ -16,7 +16,8 @@ from radfield.datasets.images import image_size
 from radfield.datasets.transforms import read_nerf_synthetic, read_nerfstudio
 from radfield.datasets.views import FORMATS, SPLITS, Dataset, Points, View, llff_split
 
-__all__ = ["Dataset", "Points", "View", "FORMATS", "SPLITS", "detect_format", "load_dataset", "validate", "list_images"]
+__all__ = ["Dataset", "Points", "View", "FORMATS", "SPLITS", "detect_format", "load_dataset", "validate", "list_images",
+           "photo_folder", "pose_source"]
 
 # Photo formats picked up from a plain folder (OIIO reads them all).
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp"}
@@ -29,6 +30,23 @@ def list_images(folder: Path) -> list[Path]:
     return sorted(
         p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()
     )
+
+
+def photo_folder(path: Path) -> Path:
+    """Where the photos of an unposed dataset are: its images/ subfolder when that holds any, else itself."""
+    return path / "images" if list_images(path / "images") else path
+
+
+def pose_source(path: Path, fmt: str) -> Path:
+    """The file (or COLMAP model folder) the poses of a posed dataset come from."""
+    if fmt == "nerf_synthetic":
+        return next(path / f"transforms_{s}.json" for s in ("train", "val", "test")
+                    if (path / f"transforms_{s}.json").is_file())
+    if fmt == "nerfstudio":
+        return path if path.is_file() else path / "transforms.json"
+    if fmt == "colmap":
+        return find_model(path)
+    raise ValueError(f"{fmt} datasets have no poses")
 
 
 def detect_format(path: str | Path) -> str:
@@ -78,7 +96,7 @@ def load_dataset(
     elif fmt == "colmap":
         (views, points), source = read_colmap(path, split), find_model(path)
     else:
-        source = path / "images" if list_images(path / "images") else path
+        source = photo_folder(path)
         views = [View(p, None) for p in llff_split(list_images(source), split, source)]
     if not views:
         raise RadfieldError(f"{source}: split '{split}' has no images")

@@ -18,7 +18,7 @@ import json
 import os
 import re
 import secrets
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,13 @@ NULLABLE: dict[str, type] = {"train.max_primitives": int}
 SELECTIONS: frozenset[str] = frozenset({"stages"})
 # Keys that only take one of a few values.
 CHOICES: dict[str, tuple[str, ...]] = {
+    # COLMAP's models that undistort to a pinhole camera
+    "sfm.camera_model": ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+                         "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE"),
+    "envelope.source": ("auto", "points", "mesh", "hull"),
+    "envelope.method": ("auto", "poisson", "ball_pivoting", "alpha", "convex"),
     "train.primitive": ("neural", "gaussian"),
+    "init.source": ("auto", "mesh", "points", "random"),
     "eval.split": ("train", "val", "test"),
 }
 
@@ -150,6 +156,16 @@ def section(config: Mapping[str, Any], keys: str | Iterable[str]) -> dict[str, A
             target = target.setdefault(part, {})
         target[parts[-1]] = copy.deepcopy(node[parts[-1]])
     return out
+
+
+def require(config: Mapping[str, Any], key: str, ok: Callable[[Any], bool], what: str) -> None:
+    """A range check a type cannot express: RadfieldError naming the dotted `key` unless
+    `ok(value)`, e.g. require(cfg, "sfm.max_image_size", lambda n: n >= 1, "at least 1")."""
+    value: Any = config
+    for part in key.split("."):
+        value = value[part]
+    if not ok(value):
+        raise RadfieldError(f"config key {key} must be {what}, got {_show(value)}")
 
 
 def save_resolved(config: Mapping[str, Any], path: Path) -> None:

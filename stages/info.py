@@ -6,6 +6,9 @@ The JSON of `run_info` is a stable interface (scripts and the README rely on it)
       "run": "/abs/path/RUN",
       "input": "/abs/path/DATASET" | null,       # the INPUT the run was made from
       "model": "/abs/path/RUN/train/model.safetensors" | null,   # the final model, once trained
+      "normalization": "/abs/path/RUN/sfm/colmap/normalization.json" | null,  # runs made from photos:
+                                                  # x = scale * (x_sfm - center) maps COLMAP's frame to the
+                                                  # run's (the frame of every artifact and model)
       "stages": {                                 # in pipeline order
         "<stage>": {
           "done": true | false,                   # finished (its manifest exists)
@@ -13,9 +16,10 @@ The JSON of `run_info` is a stable interface (scripts and the README rely on it)
           "applicable": true | false | null,      # false: nothing to do for this input; null: never run
           "reason": "...",                        # only when applicable is false
           ...figures                              # the stage's own key figures, e.g.
-        }                                         #   data: images; train: primitives, params,
-      }                                           #   iterations, train_psnr
-    }
+        }                                         #   sfm: registered_images, total_images, points,
+      }                                           #   reprojection_error; data: images; envelope: faces;
+    }                                             #   tetra: tets, vertices; train: primitives, params,
+                                                  #   iterations, train_psnr
 
 Keys are only ever added, never renamed or removed. A stage shown as done may be stale if the
 config changed since (`radfield reconstruct` on the run brings it up to date).
@@ -45,11 +49,28 @@ from radfield.stages.pipeline import (
 
 MODEL_STAGE = "train"  # the stage that writes the final model
 MODEL_FILE = "model.safetensors"  # its file name inside RUN/train/ (the train stage's output)
+SFM_STAGE = "sfm"  # the stage that poses a folder of photos
+SFM_DATASET = "colmap"  # its output: a posed COLMAP dataset folder inside RUN/sfm/
+NORMALIZATION_FILE = "normalization.json"  # inside that folder: how its frame relates to COLMAP's
 
 
 def model_path(run_dir: Path) -> Path:
     """Where the final model of a run lives (whether or not it exists yet)."""
     return Path(run_dir) / MODEL_STAGE / MODEL_FILE
+
+
+def normalization_path(run_dir: Path) -> Path:
+    """Where the SfM normalisation of a run made from photos lives (whether or not it exists)."""
+    return Path(run_dir) / SFM_STAGE / SFM_DATASET / NORMALIZATION_FILE
+
+
+def run_dataset(run_dir: Path) -> Path | None:
+    """The posed dataset a run trained on: the SfM output for photos, else the run's input."""
+    posed = Path(run_dir) / SFM_STAGE / SFM_DATASET
+    if posed.is_dir():
+        return posed
+    source = read_marker(run_dir).get("input")
+    return None if source is None else Path(source)
 
 
 def run_info(run_dir: Path) -> dict[str, Any]:
@@ -72,11 +93,12 @@ def run_info(run_dir: Path) -> dict[str, Any]:
             entry["reason"] = manifest.get("reason")
         entry.update(manifest.get("figures") or {})
         stages[name] = entry
-    model = model_path(run_dir)
+    model, normalization = model_path(run_dir), normalization_path(run_dir)
     return {
         "run": str(run_dir.resolve()),
         "input": read_marker(run_dir).get("input"),
         "model": str(model.resolve()) if model.is_file() else None,
+        "normalization": str(normalization.resolve()) if normalization.is_file() else None,
         "stages": stages,
     }
 
@@ -96,6 +118,8 @@ def format_info(info: dict[str, Any]) -> str:
     console.print(table)
     console.print(f"input: {info['input'] or '-'}")
     console.print(f"model: {info['model'] or '- (not trained yet)'}")
+    if info["normalization"]:
+        console.print(f"normalization (photos -> run frame): {info['normalization']}")
     return buffer.getvalue()
 
 

@@ -87,3 +87,14 @@ def test_gaussian_schema(tmp_path):
     with pytest.raises(RadfieldError, match=r"missing tensors \['opacities'\] for kind=gaussian"):
         load_model(tmp_path / "g.safetensors")
     assert isinstance(random_gaussians(1), Gaussians)
+
+
+def test_equal_models_give_equal_bytes(tmp_path):
+    """The stage cache hashes file contents: saving the same model twice must give the same bytes
+    (safetensors alone writes its metadata in hash-map order)."""
+    prims = random_neural(4, sh_degree=1)
+    blobs = set()
+    for i in range(4):
+        save_model(tmp_path / f"m{i}.safetensors", prims, extra={"a": "1", "b": "2", "c": "3"})
+        blobs.add((tmp_path / f"m{i}.safetensors").read_bytes())
+    assert len(blobs) == 1

@@ -1,0 +1,279 @@
+"""Population control: which primitives to clone, split and prune during training.
+
+Two strategies behind one small interface (after gsplat's strategy/default.py), so the training
+loop knows nothing about the rules:
+
+    strategy.init_state(num, device) -> {name: tensor (P,)}        accumulators, saved in checkpoints
+    strategy.accumulate(state, params, grads, camera, step)         after each view's backward pass
+    strategy.refine(state, params, optimizer, step, generator)      after each optimiser step
+
+- `NeuralStrategy` (Splat the Net §3.3, appendix A, and the authors' code): the densification
+  signal is the gradient of each primitive's density MLP, ‖∇W1‖ + ‖∇b1‖ + ‖∇W2‖ + |∇b2|, averaged
+  over the views in which the primitive was visible. Above `grad_threshold` a primitive is cloned
+  (exact copy) when small (max(s) ≤ grow_scale · extent) or split when large (two children drawn
+  uniformly inside its bounding ellipsoid, scales / 1.6). A visible primitive whose mean gradient
+  stays below `prune_threshold` is pruned, as is one larger than prune_scale · extent, or one whose
+  density can never reach the renderer's α threshold. No opacity reset.
+- `GaussianStrategy` (3DGS adaptive density control): the signal is the screen-space gradient of
+  the projected mean, in NDC units as 3DGS (threshold 2e-4). The renderer does not expose the 2D
+  means, so it is recovered from the 3D mean's gradient: in camera space ∂u/∂x = fx/z, hence
+  ∂L/∂u ≈ (z/fx) ∂L/∂x_cam and ∂L/∂ndc_x = (W/2) ∂L/∂u (likewise for y). This leaves out the part
+  of the gradient that reaches the mean through the projected covariance (small next to the
+  direct term). Clone/split as above (children sampled from N(0, s²), 3DGS); prune opacity
+  < min_opacity, and after the first opacity reset also max(s) > prune_scale · extent; opacities
+  are reset to ≤ 0.01 every `opacity_reset_every` steps. 3DGS's screen-size pruning (radius > 20
+  px) is left out: the renderer does not report radii, and gsplat disables it by default.
+
+Budget (`max_primitives`, the paper's memory-budget protocol): growth never exceeds it; when
+more primitives qualify than there is room for, those with the largest mean gradient grow. When
+the initial population already fills the budget, population control is off altogether (the
+paper "omits primitive densification" in its budget experiments).
+
+Parameters are a dict name -> leaf tensor with P rows (see radfield.core.trainer); every change
+of rows goes through `edit_rows`, which keeps the Adam moments aligned with the rows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from radfield.core.cameras import Camera
+from radfield.core.kernels import ALPHA_MIN
+from radfield.core.primitives import quat_to_rotmat
+
+Params = dict[str, torch.Tensor]
+MLP_NAMES = ("w1", "b1", "w2", "b2")
+SPLIT_CHILDREN = 2
+SPLIT_SHRINK = 1.6            # children's scales are the parent's / (0.8 · 2), as 3DGS
+GAUSSIAN_RADIUS_SIGMAS = 3.0  # a Gaussian's splat reaches 3σ (the renderer's bound)
+RESET_OPACITY = 0.01          # 3DGS opacity reset value
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Refine after each optimiser step that is a multiple of `every` in [start, stop] (steps
+    counted from 1); gradients are accumulated until stop."""
+
+    start: int
+    stop: int
+    every: int
+
+    def accumulating(self, step: int) -> bool:
+        return step <= self.stop
+
+    def refining(self, step: int) -> bool:
+        return self.start <= step <= self.stop and step % self.every == 0
+
+
+class _Strategy:
+    """What both strategies share: accumulators, visibility, budgeted growth, row surgery."""
+
+    grad_names: tuple[str, ...] = ()  # parameters whose gradients `accumulate` reads
+    split_uniform = False             # children inside the ellipsoid (neural) or ~N(0, s²) (3DGS)
+
+    def __init__(self, schedule: Schedule, *, extent: float, near: float, grad_threshold: float,
+                 grow_scale: float, prune_scale: float, max_primitives: int | None, initial_count: int):
+        self.schedule = schedule
+        self.extent = extent
+        self.near = near
+        self.grad_threshold = grad_threshold
+        self.grow_scale = grow_scale
+        self.prune_scale = prune_scale
+        self.max_primitives = max_primitives
+        # a population that starts at the budget is left as it is (paper §4.2)
+        self.enabled = max_primitives is None or initial_count < max_primitives
+
+    def init_state(self, num: int, device) -> dict[str, torch.Tensor]:
+        """grad: summed per-view gradient signal; count: views in which the primitive was visible."""
+        return {"grad": torch.zeros(num, device=device), "count": torch.zeros(num, device=device)}
+
+    @torch.no_grad()
+    def accumulate(self, state: dict, params: Params, grads: Params, camera: Camera, step: int) -> None:
+        """Add one view's gradient signal (grads: that view's gradients of `grad_names`) during
+        optimiser step `step` (counted from 1)."""
+        if not (self.enabled and self.schedule.accumulating(step)):
+            return
+        visible = in_frustum(params["means"], self._radius(params), camera, self.near)
+        state["grad"] += torch.where(visible, self._signal(params, grads, camera), 0.0)
+        state["count"] += visible
+
+    def _grow_and_prune(self, state: dict, params: Params, optimizer, prune: torch.Tensor,
+                        generator: torch.Generator) -> dict[str, int]:
+        """Clone or split the primitives whose mean signal exceeds the threshold (within the
+        budget), drop `prune`, reset the accumulators."""
+        seen = state["count"] > 0
+        mean = state["grad"] / state["count"].clamp_min(1)
+        if bool(prune.all()):
+            prune = torch.zeros_like(prune)  # never empty the scene: nothing would be left to train
+        grow = seen & (mean > self.grad_threshold) & ~prune
+        if self.max_primitives is not None:
+            room = max(self.max_primitives - int((~prune).sum()), 0)  # each growth adds one net primitive
+            if int(grow.sum()) > room:
+                ranked = torch.where(grow, mean, -math.inf)
+                grow = torch.zeros_like(grow)
+                grow[torch.topk(ranked, room).indices] = True
+        split = grow & (self._max_scale(params) > self.grow_scale * self.extent)
+        clone = grow & ~split
+        new_rows = {name: torch.cat([rows[clone], rows[split].repeat(SPLIT_CHILDREN, *[1] * (rows.ndim - 1))])
+                    for name, rows in ((n, p.detach()) for n, p in params.items())}
+        children = self._children(params, split, generator)
+        n_clone = int(clone.sum())
+        for name, value in children.items():
+            new_rows[name][n_clone:] = value
+        edit_rows(params, optimizer, ~prune & ~split, new_rows)
+        state.update(self.init_state(params["means"].shape[0], params["means"].device))
+        return {"cloned": n_clone, "split": int(split.sum()), "pruned": int(prune.sum())}
+
+    def _children(self, params: Params, split: torch.Tensor, generator: torch.Generator) -> Params:
+        """Means and log-scales of SPLIT_CHILDREN children per split primitive, child-major."""
+        means, log_scales = params["means"].detach()[split], params["log_scales"].detach()[split]
+        n = means.shape[0] * SPLIT_CHILDREN
+        if self.split_uniform:  # uniform in the unit ball, then into the ellipsoid B(μ, R, s)
+            direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator), dim=-1)
+            offsets = direction * torch.rand(n, 1, generator=generator) ** (1 / 3)
+        else:
+            offsets = torch.randn(n, 3, generator=generator)
+        offsets = offsets.to(means) * torch.exp(log_scales).repeat(SPLIT_CHILDREN, 1)
+        rot = quat_to_rotmat(params["quats"].detach()[split]).repeat(SPLIT_CHILDREN, 1, 1)
+        return {"means": means.repeat(SPLIT_CHILDREN, 1) + (rot @ offsets[:, :, None])[:, :, 0],
+                "log_scales": log_scales.repeat(SPLIT_CHILDREN, 1) - math.log(SPLIT_SHRINK)}
+
+    def _max_scale(self, params: Params) -> torch.Tensor:
+        return torch.exp(params["log_scales"].detach().amax(-1))
+
+    def _radius(self, params: Params) -> torch.Tensor:
+        return self._max_scale(params)
+
+
+class NeuralStrategy(_Strategy):
+    """Splat the Net's MLP-gradient densification (see the module docstring)."""
+
+    grad_names = MLP_NAMES
+    split_uniform = True
+
+    def __init__(self, schedule: Schedule, *, prune_threshold: float, **kwargs):
+        super().__init__(schedule, **kwargs)
+        self.prune_threshold = prune_threshold
+
+    def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
+        # the authors' statistic: the sum of the per-tensor gradient norms of the MLP
+        return (grads["w1"].flatten(1).norm(dim=-1) + grads["b1"].norm(dim=-1)
+                + grads["w2"].norm(dim=-1) + grads["b2"].abs())
+
+    @torch.no_grad()
+    def refine(self, state: dict, params: Params, optimizer, step: int, generator: torch.Generator) -> dict[str, int]:
+        if not (self.enabled and self.schedule.refining(step)):
+            return {}
+        mean = state["grad"] / state["count"].clamp_min(1)
+        prune = ((state["count"] > 0) & (mean < self.prune_threshold)) \
+            | (self._max_scale(params) > self.prune_scale * self.extent) \
+            | negligible_density(params["w2"].detach(), params["b2"].detach())
+        return self._grow_and_prune(state, params, optimizer, prune, generator)
+
+
+class GaussianStrategy(_Strategy):
+    """3DGS adaptive density control (see the module docstring)."""
+
+    grad_names = ("means",)
+
+    def __init__(self, schedule: Schedule, *, min_opacity: float, opacity_reset_every: int, **kwargs):
+        super().__init__(schedule, **kwargs)
+        self.min_opacity = min_opacity
+        self.opacity_reset_every = opacity_reset_every
+
+    def _radius(self, params: Params) -> torch.Tensor:
+        return GAUSSIAN_RADIUS_SIGMAS * self._max_scale(params)
+
+    def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
+        w2c = camera.w2c.to(params["means"])
+        depth = params["means"].detach() @ w2c[2, :3] + w2c[2, 3]
+        grad_cam = grads["means"] @ w2c[:3, :3].T
+        ndc_x = grad_cam[:, 0] * depth / camera.fx * (camera.width / 2)
+        ndc_y = grad_cam[:, 1] * depth / camera.fy * (camera.height / 2)
+        return torch.hypot(ndc_x, ndc_y)
+
+    @torch.no_grad()
+    def refine(self, state: dict, params: Params, optimizer, step: int, generator: torch.Generator) -> dict[str, int]:
+        if not (self.enabled and self.schedule.accumulating(step)):
+            return {}
+        report = {}
+        if self.schedule.refining(step):
+            prune = torch.sigmoid(params["opacities"].detach()) < self.min_opacity
+            if step > self.opacity_reset_every:
+                prune |= self._max_scale(params) > self.prune_scale * self.extent
+            report = self._grow_and_prune(state, params, optimizer, prune, generator)
+        if step % self.opacity_reset_every == 0:
+            ceiling = math.log(RESET_OPACITY / (1 - RESET_OPACITY))
+            params["opacities"].clamp_(max=ceiling)
+            reset_moments(optimizer, "opacities")
+            report["opacity_reset"] = 1
+        return report
+
+
+def make_strategy(kind: str, densify: dict, *, extent: float, near: float, max_primitives: int | None,
+                  initial_count: int) -> _Strategy:
+    """The strategy for primitive `kind` ("neural" | "gaussian") from the train.densify config."""
+    schedule = Schedule(densify["start"], densify["stop"], densify["every"])
+    common = dict(extent=extent, near=near, grow_scale=densify["grow_scale"], max_primitives=max_primitives,
+                  initial_count=initial_count)
+    if kind == "neural":
+        return NeuralStrategy(schedule, grad_threshold=densify["grad_threshold"], prune_scale=densify["prune_scale"],
+                              prune_threshold=densify["prune_threshold"], **common)
+    gaussian = densify["gaussian"]
+    return GaussianStrategy(schedule, grad_threshold=gaussian["grad_threshold"], prune_scale=gaussian["prune_scale"],
+                            min_opacity=gaussian["min_opacity"], opacity_reset_every=gaussian["opacity_reset_every"],
+                            **common)
+
+
+# --- geometry tests --------------------------------------------------------------------------
+
+def in_frustum(means: torch.Tensor, radius: torch.Tensor, camera: Camera, near: float) -> torch.Tensor:
+    """Whether the sphere of `radius` (P,) around each mean (P, 3) meets the camera's view
+    frustum (beyond the near plane, inside the four side planes). Conservative: a sphere that
+    only touches a frustum corner region counts as visible."""
+    w2c = camera.w2c.to(means)
+    p = means.detach() @ w2c[:3, :3].T + w2c[:3, 3]
+    # inward normals of the side planes through the camera centre: u ≥ 0, u ≤ W, v ≥ 0, v ≤ H
+    normals = torch.tensor([[camera.fx, 0.0, camera.cx], [-camera.fx, 0.0, camera.width - camera.cx],
+                            [0.0, camera.fy, camera.cy], [0.0, -camera.fy, camera.height - camera.cy]]).to(means)
+    normals = torch.nn.functional.normalize(normals, dim=-1)
+    inside = (p @ normals.T >= -radius[:, None]).all(-1)
+    return inside & (p[:, 2] + radius > near)
+
+
+def negligible_density(w2: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:
+    """Neural primitives (P,) that can never reach the renderer's α threshold: σ ≤ ‖W2‖₁ + b2
+    everywhere (paper eq. 6) and a chord is at most 2 in units of max(s), so I ≤ 2 max(0, ‖W2‖₁ + b2)."""
+    return 2.0 * (w2.abs().sum(-1) + b2) < -math.log1p(-ALPHA_MIN)
+
+
+# --- optimiser-state surgery -----------------------------------------------------------------
+
+def edit_rows(params: Params, optimizer: torch.optim.Optimizer, keep: torch.Tensor, new_rows: Params) -> None:
+    """Replace every parameter by cat(param[keep], new_rows[name]) as a fresh leaf tensor, with
+    its Adam moments edited alike (kept rows keep theirs, new rows start at zero).
+    Needs one parameter per optimiser group, with the group's "name" a key of params."""
+    for group in optimizer.param_groups:
+        name = group["name"]
+        old = group["params"][0]
+        new = torch.cat([old.detach()[keep], new_rows[name].to(old)]).requires_grad_(old.requires_grad)
+        state = optimizer.state.pop(old, None)
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                state[key] = torch.cat([state[key][keep], torch.zeros_like(new_rows[name], dtype=state[key].dtype)])
+            optimizer.state[new] = state
+        group["params"][0] = new
+        params[name] = new
+
+
+def reset_moments(optimizer: torch.optim.Optimizer, name: str) -> None:
+    """Zero the Adam moments of one parameter group (after its values were reset)."""
+    for group in optimizer.param_groups:
+        if group["name"] == name:
+            state = optimizer.state.get(group["params"][0])
+            for key in ("exp_avg", "exp_avg_sq"):
+                if state and key in state:
+                    state[key].zero_()

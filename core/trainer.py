@@ -1,0 +1,267 @@
+"""The optimisation loop: primitives, cameras, images and the `train` config section in, trained
+primitives out. A pure library: no pipeline, no files except through the checkpoint helpers.
+
+Per step (3DGS's recipe with Splat the Net's regulariser, §3.3 and appendix A):
+    loss = (1 − λ) L1 + λ D-SSIM + λ_aniso · mean std(s / min(s))
+over `batch_views` training views (each view's photometric loss weighted 1/batch_views); Adam
+with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
+`means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
+`sh_increase_every` steps; population control by radfield.core.strategy after the step.
+
+Randomness (view order, split children) is drawn from generators seeded by (seed, step), so a
+run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
+moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
+run bit for bit on the CPU. Checkpoints are safetensors files with a JSON header, never pickles.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import secrets
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
+
+from radfield.core.cameras import Camera
+from radfield.core.errors import RadfieldError
+from radfield.core.losses import anisotropy, photometric, psnr
+from radfield.core.primitives import Gaussians, NeuralPrimitives
+from radfield.core.rasterize import render
+from radfield.core.sh import num_sh_coeffs
+from radfield.core.strategy import make_strategy
+
+CHECKPOINT_FORMAT = "radfield-checkpoint"
+CHECKPOINT_VERSION = 1
+ADAM_EPS = 1e-15  # as 3DGS: the moments of tiny gradients (SH rest, MLP) still move the parameters
+
+GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
+PARAM_NAMES = {"neural": GEOMETRY + ("w1", "b1", "w2", "b2"), "gaussian": GEOMETRY + ("opacities",)}
+LR_KEYS = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}  # param name -> train.lr key, if not its own
+
+_VIEWS, _REFINE = 0, 1  # random streams
+
+
+@dataclass
+class TrainState:
+    """A snapshot of training after `step` optimiser steps.
+
+    params: {name: (P, ...) tensor}, the names of PARAM_NAMES[kind]; SH is split into sh_dc
+    (P, 1, 3) and sh_rest (P, K−1, 3) because they learn at different rates.
+    moments: {name: {"exp_avg", "exp_avg_sq", "step"}}, Adam's state per parameter.
+    strategy: the population-control accumulators {name: (P,)}.
+    """
+
+    step: int
+    kind: str
+    omega0: float | None
+    params: dict[str, torch.Tensor]
+    moments: dict[str, dict[str, torch.Tensor]]
+    strategy: dict[str, torch.Tensor]
+
+    def primitives(self) -> NeuralPrimitives | Gaussians:
+        """The trained primitives (detached), SH bands merged back."""
+        return assemble(self.params, self.kind, self.omega0).map(lambda t: t.detach().clone())
+
+
+def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], train_images: torch.Tensor,
+          cfg: dict, *, background: Sequence[float], extent: float, seed: int, device: str | torch.device = "cpu",
+          near: float = 0.01, max_pairs: int = 1 << 20, start_state: TrainState | None = None,
+          on_step: Callable[[int, dict], None] | None = None,
+          checkpoint: Callable[[TrainState], None] | None = None) -> TrainState:
+    """Optimise `prims` against the views for cfg["iterations"] steps; returns the final state
+    (`.primitives()` is the trained model).
+
+    prims: the initial primitives (also when resuming: population control needs their count).
+    train_images: (N, H, W, 3) float in [0, 1], matching train_cameras.
+    cfg: the `train` config section (pipeline.yaml documents every key).
+    extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
+    start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
+    on_step(step, info): after every step; info has loss, psnr (of this step's views), primitives
+    and what population control did.
+    checkpoint(state): every cfg["checkpoint_every"] steps before the last.
+    """
+    if len(train_cameras) != len(train_images) or not len(train_cameras):
+        raise ValueError(f"training needs one image per camera, got {len(train_cameras)} cameras "
+                         f"and {len(train_images)} images")
+    max_primitives = cfg["max_primitives"]
+    if max_primitives is not None and len(prims) > max_primitives:
+        raise ValueError(f"{len(prims)} initial primitives exceed train.max_primitives={max_primitives}")
+    device = torch.device(device)
+    images = train_images.to(device=device, dtype=torch.float32)
+    state = start_state or initial_state(prims, cfg["sh_degree"])
+    params = {name: state.params[name].detach().to(device).clone().requires_grad_(True)
+              for name in PARAM_NAMES[state.kind]}
+    optimizer = make_optimizer(params, cfg["lr"], extent)
+    _load_moments(optimizer, state.moments, device)
+    strategy = make_strategy(state.kind, cfg["densify"], extent=extent, near=near, max_primitives=max_primitives,
+                             initial_count=len(prims))
+    accumulators = {k: v.to(device) for k, v in state.strategy.items()} or strategy.init_state(len(prims), device)
+    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
+    iterations, batch = cfg["iterations"], cfg["batch_views"]
+    means_lr = cfg["lr"]["means"] * extent
+
+    for step in range(state.step, iterations):
+        optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
+        degree = min(cfg["sh_degree"], step // cfg["sh_increase_every"])
+        if cfg["lambda_aniso"] > 0:
+            (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
+        loss_sum = psnr_sum = 0.0
+        for view in views_for_step(seed, step, batch, len(train_cameras)):
+            before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
+            out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=bg, near=near,
+                         sh_degree=degree, max_pairs=max_pairs)
+            loss = photometric(out.color, images[view], cfg["lambda_dssim"])
+            (loss / batch).backward()
+            # this view's own gradients (unscaled), what the densification statistics measure
+            grads = {n: (params[n].grad - before[n]) * batch for n in strategy.grad_names}
+            strategy.accumulate(accumulators, params, grads, train_cameras[view], step + 1)
+            loss_sum += float(loss.detach())
+            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), images[view]))
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
+        if on_step is not None:
+            on_step(step + 1, {"loss": loss_sum / batch, "psnr": psnr_sum / batch,
+                               "primitives": params["means"].shape[0], **refined})
+        if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
+            checkpoint(snapshot(step + 1, state, params, optimizer, accumulators))
+    return snapshot(max(iterations, state.step), state, params, optimizer, accumulators)
+
+
+# --- parameters and optimiser ----------------------------------------------------------------
+
+def initial_state(prims: NeuralPrimitives | Gaussians, sh_degree: int) -> TrainState:
+    """Step 0: the parameters of prims, SH padded with zeros (or cut) to `sh_degree`."""
+    k = num_sh_coeffs(sh_degree)
+    sh = prims.sh[:, :k]
+    sh = torch.cat([sh, sh.new_zeros(len(prims), k - sh.shape[1], 3)], 1)
+    tensors = prims.tensors()
+    params = {name: sh[:, :1] if name == "sh_dc" else sh[:, 1:] if name == "sh_rest" else tensors[name]
+              for name in PARAM_NAMES[prims.kind]}
+    omega0 = prims.omega0 if isinstance(prims, NeuralPrimitives) else None
+    return TrainState(0, prims.kind, omega0, {n: t.detach().clone() for n, t in params.items()}, {}, {})
+
+
+def assemble(params: dict[str, torch.Tensor], kind: str, omega0: float | None) -> NeuralPrimitives | Gaussians:
+    """Primitives built from the parameter tensors (differentiable: no copies)."""
+    tensors = {n: t for n, t in params.items() if n not in ("sh_dc", "sh_rest")}
+    sh = torch.cat([params["sh_dc"], params["sh_rest"]], 1)
+    return NeuralPrimitives(**tensors, sh=sh, omega0=omega0) if kind == "neural" else Gaussians(**tensors, sh=sh)
+
+
+def make_optimizer(params: dict[str, torch.Tensor], lr: dict, extent: float) -> torch.optim.Adam:
+    """Adam with one named group per parameter, in the order of `params` (means first: the loop
+    schedules the rate of group 0)."""
+    groups = [{"params": [t], "name": n, "lr": lr[LR_KEYS.get(n, n)] * (extent if n == "means" else 1.0)}
+              for n, t in params.items()]
+    return torch.optim.Adam(groups, eps=ADAM_EPS)
+
+
+def decayed(lr: float, final_ratio: float, step: int, iterations: int) -> float:
+    """Exponential decay from lr at step 0 to lr · final_ratio at the last step (3DGS's means schedule)."""
+    t = min(step / max(iterations - 1, 1), 1.0)
+    return lr * final_ratio**t
+
+
+def generator(seed: int, stream: int, index: int) -> torch.Generator:
+    """An independent CPU generator for (seed, stream, index): randomness as a function of the step."""
+    entropy = np.random.SeedSequence([seed, stream, index]).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(entropy[0]) << 32 | int(entropy[1]))
+
+
+def views_for_step(seed: int, step: int, batch: int, num_views: int) -> list[int]:
+    """The training views of a step: the views are walked in a fresh random order every epoch
+    (as 3DGS's viewpoint stack); the batch of step s covers positions s·batch ... s·batch + batch − 1."""
+    out = []
+    for k in range(step * batch, step * batch + batch):
+        epoch, position = divmod(k, num_views)
+        out.append(int(torch.randperm(num_views, generator=generator(seed, _VIEWS, epoch))[position]))
+    return out
+
+
+def snapshot(step: int, state: TrainState, params: dict, optimizer: torch.optim.Adam, accumulators: dict) -> TrainState:
+    """The live training objects as a TrainState (shares tensors; save or clone it before training goes on)."""
+    moments = {}
+    for group in optimizer.param_groups:
+        adam = optimizer.state.get(group["params"][0])
+        if adam:
+            moments[group["name"]] = {k: adam[k] for k in ("exp_avg", "exp_avg_sq", "step")}
+    return TrainState(step, state.kind, state.omega0, {n: p.detach() for n, p in params.items()}, moments,
+                      dict(accumulators))
+
+
+def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
+    for group in optimizer.param_groups:
+        if group["name"] in moments:
+            saved = moments[group["name"]]
+            optimizer.state[group["params"][0]] = {
+                "step": saved["step"].detach().clone().cpu(),  # Adam keeps its step count on the CPU
+                "exp_avg": saved["exp_avg"].detach().to(device).clone(),
+                "exp_avg_sq": saved["exp_avg_sq"].detach().to(device).clone(),
+            }
+
+
+# --- checkpoints -----------------------------------------------------------------------------
+
+def save_checkpoint(path: str | Path, state: TrainState) -> None:
+    """Write a TrainState atomically as one safetensors file: tensors param.NAME, adam.NAME.KEY,
+    strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind, omega0}."""
+    path = Path(path)
+    tensors = {f"param.{n}": t for n, t in state.params.items()}
+    tensors.update({f"adam.{n}.{k}": t for n, m in state.moments.items() for k, t in m.items()})
+    tensors.update({f"strategy.{n}": t for n, t in state.strategy.items()})
+    tensors = {k: t.detach().cpu().contiguous() for k, t in tensors.items()}
+    # one metadata key: safetensors writes several in a random order, and equal states should
+    # give equal bytes
+    header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
+              "omega0": state.omega0}
+    meta = {CHECKPOINT_FORMAT: json.dumps(header, sort_keys=True)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")  # not mkstemp: keep the umask's mode
+    try:
+        save_file(tensors, str(tmp), metadata=meta)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: str | Path) -> TrainState:
+    """Read a checkpoint written by save_checkpoint (tensors on the CPU)."""
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            header = json.loads((f.metadata() or {}).get(CHECKPOINT_FORMAT, "{}"))
+            if header.get("format") != CHECKPOINT_FORMAT or header.get("version") != CHECKPOINT_VERSION:
+                raise RadfieldError(f"{path}: not a version {CHECKPOINT_VERSION} radfield checkpoint")
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (OSError, ValueError, KeyError, SafetensorError) as error:
+        raise RadfieldError(f"{path}: unreadable checkpoint ({error}); remove it to start over") from None
+    params, moments, strategy = {}, {}, {}
+    for key, t in tensors.items():
+        section, _, rest = key.partition(".")
+        if section == "param":
+            params[rest] = t
+        elif section == "adam":
+            name, _, field = rest.rpartition(".")
+            moments.setdefault(name, {})[field] = t
+        else:
+            strategy[rest] = t
+    return TrainState(header["step"], header["kind"], header["omega0"], params, moments, strategy)
+
+
+def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
+              background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20) -> float:
+    """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3)."""
+    total = 0.0
+    with torch.no_grad():
+        for camera, image in zip(cameras, images):
+            color = render(prims, camera, background=background, near=near, max_pairs=max_pairs).color
+            total += float(psnr(color.clamp(0, 1), image.to(color)))
+    return total / len(cameras) if len(cameras) else math.nan

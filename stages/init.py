@@ -1,0 +1,166 @@
+"""Stage "init": the primitives training starts from, written as a model file in the world frame.
+
+Centres come from `init.source`: `mesh` (uniform samples over the area of the dataset's mesh.ply,
+as the paper resamples its meshes; the vertices for a point cloud), `points` (SfM points),
+`random` (uniform in a ball of radius 0.5 in normalised units around the scene centre, i.e. half
+the camera distance), or `auto` (mesh, else points, else random). There are exactly
+`train.max_primitives` of them when a budget is set (the paper's budget protocol starts from the
+budget), else `init.num_points`: a point set is subsampled, or repeated with jitter.
+
+Every primitive starts isotropic with radius s = the mean distance to its 3 nearest neighbours (as
+3DGS), identity rotation, SH DC from the point colour when known (else 0.5 grey) and higher bands
+zero. Neural primitives: SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and
+b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray through the centre crosses τ-length 2 (the diameter in units of
+max(s)) and the cos terms average out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity
+of a 3DGS Gaussian. Gaussians: opacity logit of 0.1, as 3DGS.
+
+Hook for the cage (tetra stage, not written yet): add its cage artifact to `STAGE.inputs` and keep
+only centres inside the cage in `initial_centres` (random centres then sample the cage's volume).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from radfield.core.errors import RadfieldError
+from radfield.core.io import save_model
+from radfield.core.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
+from radfield.core.sh import num_sh_coeffs, rgb_to_sh_dc
+from radfield.stages.data import POINTS, SCENE, Scene, load_scene
+from radfield.stages.pipeline import Context, Stage
+
+INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
+SOURCES = ("auto", "mesh", "points", "random")
+INITIAL_ALPHA = 0.1  # a new primitive's opacity through its centre, 3DGS's initial opacity
+NEURAL_B2 = -math.log(1.0 - INITIAL_ALPHA) / 2.0
+GAUSSIAN_OPACITY = math.log(INITIAL_ALPHA / (1.0 - INITIAL_ALPHA))  # logit
+RANDOM_RADIUS = 0.5  # normalised units: the cameras lie within radius 1
+
+
+def run(ctx: Context) -> dict[str, Any]:
+    cfg = ctx.config
+    scene = load_scene(ctx.inputs[SCENE])
+    with np.load(ctx.inputs[POINTS]) as points:
+        point_sets = {name: points[name] for name in points.files}
+    budget = cfg["train"]["max_primitives"]
+    count = cfg["init"]["num_points"] if budget is None else budget
+    rng = np.random.default_rng(ctx.seed)
+    source, means, rgb = initial_centres(scene, point_sets, cfg["init"]["source"], count, rng)
+    prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
+                            cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed)
+    save_model(ctx.outputs[INIT_MODEL], prims)
+    ctx.log(f"{len(prims)} {prims.kind} primitives from {source}")
+    return {"primitives": len(prims), "params": prims.num_params(), "source": source}
+
+
+STAGE = Stage(
+    "init",
+    run,
+    config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0",
+                 "render.hidden", "seed"),
+    inputs=(SCENE, POINTS),
+    outputs=(INIT_MODEL,),
+)
+
+
+def check_config(config: dict[str, Any], points: dict[str, np.ndarray]) -> None:
+    """The init settings a user can get wrong, checked before anything runs (`points`: the data
+    stage's points.npz arrays)."""
+    for key, value in (("init.num_points", config["init"]["num_points"]),
+                       ("train.max_primitives", config["train"]["max_primitives"])):
+        if value is not None and value < 1:
+            raise RadfieldError(f"config key {key} must be at least 1, got {value}")
+    choose_source(config["init"]["source"], points)
+
+
+def choose_source(source: str, points: dict[str, np.ndarray]) -> str:
+    """The point set `source` stands for ("auto" resolved); RadfieldError if the dataset lacks it."""
+    if source not in SOURCES:
+        raise RadfieldError(f"config key init.source must be one of {', '.join(SOURCES)}, got {source!r}")
+    if source == "auto":
+        return "mesh" if len(points["mesh_vertices"]) else "points" if len(points["xyz"]) else "random"
+    if source != "random" and not len(points["mesh_vertices" if source == "mesh" else "xyz"]):
+        what = "mesh.ply" if source == "mesh" else "SfM points"
+        raise RadfieldError(f"config key init.source is {source} but the dataset has no {what}")
+    return source
+
+
+def initial_centres(scene: Scene, points: dict[str, np.ndarray], source: str, count: int,
+                    rng: np.random.Generator) -> tuple[str, np.ndarray, np.ndarray | None]:
+    """(source used, centres (count, 3), colours (count, 3) or None) in the world frame."""
+    source = choose_source(source, points)
+    if source == "random":
+        radius = RANDOM_RADIUS / scene.normalization.scale
+        direction = rng.normal(size=(count, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        r = radius * rng.random(count) ** (1 / 3)  # uniform in the ball's volume
+        return source, scene.normalization.center.numpy() + direction * r[:, None], None
+    xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
+    xyz, rgb = xyz.astype(np.float64), rgb if len(rgb) == len(xyz) else None
+    if source == "mesh" and len(points["mesh_faces"]):
+        return source, *surface_samples(xyz, points["mesh_faces"], rgb, count, rng)
+    return source, *resample(xyz, rgb, count, rng)
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, rgb: np.ndarray | None, count: int,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
+    """`count` points spread uniformly over a triangle mesh's area, colours interpolated from the
+    vertices: the paper resamples its meshes to each budget, and vertices crowd where a mesh is
+    finely tessellated (a box's large faces have none inside)."""
+    corners = vertices[faces]  # (F, 3 corners, 3)
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    face = rng.choice(len(faces), count, p=area / area.sum())
+    root, v = np.sqrt(rng.random(count)), rng.random(count)
+    weights = np.stack([1 - root, root * (1 - v), root * v], -1)  # uniform barycentric coordinates
+    means = np.einsum("pc,pcx->px", weights, corners[face])
+    return means, None if rgb is None else np.einsum("pc,pcx->px", weights, rgb[faces[face]])
+
+
+def resample(xyz: np.ndarray, rgb: np.ndarray | None, count: int,
+             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
+    """`count` points from a point set: a random subset, or every point plus copies jittered by a
+    fraction of the local spacing when the set is smaller (coincident centres would get zero scale)."""
+    xyz, first = np.unique(xyz, axis=0, return_index=True)  # meshes repeat vertices along seams
+    rgb = None if rgb is None else rgb[first]
+    n = len(xyz)
+    if n >= count:
+        index = np.sort(rng.choice(n, count, replace=False))
+        return xyz[index], None if rgb is None else rgb[index]
+    index = np.concatenate([np.arange(n), rng.choice(n, count - n)])
+    spacing = neighbour_distance(xyz)[index[n:]] if n > 1 else np.ones(count - n)
+    means = xyz[index]
+    means[n:] += rng.normal(size=(count - n, 3)) * 0.3 * spacing[:, None]
+    return means, None if rgb is None else rgb[index]
+
+
+def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """Mean distance of every point to its k nearest other points."""
+    k = min(k, len(xyz) - 1)
+    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)  # the nearest is the point itself
+    return distances[:, 1:].mean(axis=1)
+
+
+def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, hidden: int,
+                    omega0: float, extent: float, seed: int) -> NeuralPrimitives | Gaussians:
+    """Isotropic primitives at `means` (see the module docstring for every initial value)."""
+    num = len(means)
+    radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
+    radius = np.maximum(radius, 1e-6 * extent)
+    colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
+    sh = torch.zeros(num, num_sh_coeffs(sh_degree), 3)
+    sh[:, 0] = rgb_to_sh_dc(colour)
+    geometry = {
+        "means": torch.as_tensor(means, dtype=torch.float32),
+        "log_scales": torch.log(torch.as_tensor(radius, dtype=torch.float32))[:, None].repeat(1, 3),
+        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(num, 1),
+        "sh": sh,
+    }
+    if kind == "gaussian":
+        return Gaussians(**geometry, opacities=torch.full((num,), GAUSSIAN_OPACITY))
+    w1, b1, w2, b2 = siren_mlp_init(num, hidden, omega0, generator=torch.Generator().manual_seed(seed))
+    return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0)

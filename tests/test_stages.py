@@ -1,0 +1,349 @@
+"""The data, init and eval stages, the stage registry and the CLI around them, on a tiny
+generated scene (6 train + 2 test views of 24×24 pixels)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from radfield.cli.main import main
+from radfield.core.cameras import Camera
+from radfield.core.errors import RadfieldError
+from radfield.core.io import load_model, save_model
+from radfield.core.kernels import neural_line_integral
+from radfield.datasets.images import write_image
+from radfield.datasets.readers import load_dataset
+from radfield.datasets.synthetic import generate_scene
+from radfield.stages import data, init
+from radfield.stages.config import load_config
+from radfield.stages.evaluate import evaluate
+from radfield.stages.info import MODEL_FILE
+from radfield.stages.pipeline import Stage, read_manifest, run_pipeline
+from radfield.stages.registry import stages, train_available
+
+METRIC_KEYS = {"split", "kind", "psnr", "ssim", "num_primitives", "num_params", "file_size_bytes", "fps", "views",
+               "width", "height", "per_view"}
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory) -> Path:
+    return generate_scene("blobs", tmp_path_factory.mktemp("data") / "blobs", n_train=6, n_test=2, size=24)
+
+
+@pytest.fixture
+def scene_copy(scene_dir, tmp_path) -> Path:
+    return Path(shutil.copytree(scene_dir, tmp_path / "blobs"))
+
+
+def config(*sets: str) -> dict:
+    return load_config(sets=["init.num_points=200", *sets])
+
+
+def run_until(stage: str, scene: Path, run_dir: Path, cfg: dict | None = None, pipeline=None) -> dict[str, str]:
+    return run_pipeline(pipeline or stages(), run_dir, cfg or config(), input_path=scene, until_stage=stage, quiet=True)
+
+
+def cli(capsys, *args) -> tuple[int, str, str]:
+    """Run `radfield ARGS` in this process: (exit code, stdout, stderr)."""
+    argv = sys.argv
+    sys.argv = ["radfield", *map(str, args)]
+    try:
+        main()
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code or 0
+    finally:
+        sys.argv = argv
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
+    return {str(p.relative_to(folder)): (p.stat().st_mtime_ns, p.read_bytes())
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+# --- data -----------------------------------------------------------------------------------------
+
+
+def test_data_stage_describes_the_dataset(scene_dir, tmp_path):
+    run_dir = tmp_path / "run"
+    status = run_until("data", scene_dir, run_dir, config("data.downscale=2", "data.background=[0,0,0]"))
+    assert status == {"data": "ran"}
+    figures = read_manifest(run_dir / "data")["figures"]
+    assert figures | {"format": None} == {"images": 8, "train_images": 6, "test_images": 2, "width": 12, "height": 12,
+                                          "points": 0, "format": None}
+    description = json.loads((run_dir / "data" / data.SCENE).read_text())
+    assert description["format"] == "nerf_synthetic" and description["posed"] is True
+    assert description["root"] == str(scene_dir.resolve()) and description["background"] == [0, 0, 0]
+    view = description["splits"]["train"][1]
+    assert set(view) == {"name", "image", "fx", "fy", "cx", "cy", "width", "height", "c2w", "file_width",
+                         "file_height", "distortion"}
+    expected = load_dataset(scene_dir, "train", downscale=2).cameras[1]
+    assert (view["name"], view["width"], view["fx"], view["cx"]) == (expected.name, 12, expected.fx, expected.cx)
+    assert np.allclose(view["c2w"], expected.c2w.numpy()) and Path(view["image"]).is_file()
+
+    scene = data.load_scene(run_dir / "data" / data.SCENE)
+    assert [c.name for c in scene.test_cameras] == [c.name for c in load_dataset(scene_dir, "test").cameras]
+    assert isinstance(scene.train_cameras[0], Camera)
+    images = scene.train_images()
+    assert images.shape == (6, 12, 12, 3) and images.dtype == torch.float32
+    assert torch.equal(images, load_dataset(scene_dir, "train", 2, (0, 0, 0)).load_images()[0])
+    with np.load(run_dir / "data" / data.POINTS) as points:
+        assert points["xyz"].shape == (0, 3) and points["rgb"].shape == (0, 3)
+        assert len(points["mesh_vertices"]) == len(points["mesh_rgb"]) > 100
+        assert points["mesh_faces"].shape[1] == 3 and points["mesh_faces"].max() < len(points["mesh_vertices"])
+
+
+def test_normalisation(scene_dir, tmp_path):
+    scene = data.scene_from_json(data.read_dataset(scene_dir, config()["data"])[0], scene_dir)
+    norm = scene.normalization
+    # the orbit cameras look at the origin: that is the centre, not the mean of the cameras
+    assert torch.allclose(norm.center, torch.zeros(3, dtype=torch.float64), atol=1e-6)
+    radii = torch.stack([norm.camera(c).center for c in scene.train_cameras]).norm(dim=1)
+    assert radii.max() == pytest.approx(1.0) and scene.extent == pytest.approx(1.1 / norm.scale)
+    points = torch.randn(50, 3, dtype=torch.float64) * 3
+    assert torch.allclose(norm.invert(norm.apply(points)), points)
+    camera = scene.test_cameras[0]
+    assert torch.allclose(norm.invert(norm.camera(camera).center), camera.center)
+    assert torch.equal(norm.camera(camera).c2w[:3, :3], camera.c2w[:3, :3])
+
+
+def write_nerfstudio(folder: Path, scene_dir: Path, **extra) -> Path:
+    """A nerfstudio transforms.json over the generated scene's train images."""
+    meta = json.loads((scene_dir / "transforms_train.json").read_text())
+    for frame in meta["frames"]:
+        frame["file_path"] = str(scene_dir / f"{frame['file_path']}.png")
+    folder.mkdir()
+    (folder / "transforms.json").write_text(json.dumps(meta | extra))
+    return folder
+
+
+def test_splits(scene_dir, tmp_path):
+    described = data.read_dataset(write_nerfstudio(tmp_path / "every", scene_dir), config("data.test_every=3")["data"])
+    assert [v["name"] for v in described[0]["splits"]["test"]] == ["r_0", "r_3"]
+    assert [v["name"] for v in described[0]["splits"]["train"]] == ["r_1", "r_2", "r_4", "r_5"]
+    listed = write_nerfstudio(tmp_path / "listed", scene_dir, train_filenames=[str(scene_dir / "train/r_5.png")],
+                              test_filenames=[str(scene_dir / "train/r_1.png")])
+    splits = data.read_dataset(listed, config()["data"])[0]["splits"]
+    assert {name: [v["name"] for v in views] for name, views in splits.items()} == {"train": ["r_5"], "test": ["r_1"]}
+
+
+def test_unposed_photos_are_recorded(scene_dir, tmp_path):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for path in sorted((scene_dir / "train").glob("r_?.png")):
+        shutil.copy(path, photos / path.name)
+    described, points = data.read_dataset(photos, config()["data"])
+    assert described["posed"] is False and described["normalization"] is None
+    assert len(described["splits"]["test"]) == 1 and len(points["xyz"]) == 0
+    assert set(described["splits"]["train"][0]) == {"name", "image", "width", "height", "file_width", "file_height"}
+    with pytest.raises(RadfieldError, match="no camera poses"):
+        data.scene_from_json(described, photos).train_cameras
+
+
+def break_missing_image(root: Path) -> str:
+    (root / "test" / "r_1.png").unlink()
+    return "r_1"
+
+
+def break_json(root: Path) -> str:
+    (root / "transforms_train.json").write_text('{"camera_angle_x": 0.7, "frames": [')
+    return "transforms_train.json"
+
+
+def break_size(root: Path) -> str:
+    write_image(root / "train" / "r_4.png", np.zeros((10, 10, 4), np.float32))
+    return "r_4.png"
+
+
+@pytest.mark.parametrize("damage", [break_missing_image, break_json, break_size])
+def test_dataset_errors_fail_first_and_leave_the_run_alone(scene_copy, tmp_path, capsys, damage):
+    run_dir = tmp_path / "run"
+    assert cli(capsys, "reconstruct", scene_copy, "-o", run_dir, "--until", "data", "-q")[0] == 0
+    before = snapshot(run_dir)
+    culprit = damage(scene_copy)
+    code, out, err = cli(capsys, "reconstruct", scene_copy, "-o", run_dir, "-q", "--set", "train.iterations=1")
+    assert code == 1 and out == ""
+    assert len(err.strip().splitlines()) == 1 and culprit in err, err
+    assert snapshot(run_dir) == before
+
+
+@pytest.mark.parametrize("args, key", [
+    (["--set", "train.iteratons=5"], "train.iterations"),  # with a suggestion
+    (["--set", "init.source=bogus"], "init.source"),
+    (["--max-primitives", "0"], "train.max_primitives"),
+    (["--primitive", "splat"], "train.primitive"),
+    (["--set", "data.test_every=1"], "data.test_every"),
+    (["--downscale", "0"], "data.downscale"),
+    (["--set", "init.source=points"], "init.source"),  # the scene has no SfM points
+    (["--set", "eval.split=val"], "eval.split"),  # nor a val split
+])
+def test_config_errors_name_the_key(scene_dir, tmp_path, capsys, args, key):
+    code, out, err = cli(capsys, "reconstruct", scene_dir, "-o", tmp_path / "run", *args)
+    assert code == 1 and len(err.strip().splitlines()) == 1 and key in err, err
+    assert not (tmp_path / "run").exists()
+
+
+# --- init -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def blobs(scene_dir):
+    described, points = data.read_dataset(scene_dir, config()["data"])
+    return data.scene_from_json(described, scene_dir), points
+
+
+def test_init_from_mesh_samples_its_surface(blobs):
+    scene, points = blobs
+    source, means, rgb = init.initial_centres(scene, points, "auto", 500, np.random.default_rng(0))
+    assert source == "mesh" and means.shape == (500, 3) and rgb.shape == (500, 3)
+    low, high = points["mesh_vertices"].min(0), points["mesh_vertices"].max(0)
+    assert np.all((means >= low - 1e-6) & (means <= high + 1e-6))
+    assert len(np.unique(means, axis=0)) == 500 and rgb.std(0).min() > 0.05  # spread, coloured
+
+
+def test_init_from_points_subsamples_or_repeats(blobs):
+    scene, _ = blobs
+    rng = np.random.default_rng(0)
+    xyz, rgb = rng.normal(size=(50, 3)), rng.random((50, 3))
+    points = {"xyz": xyz, "rgb": rgb, "mesh_vertices": np.zeros((0, 3)), "mesh_rgb": np.zeros((0, 3))}
+    source, fewer, fewer_rgb = init.initial_centres(scene, points, "auto", 20, rng)
+    rows = [int(np.flatnonzero((xyz == p).all(1))[0]) for p in fewer]
+    assert source == "points" and len(set(rows)) == 20 and np.array_equal(fewer_rgb, rgb[rows])
+    _, more, _ = init.initial_centres(scene, points, "points", 120, rng)
+    assert len(np.unique(more, axis=0)) == 120  # repeated points are jittered apart
+    assert all((xyz == p).all(1).any() for p in np.unique(xyz, axis=0))
+    with pytest.raises(RadfieldError, match="init.source is mesh"):
+        init.initial_centres(scene, points, "mesh", 10, rng)
+
+
+def test_init_random_fills_a_ball_around_the_centre(blobs):
+    scene, points = blobs
+    source, means, rgb = init.initial_centres(scene, points, "random", 400, np.random.default_rng(0))
+    distance = np.linalg.norm(means - scene.normalization.center.numpy(), axis=1)
+    radius = init.RANDOM_RADIUS / scene.normalization.scale
+    assert source == "random" and rgb is None and distance.max() <= radius and distance.max() > 0.8 * radius
+
+
+def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
+    run_dir = tmp_path / "run"
+    run_until("init", scene_dir, run_dir, config("train.max_primitives=150"))
+    assert read_manifest(run_dir / "init")["figures"] == {"primitives": 150, "params": 150 * 99, "source": "mesh"}
+    model = load_model(run_dir / "init" / init.INIT_MODEL)
+    assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 30.0 and model.hidden == 8
+    assert torch.all(model.b2 == torch.tensor(init.NEURAL_B2))
+    assert torch.all(model.log_scales == model.log_scales[:, :1]) and torch.all(model.quats[:, 0] == 1)
+    assert torch.all(model.sh[:, 1:] == 0) and not torch.all(model.sh[:, 0] == 0)
+
+    status = run_until("init", scene_dir, run_dir, config("train.max_primitives=150", "train.primitive=gaussian",
+                                                          "train.iterations=7"))
+    assert status["data"] == "cached" and status["init"] == "ran"
+    gaussians = load_model(run_dir / "init" / init.INIT_MODEL)
+    assert gaussians.kind == "gaussian" and torch.allclose(torch.sigmoid(gaussians.opacities), torch.tensor(0.1))
+
+
+def test_a_new_neural_primitive_has_opacity_one_tenth_through_its_centre():
+    means = torch.zeros(400, 3)
+    w1, b1, w2, b2 = init.siren_mlp_init(400, generator=torch.Generator().manual_seed(0))
+    prims = init.NeuralPrimitives(means=means, log_scales=torch.zeros(400, 3),
+                                  quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(400, 1), sh=torch.zeros(400, 1, 3),
+                                  w1=w1, b1=b1, w2=w2, b2=b2.fill_(init.NEURAL_B2))
+    dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=torch.Generator().manual_seed(1)), dim=1)
+    depth = neural_line_integral(prims, -5 * dirs, dirs).diagonal()  # ray i through primitive i's centre
+    alpha = 1 - torch.exp(-depth.clamp_min(0))
+    assert alpha.mean().item() == pytest.approx(0.1, abs=0.01)
+
+
+# --- eval -----------------------------------------------------------------------------------------
+
+
+def fake_train(ctx) -> dict:
+    """Stands in for training: the initial model is the final one."""
+    shutil.copy(ctx.inputs[init.INIT_MODEL], ctx.outputs[MODEL_FILE])
+    return {"iterations": 0}
+
+
+def with_fake_train() -> list[Stage]:
+    return [stage if stage.name != "train" else Stage("train", fake_train, ("train",), stage.inputs, (MODEL_FILE,))
+            for stage in stages()]
+
+
+def test_evaluate_metrics(blobs, scene_dir, tmp_path):
+    scene, points = blobs
+    model_file = tmp_path / "model.safetensors"
+    _, means, rgb = init.initial_centres(scene, points, "mesh", 300, np.random.default_rng(0))
+    save_model(model_file, init.make_primitives(means, rgb, "gaussian", 1, 8, 30.0, scene.extent, 0))
+    metrics = evaluate(model_file, scene, "test", tmp_path / "renders")
+    assert set(metrics) == METRIC_KEYS and metrics["split"] == "test" and metrics["kind"] == "gaussian"
+    assert (metrics["num_primitives"], metrics["num_params"]) == (300, 300 * (3 + 3 + 4 + 1 + 12))
+    assert metrics["file_size_bytes"] == model_file.stat().st_size and metrics["fps"] > 0
+    assert [v["name"] for v in metrics["per_view"]] == ["r_0", "r_1"]
+    assert metrics["psnr"] == pytest.approx(np.mean([v["psnr"] for v in metrics["per_view"]]))
+    assert 5 < metrics["psnr"] < 40 and 0 < metrics["ssim"] < 1
+    assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == ["r_0.png", "r_1.png"]
+    with pytest.raises(RadfieldError, match="no 'val' split"):
+        evaluate(model_file, scene, "val", tmp_path / "nowhere")
+
+
+def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    status = run_pipeline(with_fake_train(), run_dir, config(), input_path=scene_dir, quiet=True)
+    assert status["eval"] == "ran" and status["sfm"] == "not applicable"
+    metrics = json.loads((run_dir / "eval" / "metrics.json").read_text())
+    assert set(metrics) == METRIC_KEYS and len(list((run_dir / "eval" / "renders").iterdir())) == 2
+
+    code, out, _ = cli(capsys, "info", run_dir, "--json")
+    info = json.loads(out)
+    assert code == 0 and set(info) == {"run", "input", "model", "stages"}
+    assert list(info["stages"]) == ["data", "sfm", "envelope", "tetra", "init", "train", "eval"]
+    assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())
+    assert info["stages"]["data"]["images"] == 8 and info["stages"]["sfm"]["applicable"] is False
+    assert {"done", "seconds", "psnr", "ssim", "fps"} <= set(info["stages"]["eval"])
+    assert info["stages"]["eval"]["psnr"] == pytest.approx(metrics["psnr"])
+
+    code, out, _ = cli(capsys, "eval", run_dir, "-o", tmp_path / "report", "-q")  # the run's own dataset
+    report = json.loads((tmp_path / "report" / "metrics.json").read_text())
+    assert code == 0 and "PSNR" in out and report["psnr"] == pytest.approx(metrics["psnr"], abs=1e-4)
+    code, _, err = cli(capsys, "eval", run_dir / "train" / MODEL_FILE, "-o", tmp_path / "r2")
+    assert code == 1 and "--dataset" in err and not (tmp_path / "r2").exists()
+
+
+def test_demo_scene_command(tmp_path, capsys):
+    code, out, _ = cli(capsys, "demo-scene", "checker", "-o", tmp_path / "c", "--train-views", "2", "--test-views", "1",
+                       "--size", "8")
+    assert code == 0 and (tmp_path / "c" / "transforms_train.json").is_file() and "checker" in out
+    code, _, err = cli(capsys, "demo-scene", "nope", "-o", tmp_path / "d")
+    assert code == 1 and "unknown synthetic scene" in err
+
+
+# --- reconstruct end to end -------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not train_available(), reason="the train stage (radfield.stages.train) does not exist yet")
+def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    args = ["reconstruct", scene_dir, "-o", run_dir, "-q", "--set", "init.num_points=300"]
+    code, out, err = cli(capsys, *args, "--set", "train.iterations=40")
+    assert code == 0, err
+    assert "held-out PSNR" in out
+    info = json.loads(cli(capsys, "info", run_dir, "--json")[1])
+    assert {"primitives", "params", "iterations", "train_psnr"} <= set(info["stages"]["train"])
+    initial = evaluate(run_dir / "init" / init.INIT_MODEL, data.load_scene(run_dir / "data" / data.SCENE), "test",
+                       tmp_path / "initial")
+    assert info["stages"]["eval"]["psnr"] > initial["psnr"] + 1.0
+
+    code, out, _ = cli(capsys, *args, "--set", "train.iterations=40")
+    assert code == 0 and out.splitlines()[0] == "stages: " + ", ".join(f"{name} cached" for name in info["stages"])
+
+    code, out, _ = cli(capsys, *args, "--set", "train.iterations=41")
+    outcomes = dict(part.split(" ", 1) for part in out.splitlines()[0].removeprefix("stages: ").split(", "))
+    assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "eval"]
+    assert math.isfinite(json.loads(cli(capsys, "info", run_dir, "--json")[1])["stages"]["eval"]["psnr"])

@@ -1,0 +1,402 @@
+"""Training: losses and metrics, population control, the loop, checkpoints and the train stage."""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from radfield.core.cameras import Camera, look_at
+from radfield.core.io import load_model, save_model
+from radfield.core.losses import anisotropy, dssim, photometric, psnr
+from radfield.core.metrics import ssim
+from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.rasterize import render
+from radfield.core.strategy import edit_rows, in_frustum, make_strategy, negligible_density
+from radfield.core.trainer import (
+    TrainState,
+    initial_state,
+    load_checkpoint,
+    make_optimizer,
+    mean_psnr,
+    save_checkpoint,
+    train,
+    views_for_step,
+)
+from radfield.datasets.images import write_image
+from radfield.stages import train as train_stage
+from radfield.stages.config import load_defaults, section
+from radfield.stages.data import Normalization
+from radfield.stages.info import MODEL_FILE
+from radfield.stages.pipeline import Context
+
+BG = (1.0, 1.0, 1.0)
+
+
+def orbit(n: int, size: int, radius: float = 3.0) -> list[Camera]:
+    """n cameras around the origin at varying heights, looking at it."""
+    cameras = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        eye = (radius * math.cos(a), radius * math.sin(a), 0.3 + 0.8 * math.sin(3 * a))
+        cameras.append(Camera(fx=1.3 * size, fy=1.3 * size, cx=size / 2, cy=size / 2, width=size, height=size,
+                              c2w=look_at(eye, (0, 0, 0)), name=f"view{i}"))
+    return cameras
+
+
+def synthetic_views(n: int, size: int):
+    """Cameras and images of a known random neural scene rendered by our own renderer."""
+    truth = random_neural(60, extent=0.6, scale=0.25, seed=1)
+    cameras = orbit(n, size)
+    with torch.no_grad():
+        images = torch.stack([render(truth, c, background=BG).color.clamp(0, 1) for c in cameras])
+    return cameras, images
+
+
+def config(**changes) -> dict:
+    """The default train section with small-run changes (densify=dict(...) updates train.densify)."""
+    cfg = load_defaults()["train"]
+    cfg["densify"].update(changes.pop("densify", {}))
+    cfg.update(changes)
+    return cfg
+
+
+# --- losses and metrics ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_matches_scikit_image(dtype):
+    g = np.random.default_rng(0)
+    noise = g.random((40, 37, 3))
+    smooth = np.cumsum(np.cumsum(g.random((40, 37, 3)), 0), 1)
+    smooth /= smooth.max()
+    for a in (noise, smooth):
+        b = np.clip(a + 0.1 * g.standard_normal(a.shape), 0, 1)
+        expected = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                         data_range=1, channel_axis=-1)
+        got = float(ssim(torch.tensor(a, dtype=dtype), torch.tensor(b, dtype=dtype)))
+        assert abs(got - expected) < 1e-4
+    assert float(ssim(torch.tensor(noise), torch.tensor(noise))) == pytest.approx(1.0)
+
+
+def test_training_ssim_is_the_3dgs_zero_padded_one():
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(20, 24, 3, generator=g), torch.rand(20, 24, 3, generator=g)
+    # 3DGS: a 2D 11×11 window conv with padding 5 over (C, H, W)
+    x = torch.arange(11.0) - 5
+    w1d = torch.exp(-x**2 / 4.5)
+    w1d /= w1d.sum()
+    window = (w1d[:, None] * w1d[None, :]).expand(3, 1, 11, 11)
+    blur = lambda z: torch.nn.functional.conv2d(z.permute(2, 0, 1)[None], window, padding=5, groups=3)
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01**2, 0.03**2
+    expected = (((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))).mean()
+    torch.testing.assert_close(dssim(a, b), 1 - expected)
+
+
+def test_psnr_and_anisotropy_values():
+    ref = torch.zeros(4, 4, 3)
+    assert float(psnr(ref + 0.1, ref)) == pytest.approx(20.0)
+    assert float(anisotropy(torch.zeros(5, 3))) == 0.0
+    # scales (1, 1, 4): ratios (1, 1, 4), Bessel-corrected std √3
+    assert float(anisotropy(torch.log(torch.tensor([[1.0, 1.0, 4.0]])))) == pytest.approx(math.sqrt(3))
+
+
+@pytest.mark.parametrize("make", [random_neural, random_gaussians])
+def test_loss_gradients_are_finite(make):
+    prims = make(40, sh_degree=1, extent=0.6, scale=0.2).map(lambda t: t.requires_grad_())
+    camera = orbit(1, 16)[0]
+    target = torch.rand(16, 16, 3, generator=torch.Generator().manual_seed(0))
+    out = render(prims, camera, background=BG)
+    loss = photometric(out.color, target, 0.2) + 1e-3 * anisotropy(prims.log_scales)
+    loss.backward()
+    for name, t in prims.tensors().items():
+        assert torch.isfinite(t.grad).all(), name
+    assert prims.means.grad.abs().sum() > 0
+
+
+# --- population control ----------------------------------------------------------------------
+
+def live_optimizer(prims, extent=1.0):
+    """Params and an Adam that has taken one step, with every moment row tagged by its row index."""
+    params = {n: t.requires_grad_() for n, t in initial_state(prims, prims.sh_degree).params.items()}
+    optimizer = make_optimizer(params, load_defaults()["train"]["lr"], extent)
+    for p in params.values():
+        p.grad = torch.zeros_like(p)
+    optimizer.step()
+    for p in params.values():
+        rows = torch.arange(p.shape[0], dtype=p.dtype).reshape(-1, *[1] * (p.ndim - 1))
+        optimizer.state[p]["exp_avg"][:] = rows + 1
+    return params, optimizer
+
+
+def check_aligned(params, optimizer):
+    for group in optimizer.param_groups:
+        p = group["params"][0]
+        assert params[group["name"]] is p and p.is_leaf and p.requires_grad
+        state = optimizer.state[p]
+        assert state["exp_avg"].shape == p.shape == state["exp_avg_sq"].shape
+    assert len({p.shape[0] for p in params.values()}) == 1
+
+
+def neural_case():
+    """Six primitives in front of a camera, each in one situation of the rules."""
+    prims = random_neural(6, extent=0.0, scale=0.05)
+    prims.means[:] = torch.tensor([[0.0, 0.0, float(i) * 0.1 - 0.25] for i in range(6)])
+    prims.log_scales[:] = math.log(0.005)                  # small: clone (grow_scale 0.01 × extent 1)
+    prims.log_scales[1] = torch.log(torch.tensor([0.1, 0.02, 0.03]))  # large: split
+    prims.log_scales[5] = math.log(0.8)                    # larger than prune_scale 0.5: prune
+    prims.b2[4], prims.w2[4] = -1.0, 0.01                  # density ≤ 0 everywhere: prune
+    state = {"grad": torch.tensor([1e-3, 2e-3, 0.0, 0.0, 0.0, 0.0]), "count": torch.tensor([2.0, 2, 2, 0, 2, 2])}
+    return prims, state
+
+
+def test_neural_refine_clones_splits_prunes_and_keeps_adam_rows():
+    prims, state = neural_case()
+    params, optimizer = live_optimizer(prims)
+    strategy = make_strategy("neural", config()["densify"], extent=1.0, near=0.01, max_primitives=None,
+                             initial_count=6)
+    report = strategy.refine(state, params, optimizer, step=500, generator=torch.Generator().manual_seed(0))
+    # 0 cloned, 1 split (removed, two children), 2 (seen, zero gradient), 4 (no density), 5 (huge) pruned;
+    # 3 was never visible: kept
+    assert report == {"cloned": 1, "split": 1, "pruned": 3}
+    check_aligned(params, optimizer)
+    means = params["means"].detach()
+    assert means.shape[0] == 2 + 1 + 2
+    torch.testing.assert_close(means[:2], prims.means[[0, 3]])   # kept rows, in order
+    torch.testing.assert_close(means[2], prims.means[0])          # the clone
+    exp_avg = optimizer.state[params["means"]]["exp_avg"]
+    assert exp_avg[:2, 0].tolist() == [1.0, 4.0] and not exp_avg[2:].any()  # kept moments, new rows zero
+    # split children: inside the parent's ellipsoid, scales / 1.6, same MLP
+    parent_scales = torch.exp(prims.log_scales[1])
+    for child in (3, 4):
+        offset = quat_to_rotmat(prims.quats[1:2])[0].T @ (means[child] - prims.means[1])  # parent's frame
+        assert (offset / parent_scales).norm() <= 1.0
+        torch.testing.assert_close(params["log_scales"][child].detach(), prims.log_scales[1] - math.log(1.6))
+        torch.testing.assert_close(params["w1"][child].detach(), prims.w1[1])
+    assert not state["grad"].any() and state["grad"].shape == (5,)  # accumulators restart
+    optimizer.step()  # the edited optimiser still steps
+
+
+def test_budget_grows_only_the_largest_gradients_and_is_never_exceeded():
+    prims = random_neural(10, extent=0.3, scale=0.005)
+    params, optimizer = live_optimizer(prims)
+    densify = config()["densify"]
+    state = {"grad": torch.linspace(1e-4, 1e-3, 10), "count": torch.ones(10)}
+    strategy = make_strategy("neural", densify, extent=1.0, near=0.01, max_primitives=13, initial_count=10)
+    report = strategy.refine(state, params, optimizer, step=500, generator=torch.Generator())
+    assert report["cloned"] == 3 and params["means"].shape[0] == 13
+    torch.testing.assert_close(params["means"][10:].detach(), prims.means[[7, 8, 9]])
+    state = {"grad": torch.full((13,), 1e-3), "count": torch.ones(13)}
+    strategy.refine(state, params, optimizer, step=600, generator=torch.Generator())
+    assert params["means"].shape[0] == 13
+    check_aligned(params, optimizer)
+
+
+def test_a_population_that_starts_at_the_budget_is_left_alone():
+    prims, state = neural_case()
+    params, optimizer = live_optimizer(prims)
+    strategy = make_strategy("neural", config()["densify"], extent=1.0, near=0.01, max_primitives=6,
+                             initial_count=6)
+    assert strategy.refine(state, params, optimizer, step=500, generator=torch.Generator()) == {}
+    assert params["means"].shape[0] == 6
+
+
+def test_visibility_and_gradient_statistics():
+    camera = Camera(fx=20.0, fy=20.0, cx=10.0, cy=10.0, width=20, height=20, c2w=torch.eye(4))
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0], [5.0, 0.0, 2.0], [1.4, 0.0, 2.0]])
+    visible = in_frustum(means, torch.tensor([0.1, 0.1, 0.1, 0.5]), camera, near=0.01)
+    assert visible.tolist() == [True, False, False, True]  # behind; outside; outside but its sphere reaches in
+    prims = random_neural(4, scale=0.1)
+    prims.means[:] = means
+    params = initial_state(prims, 0).params
+    grads = {n: torch.ones_like(params[n]) for n in ("w1", "b1", "w2", "b2")}
+    strategy = make_strategy("neural", config()["densify"], extent=1.0, near=0.01, max_primitives=None,
+                             initial_count=4)
+    state = strategy.init_state(4, "cpu")
+    strategy.accumulate(state, params, grads, camera, step=1)
+    n = prims.hidden
+    assert state["count"].tolist() == [1, 0, 0, 0]
+    assert float(state["grad"][0]) == pytest.approx(math.sqrt(3 * n) + 2 * math.sqrt(n) + 1)
+    assert negligible_density(torch.tensor([[0.1, -0.1]]), torch.tensor([-0.2])).item()
+    assert not negligible_density(torch.tensor([[0.1, -0.1]]), torch.tensor([0.0])).item()
+
+
+def test_gaussian_refine_and_opacity_reset():
+    prims = random_gaussians(4, extent=0.0, scale=0.005)
+    prims.means[:] = torch.tensor([[0.0, 0.0, 0.1 * i] for i in range(4)])
+    prims.log_scales[1] = math.log(0.05)       # large: split
+    prims.opacities[:] = 2.0
+    prims.opacities[3] = -8.0                  # sigmoid < 0.005: prune
+    params, optimizer = live_optimizer(prims)
+    state = {"grad": torch.tensor([1e-3, 1e-3, 0.0, 0.0]), "count": torch.ones(4)}
+    densify = config(densify={"gaussian": {**config()["densify"]["gaussian"], "opacity_reset_every": 500}})["densify"]
+    strategy = make_strategy("gaussian", densify, extent=1.0, near=0.01, max_primitives=None, initial_count=4)
+    report = strategy.refine(state, params, optimizer, step=500, generator=torch.Generator().manual_seed(0))
+    assert report == {"cloned": 1, "split": 1, "pruned": 1, "opacity_reset": 1}
+    check_aligned(params, optimizer)
+    assert params["means"].shape[0] == 2 + 1 + 2
+    assert torch.sigmoid(params["opacities"].detach()).max() <= 0.01 + 1e-6
+    assert not optimizer.state[params["opacities"]]["exp_avg"].any()
+
+
+def test_edit_rows_with_a_boolean_mask_and_new_rows():
+    prims = random_gaussians(3)
+    params, optimizer = live_optimizer(prims)
+    new = {n: torch.full((1, *p.shape[1:]), 7.0) for n, p in params.items()}
+    edit_rows(params, optimizer, torch.tensor([True, False, True]), new)
+    check_aligned(params, optimizer)
+    assert params["means"][:, 0].tolist() == [float(prims.means[0, 0]), float(prims.means[2, 0]), 7.0]
+    assert optimizer.state[params["quats"]]["exp_avg"][:, 0].tolist() == [1.0, 3.0, 0.0]
+
+
+# --- the loop ----------------------------------------------------------------------------------
+
+def test_views_are_walked_in_a_fresh_order_every_epoch():
+    order = [views_for_step(3, s, 1, 5)[0] for s in range(10)]
+    assert sorted(order[:5]) == sorted(order[5:]) == list(range(5)) and order[:5] != order[5:]
+    assert views_for_step(3, 2, 2, 5) == order[4:6]
+
+
+def test_a_short_run_learns_the_scene():
+    cameras, images = synthetic_views(8, 32)
+    start = random_neural(100, extent=0.6, scale=0.2, seed=2, b2=0.3, w2_amplitude=0.02)
+    start.sh.zero_()
+    cfg = config(iterations=60, sh_degree=0, densify={"start": 30, "stop": 30, "every": 30})
+    cfg["lr"] = {k: v * 10 for k, v in cfg["lr"].items()}  # a short run: a larger step
+    before = mean_psnr(start, cameras, images, background=BG)
+    log = []
+    state = train(start, cameras, images, cfg, background=BG, extent=3.3, seed=0, on_step=lambda s, i: log.append(i))
+    after = mean_psnr(state.primitives(), cameras, images, background=BG)
+    assert after > before + 6, (before, after)  # about 15 -> 25 dB
+    assert len(log) == 60 and any("split" in i or "cloned" in i for i in log)
+
+
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind):
+    cameras, images = synthetic_views(4, 16)
+    start = (random_neural if kind == "neural" else random_gaussians)(30, sh_degree=1, extent=0.6, scale=0.15, seed=3)
+    cfg = config(iterations=12, sh_degree=1, sh_increase_every=6, batch_views=2, checkpoint_every=5,
+                 densify={"start": 4, "stop": 8, "every": 4})
+    cfg["densify"]["gaussian"]["opacity_reset_every"] = 8
+    run = dict(background=BG, extent=3.3, seed=7)
+    whole = train(start, cameras, images, cfg, **run)
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_7(step, info):
+        if step == 7:
+            raise Killed
+
+    path = tmp_path / "checkpoint.safetensors"
+    with pytest.raises(Killed):
+        train(start, cameras, images, cfg, **run, on_step=kill_at_7, checkpoint=lambda s: save_checkpoint(path, s))
+    saved = load_checkpoint(path)
+    assert saved.step == 5
+    resumed = train(start, cameras, images, cfg, **run, start_state=saved)
+    assert resumed.step == whole.step == 12
+    assert len(whole.params["means"]) != 30  # population control acted
+    for name in whole.params:
+        assert torch.equal(whole.params[name], resumed.params[name]), name
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(whole.moments[name][key], resumed.moments[name][key]), (name, key)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    state = initial_state(random_neural(5, sh_degree=2), 3)
+    state = TrainState(9, state.kind, state.omega0, state.params,
+                       {"means": {"exp_avg": torch.ones(5, 3), "exp_avg_sq": torch.ones(5, 3), "step": torch.tensor(9.0)}},
+                       {"grad": torch.arange(5.0), "count": torch.ones(5)})
+    save_checkpoint(tmp_path / "c.safetensors", state)
+    back = load_checkpoint(tmp_path / "c.safetensors")
+    assert (back.step, back.kind, back.omega0) == (9, "neural", state.omega0)
+    assert back.params["sh_rest"].shape == (5, 15, 3)
+    for name in state.params:
+        assert torch.equal(back.params[name], state.params[name])
+    assert torch.equal(back.moments["means"]["step"], torch.tensor(9.0))
+    assert torch.equal(back.strategy["grad"], torch.arange(5.0))
+
+
+# --- the stage ---------------------------------------------------------------------------------
+
+def test_normalisation_round_trip(tmp_path):
+    world = random_neural(40, sh_degree=1, extent=0.6, scale=0.2, seed=4)
+    world.means += torch.tensor([3.0, -2.0, 1.0])
+    norm = Normalization(torch.tensor([2.5, -2.2, 0.9], dtype=torch.float64), 0.4)
+    camera = orbit(1, 24, radius=3.0)[0]
+    c2w = camera.c2w.clone()
+    c2w[:3, 3] += torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64)
+    camera = dataclasses.replace(camera, c2w=c2w)
+    normalised = train_stage.to_normalized(world, norm)
+    save_model(tmp_path / "m.safetensors", train_stage.to_world(normalised, norm))
+    saved = load_model(tmp_path / "m.safetensors")
+    with torch.no_grad():
+        expected = render(normalised, norm.camera(camera), background=BG, near=0.05 * norm.scale).color
+        got = render(saved, camera, background=BG, near=0.05).color
+    assert (expected < 0.9).any()  # the view sees the primitives
+    # float32 rounding of the moved means, amplified by ω0 = 30 in the density's phase
+    torch.testing.assert_close(got, expected, atol=5e-4, rtol=0)
+
+
+def stage_context(tmp_path, name, iterations=10):
+    """A train-stage Context over a tiny scene.json (data-stage contract) and init model."""
+    data = tmp_path / "data"
+    if not data.exists():
+        data.mkdir()
+        cameras, images = synthetic_views(4, 16)
+        views = []
+        for camera, image in zip(cameras, images):
+            path = data / f"{camera.name}.png"
+            write_image(path, image.numpy())
+            views.append({"name": camera.name, "image": str(path), "fx": camera.fx, "fy": camera.fy,
+                          "cx": camera.cx, "cy": camera.cy, "width": 16, "height": 16, "c2w": camera.c2w.tolist(),
+                          "file_width": 16, "file_height": 16, "distortion": None})
+        scene = {"version": 1, "format": "nerf_synthetic", "root": str(data), "posed": True, "downscale": 1,
+                 "background": list(BG), "normalization": {"center": [0.1, 0.0, 0.0], "scale": 1 / 3.2},
+                 "extent": 1.1 * 3.2, "splits": {"train": views, "test": views[:1]}}
+        (data / "scene.json").write_text(json.dumps(scene))
+        save_model(data / "init.safetensors", random_neural(20, extent=0.6, scale=0.2, seed=5))
+    cfg = section(load_defaults(), train_stage.STAGE.config_keys)
+    cfg["train"].update(iterations=iterations, checkpoint_every=5)
+    cfg["train"]["densify"].update(start=4, stop=8, every=4)
+    (tmp_path / name).mkdir()
+    for sub in ("tmp", "work"):
+        (tmp_path / name / sub).mkdir()
+    return Context(name="train", run_dir=tmp_path, stage_dir=tmp_path / name / "out", tmp=tmp_path / name / "tmp",
+                   work=tmp_path / name / "work", config=cfg,
+                   inputs={"scene.json": data / "scene.json", "init.safetensors": data / "init.safetensors"},
+                   outputs={MODEL_FILE: tmp_path / name / "tmp" / MODEL_FILE}, log=lambda line: None, quiet=True,
+                   device="cpu")
+
+
+def test_stage_writes_the_model_and_resumes_after_a_kill(tmp_path, monkeypatch):
+    whole = stage_context(tmp_path, "whole")
+    figures = train_stage.run(whole)
+    assert figures["iterations"] == 10 and figures["primitives"] > 0 and figures["seconds_per_iteration"] > 0
+    assert figures["params"] == load_model(whole.outputs[MODEL_FILE]).num_params()
+    assert math.isfinite(figures["train_psnr"])
+
+    killed = stage_context(tmp_path, "killed")
+    update = train_stage._TrainProgress.update
+
+    def kill_at_7(self, step, info):
+        if step == 7:
+            raise KeyboardInterrupt
+        update(self, step, info)
+
+    monkeypatch.setattr(train_stage._TrainProgress, "update", kill_at_7)
+    with pytest.raises(KeyboardInterrupt):
+        train_stage.run(killed)
+    monkeypatch.undo()
+    assert (killed.work / train_stage.CHECKPOINT).is_file()
+    lines = []
+    resumed = train_stage.run(dataclasses.replace(killed, log=lines.append))
+    assert lines == ["resuming from the checkpoint at step 5"]
+    assert resumed["iterations"] == 10
+    expected, got = load_model(whole.outputs[MODEL_FILE]), load_model(killed.outputs[MODEL_FILE])
+    for name, tensor in expected.tensors().items():
+        assert torch.equal(getattr(got, name), tensor), name
