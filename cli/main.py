@@ -74,7 +74,7 @@ def resolve_model(path: Path) -> Path:
 
 @app.command()
 def reconstruct(
-    input_path: Annotated[Path, typer.Argument(metavar="INPUT", help="Dataset folder: NeRF-synthetic, nerfstudio/instant-ngp, COLMAP (or a folder of photos).")],
+    input_path: Annotated[Path, typer.Argument(metavar="INPUT", help="Dataset folder (NeRF-synthetic, nerfstudio/instant-ngp, COLMAP) or a folder of photos (posed by SfM).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Run directory (created). Run again on it to resume or to redo only what changed.")],
     primitive: Annotated[Optional[str], typer.Option(help="neural (splattable neural primitives) or gaussian (3DGS baseline). (config key train.primitive)")] = None,
     max_primitives: Annotated[Optional[int], typer.Option(help="Hard primitive budget, initialised exactly (the paper's memory-budget protocol). (config key train.max_primitives)")] = None,
@@ -92,8 +92,9 @@ def reconstruct(
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
-    Runs the cached stages data → sfm → envelope → tetra → init → train → eval in the run
-    directory; a stage re-runs only when its inputs or its config keys changed."""
+    Runs the cached stages sfm → data → envelope → tetra → init → train → eval in the run
+    directory (sfm only for a folder of photos); a stage re-runs only when its inputs or its config
+    keys changed."""
     from radfield.stages import registry
     from radfield.stages.config import load_config
     from radfield.stages.info import run_info
@@ -124,7 +125,7 @@ def reconstruct(
 def eval_command(
     target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (its final model) or a .safetensors model file.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created): metrics.json and renders/.")],
-    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth (default: the run's input).")] = None,
+    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth (default: the run's input; its SfM output for photos).")] = None,
     split: Annotated[str, typer.Option(help="train, val or test.")] = "test",
     downscale: Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")] = None,
     background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
@@ -227,10 +228,18 @@ def demo_scene(
     test_views: Annotated[int, typer.Option(help="Held-out test views.")] = 8,
     size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
     seed: Annotated[int, typer.Option(help="Turns the camera spiral.")] = 0,
+    exist_ok: Annotated[bool, typer.Option("--exist-ok", help="Do nothing if OUTPUT already holds this scene (same name and seed).")] = False,
 ):
     """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply)."""
+    import json
+
     from radfield.datasets.synthetic import generate_scene
 
+    if exist_ok and (output / "scene.json").is_file():
+        existing = json.loads((output / "scene.json").read_text())
+        if existing.get("name") == name and existing.get("seed") == seed:
+            typer.echo(f"{output} already holds the {name} scene")
+            return
     generate_scene(name, output, n_train=train_views, n_test=test_views, size=size, seed=seed)
     typer.echo(f"wrote {name}: {train_views} train + {test_views} test views of {size}x{size} to {output}")
 

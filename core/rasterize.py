@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import torch
 
+from radfield.core import fused
 from radfield.core.cameras import Camera
 from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, gaussian_alpha, neural_optical_depth, ray_ellipsoid
 from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat
@@ -58,10 +59,10 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     if isinstance(prims, NeuralPrimitives):
         bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
         view = _neural_view(prims, campos, c2w[:3, :3])
-        kernel = _neural_block
+        kernel = fused.neural_block if fused.available(device, dtype) else _neural_block
     elif isinstance(prims, Gaussians):
         view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
-        kernel = _gaussian_block
+        kernel = fused.gaussian_block if fused.available(device, dtype) else _gaussian_block
     else:
         raise TypeError(f"cannot render {type(prims).__name__}")
     intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)

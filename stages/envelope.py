@@ -6,9 +6,11 @@ From points (SfM) or a given mesh: `build_envelope`. From posed silhouettes: `vi
 
 The stage writes `envelope.ply` and `envelope.png` (the envelope over the first training view)
 from, by `envelope.source`: `points` (the SfM points of points.npz), `mesh` (the dataset's
-mesh.ply), `hull` (the alpha masks of the training images), or `auto` (the first of these the
-dataset has). A dataset with none of them (posed photos without points, such as a nerfstudio
-transforms.json) gets no envelope, hence no cage: the stage says so and is not applicable.
+mesh.ply), `hull` (the alpha masks of the training images), `triangulate` (features matched
+across the training images, triangulated with their known poses: posed photos without points,
+such as a nerfstudio transforms.json), or `auto` (the first of these the dataset has). When `auto`
+ends at `triangulate` and too few points come out, the run has no envelope, hence no cage: the
+stage says so and is not applicable.
 
 Every envelope goes through the same finish: CGAL alpha wrapping with an offset (pymeshlab
 `generate_alpha_wrap`), which gives a watertight, 2-manifold, self-intersection-free surface at the
@@ -40,11 +42,13 @@ from radfield.datasets.views import Dataset
 from radfield.stages.config import require
 from radfield.stages.data import POINTS, SCENE, load_scene
 from radfield.stages.pipeline import Context, NotApplicable, Stage
+from radfield.stages.sfm import triangulate
 
 ENVELOPE = "envelope.ply"
 OVERLAY = "envelope.png"
 
 # Algorithm constants (the tunable settings are the `envelope` section of pipeline.yaml).
+MIN_POINTS = 10  # fewer points make no surface
 OUTLIER_NEIGHBORS = 16  # k of both outlier tests
 OUTLIER_PROBABILITY = 0.8  # LoOP test: points more likely than this to be outliers are dropped
 ALPHA_SHAPE = 0.1  # alpha-shape fallback radius, fraction of the bounding-box diagonal
@@ -68,7 +72,13 @@ def run(ctx: Context) -> dict[str, Any]:
         points = {name: stored[name] for name in stored.files}
     train = scene.dataset("train")
     source = choose_source(cfg["source"], points, train)
-    if source == "points":
+    if source == "triangulate":
+        points["xyz"], _ = triangulate(train.cameras, train.load_images()[0].numpy(), ctx.config["sfm"],
+                                       seed=ctx.seed, log=ctx.log)
+        if len(points["xyz"]) < MIN_POINTS:
+            why = f"only {len(points['xyz'])} points triangulated from the {len(train)} posed training views"
+            raise NotApplicable(why) if cfg["source"] == "auto" else RadfieldError(why)
+    if source in ("points", "triangulate"):
         v, f, figures = build_envelope(points["xyz"], cfg)
     elif source == "mesh":
         mesh = points["mesh_vertices"]  # a mesh.ply without faces is a point cloud
@@ -82,7 +92,8 @@ def run(ctx: Context) -> dict[str, Any]:
     return {"source": source, **figures}
 
 
-STAGE = Stage("envelope", run, config_keys=("envelope",), inputs=(SCENE, POINTS), outputs=(ENVELOPE, OVERLAY))
+STAGE = Stage("envelope", run, config_keys=("envelope", "sfm", "seed"), inputs=(SCENE, POINTS),
+              outputs=(ENVELOPE, OVERLAY))
 
 
 def check_config(config: dict[str, Any]) -> None:
@@ -97,7 +108,7 @@ def check_config(config: dict[str, Any]) -> None:
 
 def choose_source(source: str, points: dict[str, np.ndarray], train: Dataset) -> str:
     """What the envelope is built from ("auto" resolved, see the module docstring); RadfieldError
-    when the configured source is missing, NotApplicable when "auto" finds nothing."""
+    when the configured source is missing."""
     present = {"points": len(points["xyz"]) > 0, "mesh": len(points["mesh_vertices"]) > 0}
     if source in present:
         if not present[source]:
@@ -106,20 +117,21 @@ def choose_source(source: str, points: dict[str, np.ndarray], train: Dataset) ->
         return source
     if source == "auto" and any(present.values()):
         return next(name for name, there in present.items() if there)
+    if source == "triangulate":
+        return source
     masked = train.load_image(0)[1] is not None  # the first image tells: datasets are RGB or RGBA throughout
-    if masked:
-        return "hull"
-    if source == "hull":
+    if source == "hull" and not masked:
         raise RadfieldError(f"config key envelope.source is hull but the images of {train.root} have no alpha channel")
-    raise NotApplicable(f"the {train.format} dataset has no SfM points, mesh.ply or alpha masks to build an "
-                        f"envelope from (reconstruct from its photos alone for SfM points)")
+    return "hull" if masked else "triangulate"
 
 
 def build_envelope(geometry, cfg: dict) -> tuple[np.ndarray, np.ndarray, dict]:
     """Envelope of a point cloud `geometry` (N, 3) or of a mesh given as a tuple `geometry` =
-    (vertices (V, 3), faces (F, 3)), with the `envelope` section `cfg` of the config. Returns vertices (V', 3) float64, faces (F', 3) int64 (outward orientation) and
-    the figures `faces`, `vertices`, `method` (reconstruction used), `inliers`, `outliers`,
-    `points_outside` (inliers outside the envelope), `self_intersections`, `margin` (absolute)."""
+    (vertices (V, 3), faces (F, 3)), with the `envelope` section `cfg` of the config. Returns
+    vertices (V', 3) float64, faces (F', 3) int64 (outward orientation) and the figures `faces`,
+    `vertices`, `method` (reconstruction used), `points_outside` (inliers outside the envelope),
+    `self_intersections`, `margin` (absolute) and, for points, `inliers`, `outliers` and `rejected`
+    (why the reconstructions tried before `method` were not used)."""
     if cfg["method"] not in METHODS:
         raise RadfieldError(f"envelope: unknown method {cfg['method']!r} (one of {', '.join(METHODS)})")
     if isinstance(geometry, tuple):
@@ -131,8 +143,8 @@ def build_envelope(geometry, cfg: dict) -> tuple[np.ndarray, np.ndarray, dict]:
 
     points = np.asarray(geometry, dtype=np.float64)
     _check_array(points, "points")
-    if len(points) < 10:
-        raise RadfieldError(f"envelope: {len(points)} points, need at least 10 to build a surface")
+    if len(points) < MIN_POINTS:
+        raise RadfieldError(f"envelope: {len(points)} points, need at least {MIN_POINTS} to build a surface")
     inliers = _remove_outliers(points, cfg)
     diag = _diagonal(inliers)
     failures = []
@@ -144,7 +156,8 @@ def build_envelope(geometry, cfg: dict) -> tuple[np.ndarray, np.ndarray, dict]:
             continue
         v, f, figures = _envelope_of(surface, inliers, name, diag, cfg)
         if figures["points_outside"] <= MAX_OUTSIDE_FRACTION * len(inliers):
-            return v, f, {**figures, "inliers": len(inliers), "outliers": len(points) - len(inliers)}
+            return v, f, {**figures, "inliers": len(inliers), "outliers": len(points) - len(inliers),
+                          "rejected": "; ".join(failures)}
         failures.append(f"{name}: {figures['points_outside']} points outside")
     raise RadfieldError("envelope: no surface enclosed the points (" + "; ".join(failures) + ")")
 

@@ -14,8 +14,13 @@ b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray through the centre crosses τ-length 2
 max(s)) and the cos terms average out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity
 of a 3DGS Gaussian. Gaussians: opacity logit of 0.1, as 3DGS.
 
-Hook for the cage (tetra stage, not written yet): add its cage artifact to `STAGE.inputs` and keep
-only centres inside the cage in `initial_centres` (random centres then sample the cage's volume).
+With a cage (the tetra stage's cage.npz), every centre starts inside it: `init.cage_fraction` of
+them uniformly in its volume (a tet drawn in proportion to its volume, then a uniform point in it:
+this covers what the points miss, such as textureless parts without SfM points), the rest from
+the source, keeping only the points inside the cage; anything the source cannot fill is sampled
+in the volume too, as are all centres of the `random` source. Volume samples start grey.
+`binding.npz` (see radfield.stages.tetra) then records every primitive's tet and the barycentric
+coordinates of its centre, for the editor; without a cage its `tet` is -1 throughout.
 """
 
 from __future__ import annotations
@@ -31,10 +36,13 @@ from radfield.core.errors import RadfieldError
 from radfield.core.io import save_model
 from radfield.core.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
 from radfield.core.sh import num_sh_coeffs, rgb_to_sh_dc
+from radfield.stages.config import require
 from radfield.stages.data import POINTS, SCENE, Scene, load_scene
 from radfield.stages.pipeline import Context, Stage
+from radfield.stages.tetra import CAGE_NPZ, locate_points, read_cage, sample_in_cage, write_binding
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
+BINDING = "binding.npz"  # the initial primitives' tets and barycentric coordinates in the cage
 SOURCES = ("auto", "mesh", "points", "random")
 INITIAL_ALPHA = 0.1  # a new primitive's opacity through its centre, 3DGS's initial opacity
 NEURAL_B2 = -math.log(1.0 - INITIAL_ALPHA) / 2.0
@@ -50,12 +58,21 @@ def run(ctx: Context) -> dict[str, Any]:
     budget = cfg["train"]["max_primitives"]
     count = cfg["init"]["num_points"] if budget is None else budget
     rng = np.random.default_rng(ctx.seed)
-    source, means, rgb = initial_centres(scene, point_sets, cfg["init"]["source"], count, rng)
+    cage_file = ctx.inputs[CAGE_NPZ]
+    if cage_file is None:
+        source, means, rgb = initial_centres(scene, point_sets, cfg["init"]["source"], count, rng)
+        in_volume = 0
+    else:
+        source, means, rgb, in_volume = centres_in_cage(read_cage(cage_file), point_sets, cfg["init"]["source"],
+                                                        count, cfg["init"]["cage_fraction"], rng)
     prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
                             cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed)
     save_model(ctx.outputs[INIT_MODEL], prims)
-    ctx.log(f"{len(prims)} {prims.kind} primitives from {source}")
-    return {"primitives": len(prims), "params": prims.num_params(), "source": source}
+    write_binding(ctx.outputs[BINDING], means, cage_file)
+    ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
+            + (f", {in_volume} of them sampled in the cage's volume" if cage_file is not None else ""))
+    return {"primitives": len(prims), "params": prims.num_params(), "source": source,
+            "cage_samples": in_volume, "bound": cage_file is not None}
 
 
 STAGE = Stage(
@@ -63,19 +80,23 @@ STAGE = Stage(
     run,
     config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0",
                  "render.hidden", "seed"),
-    inputs=(SCENE, POINTS),
-    outputs=(INIT_MODEL,),
+    inputs=(SCENE, POINTS, CAGE_NPZ),
+    outputs=(INIT_MODEL, BINDING),
+    version=2,
 )
 
 
-def check_config(config: dict[str, Any], points: dict[str, np.ndarray]) -> None:
+def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: bool = True) -> None:
     """The init settings a user can get wrong, checked before anything runs (`points`: the data
-    stage's points.npz arrays)."""
+    stage's points.npz arrays; for unposed photos, whose points the sfm stage makes, only a
+    mesh source can be missing)."""
     for key, value in (("init.num_points", config["init"]["num_points"]),
                        ("train.max_primitives", config["train"]["max_primitives"])):
         if value is not None and value < 1:
             raise RadfieldError(f"config key {key} must be at least 1, got {value}")
-    choose_source(config["init"]["source"], points)
+    require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
+    if posed or config["init"]["source"] == "mesh":
+        choose_source(config["init"]["source"], points)
 
 
 def choose_source(source: str, points: dict[str, np.ndarray]) -> str:
@@ -105,6 +126,37 @@ def initial_centres(scene: Scene, points: dict[str, np.ndarray], source: str, co
     if source == "mesh" and len(points["mesh_faces"]):
         return source, *surface_samples(xyz, points["mesh_faces"], rgb, count, rng)
     return source, *resample(xyz, rgb, count, rng)
+
+
+def centres_in_cage(cage: tuple[np.ndarray, np.ndarray], points: dict[str, np.ndarray], source: str, count: int,
+                    cage_fraction: float, rng: np.random.Generator) -> tuple[str, np.ndarray, np.ndarray | None, int]:
+    """(source used, centres (count, 3) inside the cage (vertices, tets), their colours or None,
+    how many of them were sampled in the cage's volume); see the module docstring."""
+    source = choose_source(source, points)
+    wanted = 0 if source == "random" else count - round(cage_fraction * count)
+    means, rgb = np.zeros((0, 3)), None
+    if wanted:
+        xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
+        xyz, rgb = xyz.astype(np.float64), rgb if len(rgb) == len(xyz) else None
+        if source == "mesh" and len(points["mesh_faces"]):
+            xyz, rgb = surface_samples(xyz, points["mesh_faces"], rgb, wanted, rng)
+        else:
+            xyz, rgb = _inside(cage, xyz, rgb)
+            if len(xyz):
+                xyz, rgb = resample(xyz, rgb, wanted, rng)
+        means, rgb = _inside(cage, xyz, rgb)  # jittered copies and surface samples may lie just outside
+    # the configured share of volume samples, plus whatever the source could not fill
+    volume = sample_in_cage(*cage, count - len(means), rng)[0]
+    if rgb is not None:
+        rgb = np.concatenate([rgb, np.full((len(volume), 3), 0.5)])
+    return source, np.concatenate([means, volume]), rgb, len(volume)
+
+
+def _inside(cage: tuple[np.ndarray, np.ndarray], xyz: np.ndarray,
+            rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points (and their colours) that lie inside the cage."""
+    keep = locate_points(*cage, xyz)[0] >= 0
+    return xyz[keep], None if rgb is None else rgb[keep]
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, rgb: np.ndarray | None, count: int,

@@ -1,8 +1,7 @@
 """The reconstruction pipeline: every stage, in order, and the checks made before any of them runs.
 
-Stages whose module is not written yet get a stand-in, so the pipeline is complete today: the
-photo front end (sfm, envelope, tetra) reports "not applicable" on a posed dataset and refuses
-unposed photos; a missing train stage refuses to run. A module's own import errors propagate.
+A missing train stage gets a stand-in that refuses to run, so the pipeline is complete while the
+train module is being written. A module's own import errors propagate.
 """
 
 from __future__ import annotations
@@ -13,18 +12,19 @@ from pathlib import Path
 from typing import Any
 
 from radfield.core.errors import RadfieldError
-from radfield.stages import data, evaluate, init
-from radfield.stages.data import SCENE, load_scene
+from radfield.stages import data, envelope, evaluate, init, sfm, tetra
+from radfield.stages.data import SCENE
 from radfield.stages.info import MODEL_FILE
-from radfield.stages.pipeline import Context, NotApplicable, Stage
+from radfield.stages.pipeline import Context, Stage
+
 
 def stages() -> list[Stage]:
     """The Stage declarations, in pipeline order."""
     return [
+        sfm.STAGE,
         data.STAGE,
-        _stage("sfm") or Stage("sfm", _photos_only("sfm"), inputs=(SCENE,)),
-        _stage("envelope") or Stage("envelope", _photos_only("envelope"), inputs=(SCENE,)),
-        _stage("tetra") or Stage("tetra", _photos_only("tetra"), inputs=(SCENE,)),
+        envelope.STAGE,
+        tetra.STAGE,
         init.STAGE,
         _stage("train") or Stage("train", _train_missing, inputs=(SCENE, init.INIT_MODEL), outputs=(MODEL_FILE,)),
         evaluate.STAGE,
@@ -39,7 +39,9 @@ def check(config: dict[str, Any], input_path: Path) -> None:
     """Everything about the config and the dataset a user can get wrong, checked before the run
     directory is touched (the data stage checks the dataset again, when it runs)."""
     scene, points = data.read_dataset(input_path, config["data"])
-    init.check_config(config, points)
+    for module in (sfm, envelope, tetra):
+        module.check_config(config)
+    init.check_config(config, points, posed=scene["posed"])
     if config["eval"]["split"] not in scene["splits"]:
         raise RadfieldError(f"config key eval.split is {config['eval']['split']} but {input_path} has only the "
                             f"{', '.join(scene['splits'])} splits")
@@ -51,14 +53,6 @@ def _stage(name: str) -> Stage | None:
     if importlib.util.find_spec(module) is None:
         return None
     return getattr(importlib.import_module(module), "STAGE", None)
-
-
-def _photos_only(name: str):
-    def run(ctx: Context) -> None:
-        if load_scene(ctx.inputs[SCENE]).posed:
-            raise NotApplicable("the dataset has camera poses")
-        raise RadfieldError(f"unposed photos need the {name} stage, which this version of radfield does not have yet")
-    return run
 
 
 def _train_missing(ctx: Context) -> None:

@@ -18,6 +18,9 @@ run never leaves a half-written folder):
                          frame, so this file maps them back to COLMAP's own frame
     sfm.json             what happened: registered / unregistered images, matcher, timings
 
+`triangulate` serves posed datasets without points (the envelope stage uses it): the same features
+and matching, triangulated with the dataset's own cameras held fixed.
+
 Matching is exhaustive up to `exhaustive_max_images` images and sequential (neighbours in file-name
 order) above. COLMAP's vocabulary-tree matching and sequential loop detection need a vocabulary
 file that COLMAP downloads on first use; this tool runs offline, so neither is used.
@@ -42,6 +45,7 @@ import pycolmap
 
 from radfield.core.cameras import Camera
 from radfield.core.errors import RadfieldError
+from radfield.datasets.images import write_image
 from radfield.datasets.readers import detect_format, list_images, photo_folder, pose_source
 from radfield.stages.config import require
 from radfield.stages.info import NORMALIZATION_FILE, SFM_DATASET
@@ -98,58 +102,25 @@ def _reconstruct(image_dir: Path, names: list[str], one_size: bool, work: Path, 
                  log: Callable[[str], None]) -> dict:
     """The COLMAP steps, all inside `work`; the finished output ends up in `work/result`."""
     pycolmap.set_random_seed(seed)
-    threads = int(cfg["num_threads"])
     database = work / "database.db"
     timings = {}
 
     log(f"extracting features from {len(names)} photos")
     t = time.perf_counter()
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = cfg["camera_model"]
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = threads
-    extraction.use_gpu = False
-    extraction.max_image_size = int(cfg["max_image_size"])
-    extraction.sift.max_num_features = int(cfg["max_num_features"])
-    pycolmap.extract_features(
-        database,
-        image_dir,
-        image_names=names,
-        # One shared camera when every photo has the same size (one camera, one zoom): many more
-        # observations constrain the intrinsics.
-        camera_mode=pycolmap.CameraMode.SINGLE if one_size else pycolmap.CameraMode.PER_IMAGE,
-        reader_options=reader,
-        extraction_options=extraction,
-        device=pycolmap.Device.cpu,
-    )
+    # One shared camera when every photo has the same size (one camera, one zoom): many more
+    # observations constrain the intrinsics.
+    _extract(database, image_dir, names, pycolmap.CameraMode.SINGLE if one_size else pycolmap.CameraMode.PER_IMAGE,
+             cfg["camera_model"], cfg)
     timings["extract"] = time.perf_counter() - t
-    with pycolmap.Database.open(database) as db:
-        imported = {image.name for image in db.read_all_images()}
-    unreadable = [n for n in names if n not in imported]
-    if unreadable:
-        raise RadfieldError(f"{image_dir}: COLMAP could not read {_name_list(unreadable)}")
 
     t = time.perf_counter()
-    matcher = "exhaustive" if len(names) <= cfg["exhaustive_max_images"] else "sequential"
-    log(f"matching ({matcher})")
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
-    matching.use_gpu = False
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = int(cfg["sequential_overlap"])
-        pairing.num_threads = threads
-        pycolmap.match_sequential(
-            database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
-        )
+    matcher = _match(database, len(names), cfg, log)
     timings["match"] = time.perf_counter() - t
 
     log("incremental mapping")
     t = time.perf_counter()
     mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.num_threads = threads
+    mapping.num_threads = int(cfg["num_threads"])
     mapping.random_seed = int(seed)
     models = pycolmap.incremental_mapping(database, image_dir, work / "models", options=mapping)
     timings["map"] = time.perf_counter() - t
@@ -171,7 +142,7 @@ def _reconstruct(image_dir: Path, names: list[str], one_size: bool, work: Path, 
     log(f"undistorting the {len(registered)} registered photos")
     t = time.perf_counter()
     pycolmap.undistort_images(
-        work / "undistorted", work / "models" / str(best_id), image_dir, num_threads=threads
+        work / "undistorted", work / "models" / str(best_id), image_dir, num_threads=int(cfg["num_threads"])
     )
     model = pycolmap.Reconstruction(work / "undistorted" / "sparse")
     center, scale = _normalization(model, cfg["target_radius"])
@@ -199,6 +170,85 @@ def _reconstruct(image_dir: Path, names: list[str], one_size: bool, work: Path, 
     }
     (result / "sfm.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+def _extract(database: Path, image_dir: Path, names: list[str], mode: pycolmap.CameraMode, camera_model: str,
+             cfg: dict) -> None:
+    """SIFT features of the named images into a new COLMAP database, on the CPU; RadfieldError
+    naming the images COLMAP could not read."""
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = int(cfg["num_threads"])
+    extraction.use_gpu = False
+    extraction.max_image_size = int(cfg["max_image_size"])
+    extraction.sift.max_num_features = int(cfg["max_num_features"])
+    pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    with pycolmap.Database.open(database) as db:
+        imported = {image.name for image in db.read_all_images()}
+    unreadable = [n for n in names if n not in imported]
+    if unreadable:
+        raise RadfieldError(f"{image_dir}: COLMAP could not read {_name_list(unreadable)}")
+
+
+def _match(database: Path, count: int, cfg: dict, log: Callable[[str], None]) -> str:
+    """Match and verify the features of `count` images (exhaustive or sequential, see the module
+    docstring); returns the matcher used."""
+    threads = int(cfg["num_threads"])
+    matcher = "exhaustive" if count <= cfg["exhaustive_max_images"] else "sequential"
+    log(f"matching ({matcher})")
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.use_gpu = False
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = int(cfg["sequential_overlap"])
+        pairing.num_threads = threads
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)
+    return matcher
+
+
+def triangulate(cameras: list[Camera], images: np.ndarray, cfg: dict, seed: int = 0,
+                log: Callable[[str], None] = lambda _line: None) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points (P, 3) and their colours (P, 3) in [0, 1] for a posed dataset without any:
+    features matched across `images` (N, H, W, 3), float in [0, 1], undistorted, one per pinhole
+    camera, are triangulated with the cameras held fixed (COLMAP's point triangulator), so the
+    points are in the cameras' world frame. Settings: the `sfm` section `cfg`."""
+    pycolmap.set_random_seed(seed)
+    names = [f"{k:05d}.png" for k in range(len(cameras))]
+    with tempfile.TemporaryDirectory(prefix="radfield-triangulate-") as scratch, _colmap_errors_only():
+        work = Path(scratch)
+        (work / "images").mkdir()
+        (work / "model").mkdir()
+        for name, image in zip(names, images):
+            write_image(work / "images" / name, np.asarray(image))
+        database = work / "database.db"
+        log(f"extracting features from {len(names)} posed views")
+        _extract(database, work / "images", names, pycolmap.CameraMode.PER_IMAGE, "PINHOLE", cfg)
+        model = pycolmap.Reconstruction()
+        with pycolmap.Database.open(database) as db:
+            for image in db.read_all_images():
+                cam = cameras[names.index(image.name)]
+                # the known intrinsics, also for the geometric verification of the matches
+                camera = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height,
+                                         params=[cam.fx, cam.fy, cam.cx, cam.cy], camera_id=image.camera_id,
+                                         has_prior_focal_length=True)
+                db.update_camera(camera)
+                model.add_camera_with_trivial_rig(camera)
+                model.add_image_with_trivial_frame(
+                    pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id),
+                    pycolmap.Rigid3d(cam.w2c.double().numpy()[:3]))
+        _match(database, len(names), cfg, log)
+        log("triangulating with the known poses")
+        model = pycolmap.triangulate_points(model, database, work / "images", work / "model")
+    points = list(model.points3D.values())
+    xyz = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in points], np.float64).reshape(-1, 3) / 255.0
+    return xyz, rgb
 
 
 def _normalization(model: pycolmap.Reconstruction, target_radius: float) -> tuple[np.ndarray, float]:

@@ -1,7 +1,17 @@
-"""Tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild), its files, and the
-point queries the init stage and the editor need (which tet holds a point, uniform samples inside).
+"""Stage "tetra" and the tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild),
+its files, and the point queries the init stage and the editor need (which tet holds a point,
+uniform samples inside, the binding of primitives to tets).
 
-Tets are stored with positive orientation: det[v1 - v0, v2 - v0, v3 - v0] > 0.
+The stage writes `cage.vtk` (opens in ParaView, Houdini, Blender add-ons) and `cage.npz`
+(`vertices` (V, 3) float64, `tets` (T, 4) int64) from the envelope stage's `envelope.ply`; without
+an envelope it is not applicable. Tets are stored with positive orientation:
+det[v1 - v0, v2 - v0, v3 - v0] > 0.
+
+A binding (`binding.npz`, written by the init stage for the initial primitives) records for every
+primitive `tet` (P,) int64, the cage tet of its centre, and `bary` (P, 4) float64, the centre's
+barycentric coordinates in that tet (weights of its 4 corners, summing to 1): moving the cage
+vertices moves the centre to the same weights of the moved corners. `tet` is -1 everywhere
+when the run has no cage.
 """
 
 from __future__ import annotations
@@ -10,6 +20,7 @@ import contextlib
 import io
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import meshio
 import numpy as np
@@ -17,26 +28,40 @@ import pytetwild
 from scipy.spatial import cKDTree
 
 from radfield.core.errors import RadfieldError
-from radfield.stages.envelope import atomic_write
+from radfield.stages.config import require
+from radfield.stages.envelope import ENVELOPE, atomic_write, read_envelope
+from radfield.stages.pipeline import Context, NotApplicable, Stage
 
-DEFAULTS = {
-    "edge_length_fac": 0.1,  # target tet edge length, fraction of the envelope's bounding-box diagonal
-    "epsilon": 0.003,  # how far the cage surface may stray from the envelope, fraction of the diagonal
-    "coarsen": True,  # let fTetWild merge tets as far as quality allows
-    "optimize": True,  # fTetWild quality optimisation (slower, better-shaped tets)
-    "num_threads": 1,
-}
-
-CAGE_FILES = ("cage.vtk", "cage.npz")
+CAGE_VTK = "cage.vtk"
+CAGE_NPZ = "cage.npz"
+CAGE_FILES = (CAGE_VTK, CAGE_NPZ)
 
 
-def build_cage(vertices: np.ndarray, faces: np.ndarray, cfg: dict | None = None):
-    """Tetrahedralise a closed envelope (vertices (V, 3), faces (F, 3)). Returns cage vertices
-    (V', 3) float64, tets (T, 4) int64 with positive volumes, and the figures `tets`, `vertices`,
-    `volume`. fTetWild is not bit-deterministic: counts vary by a few percent between runs.
-    With the defaults an envelope of ~1000 faces gives ~1000-2000 tets; raise `edge_length_fac`
-    / `epsilon` for fewer."""
-    cfg = {**DEFAULTS, **(cfg or {})}
+def run(ctx: Context) -> dict[str, Any]:
+    if ctx.inputs[ENVELOPE] is None:
+        raise NotApplicable("no envelope to fill (see the envelope stage)")
+    vertices, tets, figures = build_cage(*read_envelope(ctx.inputs[ENVELOPE]), ctx.config["tetra"])
+    write_cage(ctx.tmp, vertices, tets)
+    ctx.log(f"{figures['tets']} tets, {figures['vertices']} vertices")
+    return figures
+
+
+STAGE = Stage("tetra", run, config_keys=("tetra",), inputs=(ENVELOPE,), outputs=CAGE_FILES)
+
+
+def check_config(config: dict[str, Any]) -> None:
+    """The `tetra` settings a user can get wrong, checked before anything runs."""
+    for key in ("edge_length_fac", "epsilon"):
+        require(config, f"tetra.{key}", lambda x: 0 < x < 1, "in (0, 1)")
+    require(config, "tetra.num_threads", lambda n: n >= 1, "at least 1")
+
+
+def build_cage(vertices: np.ndarray, faces: np.ndarray, cfg: dict):
+    """Tetrahedralise a closed envelope (vertices (V, 3), faces (F, 3)) with the `tetra` section
+    `cfg` of the config. Returns cage vertices (V', 3) float64, tets (T, 4) int64 with positive
+    volumes, and the figures `tets`, `vertices`, `volume`. fTetWild is not bit-deterministic:
+    counts vary by a few percent between runs. With the defaults an envelope of ~1000 faces gives
+    ~1000-2000 tets; raise `edge_length_fac` / `epsilon` for fewer."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int32)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
@@ -76,8 +101,8 @@ def write_cage(out_dir, vertices: np.ndarray, tets: np.ndarray) -> list[Path]:
     Blender add-ons) and `cage.npz` (`vertices` (V, 3) float64, `tets` (T, 4) int64), atomically."""
     out_dir = Path(out_dir)
     mesh = meshio.Mesh(np.asarray(vertices, np.float64), [("tetra", np.asarray(tets, np.int64))])
-    atomic_write(out_dir / "cage.vtk", lambda tmp: meshio.write(tmp, mesh, file_format="vtk"))
-    atomic_write(out_dir / "cage.npz", lambda tmp: np.savez(tmp, vertices=mesh.points, tets=mesh.cells[0].data))
+    atomic_write(out_dir / CAGE_VTK, lambda tmp: meshio.write(tmp, mesh, file_format="vtk"))
+    atomic_write(out_dir / CAGE_NPZ, lambda tmp: np.savez(tmp, vertices=mesh.points, tets=mesh.cells[0].data))
     return [out_dir / name for name in CAGE_FILES]
 
 
@@ -167,3 +192,35 @@ def sample_in_cage(cage_vertices: np.ndarray, tets: np.ndarray, n: int, rng=None
     bary = rng.dirichlet(np.ones(4), size=n)
     points = np.einsum("nk,nkd->nd", bary, v[t[index]])
     return points, index, bary
+
+
+def bind_to_cage(means: np.ndarray, cage_npz) -> tuple[np.ndarray, np.ndarray]:
+    """Binding of points (P, 3) (primitive centres) to the cage in `cage_npz`: tet (P,) int64 and
+    barycentric coordinates (P, 4). A point outside the cage (training moves primitives) gets the
+    tet it is least outside of among those with the nearest centroids, with barycentric
+    coordinates that extrapolate that tet's affine map (some negative), so it still follows edits."""
+    v, t = read_cage(cage_npz)
+    p = np.asarray(means, np.float64).reshape(-1, 3)
+    tet, bary = locate_points(v, t, p)
+    outside = np.flatnonzero(tet < 0)
+    if outside.size:
+        corners = v[t]
+        _, cand = cKDTree(corners.mean(1)).query(p[outside], k=min(8, len(t)))
+        cand = cand.reshape(len(outside), -1)
+        edges = np.swapaxes(corners[cand, 1:] - corners[cand, :1], -1, -2)  # columns v1-v0, v2-v0, v3-v0
+        b123 = np.linalg.solve(edges, (p[outside, None] - corners[cand, 0])[..., None])[..., 0]
+        b = np.concatenate([1.0 - b123.sum(-1, keepdims=True), b123], -1)
+        best = b.min(-1).argmax(1)
+        rows = np.arange(len(outside))
+        tet[outside], bary[outside] = cand[rows, best], b[rows, best]
+    return tet, bary
+
+
+def write_binding(path, means: np.ndarray, cage_npz) -> None:
+    """Write `binding.npz` (module docstring) of primitive centres (P, 3) to the cage in
+    `cage_npz`, or an unbound one (tet -1) when `cage_npz` is None (the run has no cage)."""
+    if cage_npz is None:
+        tet, bary = np.full(len(means), -1, np.int64), np.zeros((len(means), 4))
+    else:
+        tet, bary = bind_to_cage(means, cage_npz)
+    atomic_write(Path(path), lambda tmp: np.savez(tmp, tet=tet, bary=bary))

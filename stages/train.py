@@ -28,8 +28,10 @@ from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.init import INIT_MODEL
 from radfield.stages.pipeline import Context, Stage
+from radfield.stages.tetra import CAGE_NPZ, write_binding
 
 CHECKPOINT = "checkpoint.safetensors"
+MODEL_BINDING = "model_binding.npz"  # per trained primitive: its cage tet and barycentric coordinates
 
 
 def run(ctx: Context) -> dict[str, Any]:
@@ -59,6 +61,8 @@ def run(ctx: Context) -> dict[str, Any]:
     train_psnr = mean_psnr(trained, cameras, images, background=scene.background, near=near)
     model = to_world(trained, norm)
     save_model(ctx.outputs[MODEL_FILE], model)
+    # the editor moves primitives with the cage: bind the trained centres, as init bound its own
+    write_binding(ctx.outputs[MODEL_BINDING], model.means.numpy(), ctx.inputs[CAGE_NPZ])
     return {
         "primitives": len(model),
         "params": model.num_params(),
@@ -68,8 +72,8 @@ def run(ctx: Context) -> dict[str, Any]:
     }
 
 
-STAGE = Stage("train", run, config_keys=("train", "render", "data", "seed"), inputs=(SCENE, INIT_MODEL),
-              outputs=(MODEL_FILE,), version=1)
+STAGE = Stage("train", run, config_keys=("train", "render", "data", "seed"), inputs=(SCENE, INIT_MODEL, CAGE_NPZ),
+              outputs=(MODEL_FILE, MODEL_BINDING), version=2)
 
 
 def to_normalized(prims: NeuralPrimitives | Gaussians, norm: Normalization) -> NeuralPrimitives | Gaussians:

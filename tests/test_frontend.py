@@ -12,6 +12,7 @@ import torch
 
 from radfield.core.cameras import Camera, look_at, opengl_to_opencv, pixel_rays
 from radfield.core.errors import RadfieldError
+from radfield.stages.config import load_defaults
 from radfield.stages.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
 from radfield.datasets.colmap import read_colmap
 from radfield.stages.sfm import compare_poses, run_sfm
@@ -19,6 +20,11 @@ from radfield.stages.tetra import build_cage, locate_points, read_cage, sample_i
 
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 FOX = DATASETS / "fox_small"
+
+
+def cfg(section: str, **overrides) -> dict:
+    """A config section of pipeline.yaml with some keys changed."""
+    return {**load_defaults()[section], **overrides}
 
 
 def _fox_images(dst: Path, count: int, scale: float = 0.8) -> list[str]:
@@ -52,7 +58,7 @@ def _leftovers(folder: Path) -> list[str]:
 def test_sfm_registers_a_tiny_real_capture(tmp_path):
     names = _fox_images(tmp_path / "photos", 8)
     out = tmp_path / "sfm"
-    figures = run_sfm(tmp_path / "photos", out, {"num_threads": 2})
+    figures = run_sfm(tmp_path / "photos", out, cfg("sfm", num_threads=2))
 
     assert figures["total_images"] == 8 and figures["registered_images"] == 8
     assert figures["points"] > 200
@@ -86,7 +92,7 @@ def test_sfm_sequential_matching_for_larger_sets(tmp_path):
     _fox_images(tmp_path / "photos", 8, scale=0.6)
     (tmp_path / "sfm").mkdir()
     (tmp_path / "sfm" / "stale.txt").write_text("from an older run")
-    figures = run_sfm(tmp_path / "photos", tmp_path / "sfm", {"exhaustive_max_images": 4, "sequential_overlap": 3})
+    figures = run_sfm(tmp_path / "photos", tmp_path / "sfm", cfg("sfm", exhaustive_max_images=4, sequential_overlap=3))
     assert figures["registered_images"] == 8
     assert not (tmp_path / "sfm" / "stale.txt").exists() and not _leftovers(tmp_path)  # replaced whole
     assert json.loads((tmp_path / "sfm" / "sfm.json").read_text())["matcher"] == "sequential"
@@ -95,14 +101,14 @@ def test_sfm_sequential_matching_for_larger_sets(tmp_path):
 def test_sfm_needs_three_images(tmp_path):
     _noise_images(tmp_path / "photos", 2)
     with pytest.raises(RadfieldError, match="found 2 images"):
-        run_sfm(tmp_path / "photos", tmp_path / "sfm")
+        run_sfm(tmp_path / "photos", tmp_path / "sfm", cfg("sfm"))
 
 
 def test_sfm_names_unreadable_images(tmp_path):
     _noise_images(tmp_path / "photos", 3)
     (tmp_path / "photos" / "broken.jpg").write_bytes(b"not a jpeg")
     with pytest.raises(RadfieldError, match="broken.jpg"):
-        run_sfm(tmp_path / "photos", tmp_path / "sfm")
+        run_sfm(tmp_path / "photos", tmp_path / "sfm", cfg("sfm"))
     assert not (tmp_path / "sfm").exists()
 
 
@@ -112,7 +118,7 @@ def test_sfm_images_without_overlap_fail_cleanly(tmp_path):
     out.mkdir()
     (out / "previous.txt").write_text("an earlier good run")
     with pytest.raises(RadfieldError, match="do not overlap") as info:
-        run_sfm(tmp_path / "photos", out)
+        run_sfm(tmp_path / "photos", out, cfg("sfm"))
     assert "\n" not in str(info.value)
     assert [p.name for p in out.iterdir()] == ["previous.txt"]  # the earlier output is untouched
     assert not _leftovers(tmp_path)
@@ -123,7 +129,7 @@ def test_sfm_lists_unregistered_images(tmp_path):
     shape = cv2.imread(str(tmp_path / "photos" / names[0])).shape[:2]  # same size: one shared camera
     noise = _noise_images(tmp_path / "photos", 3, shape)
     with pytest.raises(RadfieldError, match="only 6 of 9 images registered") as info:
-        run_sfm(tmp_path / "photos", tmp_path / "sfm", {"min_registered_fraction": 0.9})
+        run_sfm(tmp_path / "photos", tmp_path / "sfm", cfg("sfm", min_registered_fraction=0.9))
     assert all(name in str(info.value) for name in noise)
     assert not (tmp_path / "sfm").exists()
 
@@ -165,7 +171,7 @@ def torus_envelope():
     surface = _torus(3000, rng)
     direction = rng.normal(size=(40, 3))
     floaters = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(2.5, 3.5, (40, 1))
-    v, f, figures = build_envelope(np.concatenate([surface, floaters]), {"target_faces": 400})
+    v, f, figures = build_envelope(np.concatenate([surface, floaters]), cfg("envelope", target_faces=400))
     return surface, v, f, figures
 
 
@@ -196,7 +202,7 @@ def test_envelope_encloses_points_and_drops_outliers(torus_envelope, tmp_path):
 def test_envelope_falls_back_when_reconstruction_is_open():
     rng = np.random.default_rng(2)
     surface = _torus(2000, rng)
-    v, f, figures = build_envelope(surface, {"method": "ball_pivoting", "target_faces": 300})
+    v, f, figures = build_envelope(surface, cfg("envelope", method="ball_pivoting", target_faces=300))
     assert figures["method"] in ("alpha", "convex")
     assert mesh_checks(v, f)["watertight"]
     assert _inside(surface, v, f).all()
@@ -204,7 +210,7 @@ def test_envelope_falls_back_when_reconstruction_is_open():
 
 def test_envelope_of_a_given_mesh():
     sphere = pv.Icosphere(radius=1.0, nsub=3)
-    v, f, figures = build_envelope((sphere.points, sphere.regular_faces), {"target_faces": 200, "offset": 0.05})
+    v, f, figures = build_envelope((sphere.points, sphere.regular_faces), cfg("envelope", target_faces=200, offset=0.05))
     radius = np.linalg.norm(v, axis=1)
     assert figures["faces"] <= 200 and figures["points_outside"] == 0
     assert radius.min() > 1.0 and radius.max() < 1.0 + 2.5 * figures["margin"]
@@ -212,9 +218,9 @@ def test_envelope_of_a_given_mesh():
 
 def test_envelope_rejects_bad_input():
     with pytest.raises(RadfieldError, match="at least 10"):
-        build_envelope(np.zeros((5, 3)))
+        build_envelope(np.zeros((5, 3)), cfg("envelope"))
     with pytest.raises(RadfieldError, match=r"\(N, 3\)"):
-        build_envelope(np.full((20, 3), np.nan))
+        build_envelope(np.full((20, 3), np.nan), cfg("envelope"))
 
 
 def _sphere_views(radius=0.5, size=64):
@@ -236,7 +242,7 @@ def _sphere_views(radius=0.5, size=64):
 
 def test_visual_hull_of_a_sphere_and_overlay(tmp_path):
     cameras, masks = _sphere_views()
-    v, f, figures = visual_hull(cameras, masks, {"target_faces": 500})
+    v, f, figures = visual_hull(cameras, masks, cfg("envelope", target_faces=500))
     assert 450 <= figures["faces"] <= 500
     assert mesh_checks(v, f)["watertight"]
     radius = np.linalg.norm(v, axis=1)
@@ -257,15 +263,15 @@ def test_visual_hull_of_a_sphere_and_overlay(tmp_path):
 def test_visual_hull_errors():
     cameras, masks = _sphere_views()
     with pytest.raises(RadfieldError, match="masks"):
-        visual_hull(cameras, masks[:-1])
+        visual_hull(cameras, masks[:-1], cfg("envelope"))
     with pytest.raises(RadfieldError, match="no common volume"):
-        visual_hull(cameras, [np.zeros_like(m) for m in masks])
+        visual_hull(cameras, [np.zeros_like(m) for m in masks], cfg("envelope"))
 
 
 @pytest.fixture(scope="module")
 def torus_cage(torus_envelope):
     _, v, f, _ = torus_envelope
-    return build_cage(v, f)
+    return build_cage(v, f, cfg("tetra"))
 
 
 def test_cage_is_coarse_positive_and_round_trips(torus_envelope, torus_cage, tmp_path):

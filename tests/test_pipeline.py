@@ -344,8 +344,8 @@ def test_info_json_shape(toy: Toy, tmp_path: Path, dataset: Path) -> None:
     run(toy, run_dir, dataset, until_stage="train")
     info = run_info(run_dir)
     json.dumps(info)  # plain JSON
-    assert set(info) == {"run", "input", "model", "stages"}
-    assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())
+    assert set(info) == {"run", "input", "model", "normalization", "stages"}
+    assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve()) and info["normalization"] is None
     assert list(info["stages"]) == ORDER
     stages = info["stages"]
     assert stages["data"] == {"done": True, "seconds": stages["data"]["seconds"], "applicable": True, "images": 5}
@@ -369,10 +369,10 @@ def test_info_refuses_other_folders(tmp_path: Path) -> None:
 
 def test_defaults_hold_every_section() -> None:
     config = load_config()
-    assert config["stages"] == ["data", "sfm", "envelope", "tetra", "init", "train", "eval"]
+    assert config["stages"] == ["sfm", "data", "envelope", "tetra", "init", "train", "eval"]
     assert {"seed", "device", "data", "sfm", "envelope", "tetra", "init", "train", "render", "eval"} <= set(config)
     assert config["train"]["max_primitives"] is None
-    assert config["train"]["densify"]["grad_threshold"] == 1e-5
+    assert config["train"]["densify"]["grad_threshold"] == 1e-3  # exponent notation reads as a float
     assert config == load_defaults()
 
 

@@ -43,7 +43,7 @@ def scene_copy(scene_dir, tmp_path) -> Path:
 
 
 def config(*sets: str) -> dict:
-    return load_config(sets=["init.num_points=200", *sets])
+    return load_config(sets=["init.num_points=200", "envelope.target_faces=200", *sets])
 
 
 def run_until(stage: str, scene: Path, run_dir: Path, cfg: dict | None = None, pipeline=None) -> dict[str, str]:
@@ -76,7 +76,7 @@ def snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
 def test_data_stage_describes_the_dataset(scene_dir, tmp_path):
     run_dir = tmp_path / "run"
     status = run_until("data", scene_dir, run_dir, config("data.downscale=2", "data.background=[0,0,0]"))
-    assert status == {"data": "ran"}
+    assert status == {"sfm": "not applicable", "data": "ran"}
     figures = read_manifest(run_dir / "data")["figures"]
     assert figures | {"format": None} == {"images": 8, "train_images": 6, "test_images": 2, "width": 12, "height": 12,
                                           "points": 0, "format": None}
@@ -236,7 +236,8 @@ def test_init_random_fills_a_ball_around_the_centre(blobs):
 def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
     run_dir = tmp_path / "run"
     run_until("init", scene_dir, run_dir, config("train.max_primitives=150"))
-    assert read_manifest(run_dir / "init")["figures"] == {"primitives": 150, "params": 150 * 99, "source": "mesh"}
+    assert read_manifest(run_dir / "init")["figures"] == {"primitives": 150, "params": 150 * 99, "source": "mesh",
+                                                          "cage_samples": 15, "bound": True}
     model = load_model(run_dir / "init" / init.INIT_MODEL)
     assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 30.0 and model.hidden == 8
     assert torch.all(model.b2 == torch.tensor(init.NEURAL_B2))
@@ -302,8 +303,8 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, capsys):
 
     code, out, _ = cli(capsys, "info", run_dir, "--json")
     info = json.loads(out)
-    assert code == 0 and set(info) == {"run", "input", "model", "stages"}
-    assert list(info["stages"]) == ["data", "sfm", "envelope", "tetra", "init", "train", "eval"]
+    assert code == 0 and set(info) == {"run", "input", "model", "normalization", "stages"}
+    assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "eval"]
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())
     assert info["stages"]["data"]["images"] == 8 and info["stages"]["sfm"]["applicable"] is False
     assert {"done", "seconds", "psnr", "ssim", "fps"} <= set(info["stages"]["eval"])

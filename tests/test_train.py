@@ -157,8 +157,8 @@ def neural_case():
 def test_neural_refine_clones_splits_prunes_and_keeps_adam_rows():
     prims, state = neural_case()
     params, optimizer = live_optimizer(prims)
-    strategy = make_strategy("neural", config()["densify"], extent=1.0, near=0.01, max_primitives=None,
-                             initial_count=6)
+    strategy = make_strategy("neural", config(densify={"grad_threshold": 1e-4})["densify"], extent=1.0, near=0.01,
+                             max_primitives=None, initial_count=6)
     report = strategy.refine(state, params, optimizer, step=500, generator=torch.Generator().manual_seed(0))
     # 0 cloned, 1 split (removed, two children), 2 (seen, zero gradient), 4 (no density), 5 (huge) pruned;
     # 3 was never visible: kept
@@ -184,7 +184,7 @@ def test_neural_refine_clones_splits_prunes_and_keeps_adam_rows():
 def test_budget_grows_only_the_largest_gradients_and_is_never_exceeded():
     prims = random_neural(10, extent=0.3, scale=0.005)
     params, optimizer = live_optimizer(prims)
-    densify = config()["densify"]
+    densify = config(densify={"grad_threshold": 1e-5})["densify"]
     state = {"grad": torch.linspace(1e-4, 1e-3, 10), "count": torch.ones(10)}
     strategy = make_strategy("neural", densify, extent=1.0, near=0.01, max_primitives=13, initial_count=10)
     report = strategy.refine(state, params, optimizer, step=500, generator=torch.Generator())
@@ -199,7 +199,7 @@ def test_budget_grows_only_the_largest_gradients_and_is_never_exceeded():
 def test_a_population_that_starts_at_the_budget_is_left_alone():
     prims, state = neural_case()
     params, optimizer = live_optimizer(prims)
-    strategy = make_strategy("neural", config()["densify"], extent=1.0, near=0.01, max_primitives=6,
+    strategy = make_strategy("neural", config(densify={"grad_threshold": 1e-4})["densify"], extent=1.0, near=0.01, max_primitives=6,
                              initial_count=6)
     assert strategy.refine(state, params, optimizer, step=500, generator=torch.Generator()) == {}
     assert params["means"].shape[0] == 6
@@ -368,8 +368,10 @@ def stage_context(tmp_path, name, iterations=10):
         (tmp_path / name / sub).mkdir()
     return Context(name="train", run_dir=tmp_path, stage_dir=tmp_path / name / "out", tmp=tmp_path / name / "tmp",
                    work=tmp_path / name / "work", config=cfg,
-                   inputs={"scene.json": data / "scene.json", "init.safetensors": data / "init.safetensors"},
-                   outputs={MODEL_FILE: tmp_path / name / "tmp" / MODEL_FILE}, log=lambda line: None, quiet=True,
+                   inputs={"scene.json": data / "scene.json", "init.safetensors": data / "init.safetensors",
+                           "cage.npz": None},
+                   outputs={out: tmp_path / name / "tmp" / out for out in train_stage.STAGE.outputs},
+                   log=lambda line: None, quiet=True,
                    device="cpu")
 
 
