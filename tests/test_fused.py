@@ -1,0 +1,308 @@
+"""The fused C++ block kernels (core/fused.py) against their pure-torch twins in core/rasterize.py.
+
+Blocks are built directly in camera space (the camera at the origin) so that every branch of the
+kernels is hit on purpose: a camera inside an ellipsoid, an ellipsoid straddling or behind the near
+plane, grazing rays, a_k = 0 and a_k ≈ 0 (sinc's series branch), α at the 0.99 clamp and below
+1/255, misses, and padded elements (off-image points whose gradient is zero).
+"""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from radfield.core import fused
+from radfield.core.cameras import Camera, look_at
+from radfield.core.kernels import ray_ellipsoid
+from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.rasterize import _camera_directions, _gaussian_block, _neural_block, render
+
+pytestmark = pytest.mark.skipif(
+    not fused.available(),
+    reason="fused CPU kernels unavailable (RADFIELD_KERNELS=torch, or the C++ extension failed to build: see its warning)")
+
+W, H = 24, 20
+INTRINSICS = (26.0, 29.0, 11.3, 9.6, 0.05)   # fx, fy, cx, cy, near
+# float64: the two implementations round differently (matmul vs dot products, sum order), and
+# grazing rays amplify that by 1/√disc; gradients are compared relative to the block's largest.
+TOL64 = dict(rtol=1e-8, atol=1e-10)
+TOL64_GRAD = dict(rtol=1e-7, atol=1e-8)
+
+
+def _grid():
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")
+    return u.flatten(), v.flatten()
+
+
+def _project(points):
+    fx, fy, cx, cy, _ = INTRINSICS
+    return fx * points[:, 0] / points[:, 2] + cx, fy * points[:, 1] / points[:, 2] + cy
+
+
+def _direction(u, v):
+    return _camera_directions(u, v, torch.tensor(INTRINSICS, dtype=torch.float64))[0]
+
+
+def _grazing_points(m_cam, o_ell, centre_u, centre_v, fractions, rays=6):
+    """Image points just inside each ellipsoid's silhouette: bisect the hit test along `rays`
+    image lines from the projected centre, then step back by `fractions` of the radius."""
+    angle = torch.arange(rays, dtype=torch.float64) * (2 * math.pi / rays) + 0.3
+    du, dv = torch.cos(angle), torch.sin(angle)
+
+    def hit(t):
+        u, v = centre_u[:, None] + t * du, centre_v[:, None] + t * dv
+        return ray_ellipsoid(o_ell[:, None, :], _direction(u, v) @ m_cam.transpose(1, 2))[2]
+
+    lo = torch.zeros(len(m_cam), rays, dtype=torch.float64)
+    hi = torch.full_like(lo, 4.0 * max(W, H))
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        inside = hit(mid)
+        lo, hi = torch.where(inside, mid, lo), torch.where(inside, hi, mid)
+    us, vs = [lo[:, :0]], [lo[:, :0]]
+    for f in fractions:
+        us.append(centre_u[:, None] + lo * (1 - f) * du)
+        vs.append(centre_v[:, None] + lo * (1 - f) * dv)
+    return torch.cat(us, 1), torch.cat(vs, 1)
+
+
+def neural_case(seed=0, grazing=(1e-3, 1e-6)):
+    """A (P, A) block in float64: (u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax)."""
+    g = torch.Generator().manual_seed(seed)
+    P, N = 10, 8
+    rand = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64)
+    z = 0.8 + 1.7 * rand(P)
+    means = torch.stack([(rand(P) - 0.5) * 0.8 * z, (rand(P) - 0.5) * 0.8 * z, z], -1)
+    scales = 0.15 + 0.45 * rand(P, 3)
+    b2 = 1.0 + 2.0 * rand(P)
+    w2 = (rand(P, N) * 2 - 1) * 0.5
+    means[0], scales[0] = torch.tensor([0.02, -0.03, 0.05]), torch.tensor([0.5, 0.4, 0.6])    # camera inside
+    means[1], scales[1] = torch.tensor([0.1, 0.0, -0.25]), torch.tensor([0.35, 0.3, 0.3])     # straddles the near plane
+    means[5], scales[5] = torch.tensor([0.2, 0.1, -1.5]), torch.tensor([0.3, 0.3, 0.3])       # behind the camera
+    b2[3] = 60.0                                                                              # α at the 0.99 clamp
+    b2[4], w2[4] = 0.01, w2[4] * 0.01                                                         # α mostly below 1/255
+    rot = quat_to_rotmat(torch.randn(P, 4, generator=g, dtype=torch.float64))
+    m_cam = rot.transpose(1, 2) / scales[:, :, None]                                          # S⁻¹Rᵀ
+    o_ell = -(m_cam @ means[:, :, None])[..., 0]                                              # M (o − μ), o = 0
+    w_cam = 30.0 * (rand(P, N, 3) * 2 - 1) / 3
+    c = (rand(P, N) * 2 - 1) * 3
+    inv_smax = 1.0 / scales.amax(-1)
+
+    u, v = _grid()
+    u, v = u.expand(P, -1), v.expand(P, -1)
+    cu, cv = _project(means)
+    cu[[0, 1, 5]], cv[[0, 1, 5]] = 10.0, 9.0                                                  # not projectable
+    # a_k = 0 exactly (a zero row) and a_k ≈ 1e-7 at the centre pixel of primitive 2
+    d = _direction(cu[2:3], cv[2:3])[0]
+    w_cam[2, 0] = 0.0
+    w_cam[2, 1] = w_cam[2, 1] - (w_cam[2, 1] @ d) * d + 1e-7 * d
+    gu, gv = _grazing_points(m_cam, o_ell, cu, cv, grazing)
+    pad_u = torch.tensor([-7.5, W + 5.5, 3.5]).expand(P, -1).to(torch.float64)               # padding: off-image
+    pad_v = torch.tensor([H + 2.5, -3.5, H + 9.5]).expand(P, -1).to(torch.float64)
+    u = torch.cat([u, cu[:, None], gu, pad_u], 1)
+    v = torch.cat([v, cv[:, None], gv, pad_v], 1)
+    intrinsics = torch.tensor(INTRINSICS, dtype=torch.float64)
+    return (u.contiguous(), v.contiguous(), intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax), pad_u.shape[1]
+
+
+def gaussian_case(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    P = 8
+    rand = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64)
+    mean2d = torch.stack([rand(P) * W, rand(P) * H], -1)
+    a = (rand(P, 2, 2) * 2 - 1) * 4
+    cov = a @ a.transpose(1, 2) + 0.3 * torch.eye(2, dtype=torch.float64)
+    inv = torch.linalg.inv(cov)
+    conic = torch.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    conic[6] = torch.tensor([-0.05, 0.01, 0.2])        # not positive definite: power > 0 somewhere
+    opacity = 0.02 + 0.9 * rand(P)
+    opacity[0], opacity[1] = 1.0, 0.003                # α at the 0.99 clamp; α below 1/255
+    u, v = _grid()
+    pad_u = torch.tensor([-7.5, W + 5.5], dtype=torch.float64).expand(P, -1)
+    pad_v = torch.tensor([H + 2.5, -3.5], dtype=torch.float64).expand(P, -1)
+    u = torch.cat([u.expand(P, -1), mean2d[:, 0:1], pad_u], 1).contiguous()     # + the centre: power = 0
+    v = torch.cat([v.expand(P, -1), mean2d[:, 1:2], pad_v], 1).contiguous()
+    return (u, v, torch.tensor(INTRINSICS, dtype=torch.float64), mean2d, conic, opacity), 2
+
+
+def _evaluate(fn, args, dtype, grad_out):
+    args = [t.to(dtype) for t in args]
+    params = [t.clone().requires_grad_(True) for t in args[3:]]
+    alpha = fn(*args[:3], *params)
+    return [alpha.detach(), *torch.autograd.grad(alpha, params, grad_out.to(dtype))]
+
+
+def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0):
+    """Forward and every parameter gradient (args[3:]), for a random upstream gradient that is
+    zero on the padded elements and on a fifth of the others.
+
+    float64: fused and torch agree to rounding. float32: both are compared with the float64
+    result, and the fused kernel must be at least about as accurate as the torch twin (grazing
+    rays make float32 gradients uncertain in the third digit in both)."""
+    g = torch.Generator().manual_seed(seed)
+    grad_out = torch.randn(args[0].shape, generator=g, dtype=torch.float64)
+    grad_out[torch.rand(grad_out.shape, generator=g) < 0.2] = 0
+    grad_out[:, -n_pad:] = 0
+    slow = _evaluate(slow_fn, args, dtype, grad_out)
+    fast = _evaluate(fast_fn, args, dtype, grad_out)
+    names = ["alpha"] + [f"gradient of input {i}" for i in range(3, len(args))]
+    if dtype == torch.float64:
+        torch.testing.assert_close(fast[0], slow[0], **TOL64)
+        for name, f, s in zip(names[1:], fast[1:], slow[1:]):
+            scale = s.abs().max().clamp_min(1.0)   # sums over a block: tolerance relative to the largest
+            torch.testing.assert_close(f / scale, s / scale, **TOL64_GRAD, msg=lambda m: f"{name}: {m}")
+    else:
+        exact = _evaluate(slow_fn, args, torch.float64, grad_out)
+        for name, f, s, e in zip(names, fast, slow, exact):
+            scale = e.abs().max().clamp_min(1.0)
+            err_fast, err_slow = (f.double() - e).abs().max() / scale, (s.double() - e).abs().max() / scale
+            # (not a fixed bound: an element whose α sits within float32 rounding of a clamp or of the
+            # silhouette takes the other branch in float32, in both implementations)
+            assert err_fast <= 2 * err_slow + 1e-5, f"{name}: fused error {err_fast:.3g}, torch error {err_slow:.3g}"
+    return slow[0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_neural_block_matches_torch_twin(dtype, seed):
+    args, n_pad = neural_case(seed, grazing=(1e-3, 1e-6) if dtype == torch.float64 else (1e-2, 1e-3))
+    alpha = _compare(fused.neural_block, _neural_block, args, n_pad, dtype, seed)
+    # the block really exercises every branch
+    a = alpha.double()
+    assert (a == 0).any() and (a == torch.tensor(0.99, dtype=dtype).double()).any() and ((a > 0) & (a < 0.99)).any()
+    assert (a[4] == 0).sum() > (a[4] > 0).sum()       # mostly skipped below 1/255
+    assert (a[0] > 0).all()                          # camera inside: every ray sees it
+    assert (a[5] == 0).all()                         # behind the camera
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_gaussian_block_matches_torch_twin(dtype):
+    args, n_pad = gaussian_case()
+    alpha = _compare(fused.gaussian_block, _gaussian_block, args, n_pad, dtype)
+    assert (alpha == torch.tensor(0.99, dtype=dtype)).any() and (alpha[1] == 0).all() and (alpha[6] == 0).any()
+
+
+def test_block_kernels_take_broadcast_points():
+    args, _ = neural_case(2)
+    u, v = args[0][:1], args[1][:1]      # (1, A): one set of points shared by all primitives
+    torch.testing.assert_close(fused.neural_block(u, v, *args[2:]), _neural_block(u, v, *args[2:]), rtol=1e-9, atol=1e-11)
+
+
+def _smooth_neural_block(seed=3, per_prim=10):
+    """A small float64 block away from every kink (clamps, 1/255, silhouettes, near-plane tie),
+    for finite differences; keeps the camera-inside and a_k ≈ 0 primitives."""
+    (u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax), _ = neural_case(seed, grazing=())
+    keep = torch.tensor([0, 2, 6, 7])
+    params = [t[keep] for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax)]
+    u, v = u[keep], v[keep]
+    alpha = _neural_block(u, v, intrinsics, *params)
+    d, l_near = _camera_directions(u, v, intrinsics)
+    d_ell = d @ params[0].transpose(1, 2)
+    l_in, l_out, hit = ray_ellipsoid(params[1][:, None, :], d_ell)
+    disc_rel = (l_out - l_in) ** 2 * (d_ell * d_ell).sum(-1)          # 4 disc / A, scale-free enough
+    ok = (alpha > 0.02) & (alpha < 0.95) & hit & (disc_rel > 1e-2) & ((l_in - l_near).abs() > 1e-3)
+    ok[1, -4] = True   # the centre pixel of primitive 2 (a_k ≈ 1e-7); checked below
+    cols = []
+    for p in range(len(keep)):
+        idx = torch.nonzero(ok[p]).squeeze(1)
+        assert len(idx) >= per_prim
+        cols.append(torch.cat([idx[torch.linspace(0, len(idx) - 2, per_prim - 1).long()], idx[-1:]]))
+    cols = torch.stack(cols)
+    u, v = u.gather(1, cols).contiguous(), v.gather(1, cols).contiguous()
+    return u, v, intrinsics, params
+
+
+def test_neural_block_gradcheck():
+    u, v, intrinsics, params = _smooth_neural_block()
+    alpha = _neural_block(u, v, intrinsics, *params)
+    assert ((alpha > 0.02) & (alpha < 0.95)).all()
+    params = [t.clone().requires_grad_(True) for t in params]
+    f = lambda *p: fused.neural_block(u, v, intrinsics, *p)
+    assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gaussian_block_gradcheck():
+    (u, v, intrinsics, mean2d, conic, opacity), _ = gaussian_case(1)
+    keep = torch.tensor([2, 3, 4, 5])
+    params = [t[keep].clone() for t in (mean2d, conic, opacity)]
+    u, v = u[keep], v[keep]
+    alpha = _gaussian_block(u, v, intrinsics, *params)
+    cols = torch.stack([torch.nonzero((a > 0.01) & (a < 0.95)).squeeze(1)[:8] for a in alpha])
+    u, v = u.gather(1, cols).contiguous(), v.gather(1, cols).contiguous()
+    params = [t.requires_grad_(True) for t in params]
+    f = lambda *p: fused.gaussian_block(u, v, intrinsics, *p)
+    assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def _render_scene(kind, dtype):
+    eye = torch.tensor([0.3, -3.0, 0.5])
+    if kind == "neural":
+        prims = random_neural(14, sh_degree=1, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
+        prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
+        prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
+        prims.b2[2] = 40.0
+    else:
+        prims = random_gaussians(14, sh_degree=1, scale=0.15, extent=0.6, seed=4)
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at(tuple(eye.tolist()), (0, 0, 0)))
+    return prims.to(dtype=dtype), cam
+
+
+def _render_with_grads(prims, cam, monkeypatch, kernels):
+    with monkeypatch.context() as m:
+        if kernels == "torch":
+            m.setenv("RADFIELD_KERNELS", "torch")
+        params = prims.map(lambda t: t.clone().requires_grad_(True))
+        out = render(params, cam, background=(0.2, 0.3, 0.4), near=0.05)
+        g = torch.Generator().manual_seed(0)
+        weights = [torch.randn(t.shape, generator=g, dtype=torch.float64).to(t.dtype) for t in (out.color, out.alpha, out.depth)]
+        loss = sum((w * t).sum() for w, t in zip(weights, (out.color, out.alpha, out.depth)))
+        names = list(params.tensors())
+        grads = torch.autograd.grad(loss, [params.tensors()[n] for n in names])
+    return out, dict(zip(names, grads))
+
+
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_render_fused_equals_torch(kind, dtype, monkeypatch):
+    prims, cam = _render_scene(kind, dtype)
+    fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
+    slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
+    assert slow.meta["contributing_pairs"] > 100
+    assert fast.meta == slow.meta
+    tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
+    for name in ("color", "alpha", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **tol)
+    for name, gs in grads_slow.items():
+        scale = gs.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **tol, msg=lambda m: f"d/d{name}: {m}")
+
+
+def test_render_uses_fused_kernels(monkeypatch):
+    calls = []
+    for name in ("neural_block", "gaussian_block"):
+        original = getattr(fused, name)
+        monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name: calls.append(_n) or _f(*a))
+    for kind in ("neural", "gaussian"):
+        render(*_render_scene(kind, torch.float32))
+    assert "neural_block" in calls and "gaussian_block" in calls
+    calls.clear()
+    monkeypatch.setenv("RADFIELD_KERNELS", "torch")
+    assert not fused.available()
+    render(*_render_scene("neural", torch.float32))
+    assert not calls
+
+
+def test_failed_build_warns_once_and_falls_back(monkeypatch):
+    def broken_build():
+        raise RuntimeError("Error building extension 'radfield_kernels'\nmore compiler output")
+
+    monkeypatch.setattr(fused, "_build", broken_build)
+    monkeypatch.setattr(fused, "_state", {"tried": False, "ops": None})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert not fused.available()
+        assert not fused.available()
+        render(*_render_scene("neural", torch.float32))
+    messages = [str(w.message) for w in caught if "fused" in str(w.message)]
+    assert len(messages) == 1 and "\n" not in messages[0] and "torch kernels" in messages[0]
