@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import cv2
@@ -13,7 +12,6 @@ import meshio
 import numpy as np
 import pytest
 
-from radfield.cli.main import main
 from radfield.core.io import load_model
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.synthetic import generate_scene
@@ -36,21 +34,6 @@ def config(*sets: str) -> dict:
 
 def run_until(stage: str, source: Path, run_dir: Path, *sets: str) -> dict[str, str]:
     return run_pipeline(stages(), run_dir, config(*sets), input_path=source, until_stage=stage, quiet=True)
-
-
-def cli(capsys, *args) -> tuple[int, str, str]:
-    """Run `radfield ARGS` in this process: (exit code, stdout, stderr)."""
-    argv = sys.argv
-    sys.argv = ["radfield", *map(str, args)]
-    try:
-        main()
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code or 0
-    finally:
-        sys.argv = argv
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def fox_photos(dst: Path, count: int = 8) -> Path:
@@ -134,15 +117,15 @@ def test_photos_become_a_posed_dataset_with_a_cage(photo_run):
     assert from_points.sum() == 270  # the rest were sampled in the cage's volume
 
 
-def test_a_failing_sfm_leaves_the_run_as_it_was(tmp_path, capsys):
+def test_a_failing_sfm_leaves_the_run_as_it_was(tmp_path, cli):
     photos = fox_photos(tmp_path / "photos")
     run_dir = tmp_path / "run"
     args = ["reconstruct", photos, "-o", run_dir, "-q", "--until", "data"]
-    assert cli(capsys, *args)[0] == 0
+    assert cli(*args)[0] == 0
     before = stage_dirs(run_dir)
     height, width = cv2.imread(str(next(photos.iterdir()))).shape[:2]
     noise = noise_photos(photos, 3, (height, width))  # the user adds photos that cannot register
-    code, out, err = cli(capsys, *args, "--set", "sfm.min_registered_fraction=1.0")
+    code, out, err = cli(*args, "--set", "sfm.min_registered_fraction=1.0")
     assert code == 1 and out == "" and len(err.strip().splitlines()) == 1, err
     assert "only 8 of 11 images registered" in err and all(name in err for name in noise)
     assert stage_dirs(run_dir) == before and not leftovers(run_dir)
@@ -179,20 +162,20 @@ def test_posed_photos_without_points_are_triangulated(tmp_path):
     ("two", "found 2 images"),
     ("noise", "do not overlap"),
 ])
-def test_sfm_errors_are_one_line_and_write_nothing(tmp_path, capsys, case, message):
+def test_sfm_errors_are_one_line_and_write_nothing(tmp_path, cli, case, message):
     photos = tmp_path / "photos"
     noise_photos(photos, 2 if case == "two" else 5, (120, 160))
     run_dir = tmp_path / "run"
-    code, out, err = cli(capsys, "reconstruct", photos, "-o", run_dir, "-q")
+    code, out, err = cli("reconstruct", photos, "-o", run_dir, "-q")
     assert code == 1 and len(err.strip().splitlines()) == 1 and message in err and err.startswith("radfield: error: sfm:")
     assert not (run_dir / "sfm").exists() and not leftovers(run_dir)
 
 
-def test_an_unreadable_photo_is_named_before_anything_runs(tmp_path, capsys):
+def test_an_unreadable_photo_is_named_before_anything_runs(tmp_path, cli):
     photos = tmp_path / "photos"
     noise_photos(photos, 4, (60, 80))
     (photos / "broken.jpg").write_bytes(b"not a jpeg")
-    code, _, err = cli(capsys, "reconstruct", photos, "-o", tmp_path / "run", "-q")
+    code, _, err = cli("reconstruct", photos, "-o", tmp_path / "run", "-q")
     assert code == 1 and len(err.strip().splitlines()) == 1 and "broken.jpg" in err
     assert not (tmp_path / "run").exists()
 
@@ -266,15 +249,15 @@ def test_too_few_triangulated_points_means_no_cage(blobs, tmp_path):
     (["--set", "sfm.camera_model=THIN_PRISM"], "sfm.camera_model"),
     (["--set", "init.cage_fraction=2"], "init.cage_fraction"),
 ])
-def test_front_end_config_errors_name_the_key(blobs, tmp_path, capsys, args, key):
-    code, _, err = cli(capsys, "reconstruct", blobs, "-o", tmp_path / "run", *args)
+def test_front_end_config_errors_name_the_key(blobs, tmp_path, cli, args, key):
+    code, _, err = cli("reconstruct", blobs, "-o", tmp_path / "run", *args)
     assert code == 1 and len(err.strip().splitlines()) == 1 and key in err, err
     assert not (tmp_path / "run").exists()
 
 
-def test_a_missing_envelope_source_fails_in_its_stage_only(blobs, tmp_path, capsys):
+def test_a_missing_envelope_source_fails_in_its_stage_only(blobs, tmp_path, cli):
     run_dir = tmp_path / "run"
-    code, _, err = cli(capsys, "reconstruct", blobs, "-o", run_dir, "-q", "--until", "tetra",
+    code, _, err = cli("reconstruct", blobs, "-o", run_dir, "-q", "--until", "tetra",
                        "--set", "envelope.source=points")
     assert code == 1 and err.strip() == "radfield: error: envelope: config key envelope.source is points but the " \
                                         "dataset has no SfM points"

@@ -6,14 +6,12 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from radfield.cli.main import main
 from radfield.core.cameras import Camera
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model, save_model
@@ -48,21 +46,6 @@ def config(*sets: str) -> dict:
 
 def run_until(stage: str, scene: Path, run_dir: Path, cfg: dict | None = None, pipeline=None) -> dict[str, str]:
     return run_pipeline(pipeline or stages(), run_dir, cfg or config(), input_path=scene, until_stage=stage, quiet=True)
-
-
-def cli(capsys, *args) -> tuple[int, str, str]:
-    """Run `radfield ARGS` in this process: (exit code, stdout, stderr)."""
-    argv = sys.argv
-    sys.argv = ["radfield", *map(str, args)]
-    try:
-        main()
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code or 0
-    finally:
-        sys.argv = argv
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
@@ -165,12 +148,12 @@ def break_size(root: Path) -> str:
 
 
 @pytest.mark.parametrize("damage", [break_missing_image, break_json, break_size])
-def test_dataset_errors_fail_first_and_leave_the_run_alone(scene_copy, tmp_path, capsys, damage):
+def test_dataset_errors_fail_first_and_leave_the_run_alone(scene_copy, tmp_path, cli, damage):
     run_dir = tmp_path / "run"
-    assert cli(capsys, "reconstruct", scene_copy, "-o", run_dir, "--until", "data", "-q")[0] == 0
+    assert cli("reconstruct", scene_copy, "-o", run_dir, "--until", "data", "-q")[0] == 0
     before = snapshot(run_dir)
     culprit = damage(scene_copy)
-    code, out, err = cli(capsys, "reconstruct", scene_copy, "-o", run_dir, "-q", "--set", "train.iterations=1")
+    code, out, err = cli("reconstruct", scene_copy, "-o", run_dir, "-q", "--set", "train.iterations=1")
     assert code == 1 and out == ""
     assert len(err.strip().splitlines()) == 1 and culprit in err, err
     assert snapshot(run_dir) == before
@@ -186,8 +169,8 @@ def test_dataset_errors_fail_first_and_leave_the_run_alone(scene_copy, tmp_path,
     (["--set", "init.source=points"], "init.source"),  # the scene has no SfM points
     (["--set", "eval.split=val"], "eval.split"),  # nor a val split
 ])
-def test_config_errors_name_the_key(scene_dir, tmp_path, capsys, args, key):
-    code, out, err = cli(capsys, "reconstruct", scene_dir, "-o", tmp_path / "run", *args)
+def test_config_errors_name_the_key(scene_dir, tmp_path, cli, args, key):
+    code, out, err = cli("reconstruct", scene_dir, "-o", tmp_path / "run", *args)
     assert code == 1 and len(err.strip().splitlines()) == 1 and key in err, err
     assert not (tmp_path / "run").exists()
 
@@ -294,14 +277,14 @@ def test_evaluate_metrics(blobs, scene_dir, tmp_path):
         evaluate(model_file, scene, "val", tmp_path / "nowhere")
 
 
-def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, capsys):
+def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
     run_dir = tmp_path / "run"
     status = run_pipeline(with_fake_train(), run_dir, config(), input_path=scene_dir, quiet=True)
     assert status["eval"] == "ran" and status["sfm"] == "not applicable"
     metrics = json.loads((run_dir / "eval" / "metrics.json").read_text())
     assert set(metrics) == METRIC_KEYS and len(list((run_dir / "eval" / "renders").iterdir())) == 2
 
-    code, out, _ = cli(capsys, "info", run_dir, "--json")
+    code, out, _ = cli("info", run_dir, "--json")
     info = json.loads(out)
     assert code == 0 and set(info) == {"run", "input", "model", "normalization", "stages"}
     assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "eval"]
@@ -310,18 +293,18 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, capsys):
     assert {"done", "seconds", "psnr", "ssim", "fps"} <= set(info["stages"]["eval"])
     assert info["stages"]["eval"]["psnr"] == pytest.approx(metrics["psnr"])
 
-    code, out, _ = cli(capsys, "eval", run_dir, "-o", tmp_path / "report", "-q")  # the run's own dataset
+    code, out, _ = cli("eval", run_dir, "-o", tmp_path / "report", "-q")  # the run's own dataset
     report = json.loads((tmp_path / "report" / "metrics.json").read_text())
     assert code == 0 and "PSNR" in out and report["psnr"] == pytest.approx(metrics["psnr"], abs=1e-4)
-    code, _, err = cli(capsys, "eval", run_dir / "train" / MODEL_FILE, "-o", tmp_path / "r2")
+    code, _, err = cli("eval", run_dir / "train" / MODEL_FILE, "-o", tmp_path / "r2")
     assert code == 1 and "--dataset" in err and not (tmp_path / "r2").exists()
 
 
-def test_demo_scene_command(tmp_path, capsys):
-    code, out, _ = cli(capsys, "demo-scene", "checker", "-o", tmp_path / "c", "--train-views", "2", "--test-views", "1",
+def test_demo_scene_command(tmp_path, cli):
+    code, out, _ = cli("demo-scene", "checker", "-o", tmp_path / "c", "--train-views", "2", "--test-views", "1",
                        "--size", "8")
     assert code == 0 and (tmp_path / "c" / "transforms_train.json").is_file() and "checker" in out
-    code, _, err = cli(capsys, "demo-scene", "nope", "-o", tmp_path / "d")
+    code, _, err = cli("demo-scene", "nope", "-o", tmp_path / "d")
     assert code == 1 and "unknown synthetic scene" in err
 
 
@@ -329,22 +312,22 @@ def test_demo_scene_command(tmp_path, capsys):
 
 
 @pytest.mark.skipif(not train_available(), reason="the train stage (radfield.stages.train) does not exist yet")
-def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, capsys):
+def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, cli):
     run_dir = tmp_path / "run"
     args = ["reconstruct", scene_dir, "-o", run_dir, "-q", "--set", "init.num_points=300"]
-    code, out, err = cli(capsys, *args, "--set", "train.iterations=40")
+    code, out, err = cli(*args, "--set", "train.iterations=40")
     assert code == 0, err
     assert "held-out PSNR" in out
-    info = json.loads(cli(capsys, "info", run_dir, "--json")[1])
+    info = json.loads(cli("info", run_dir, "--json")[1])
     assert {"primitives", "params", "iterations", "train_psnr"} <= set(info["stages"]["train"])
     initial = evaluate(run_dir / "init" / init.INIT_MODEL, data.load_scene(run_dir / "data" / data.SCENE), "test",
                        tmp_path / "initial")
     assert info["stages"]["eval"]["psnr"] > initial["psnr"] + 1.0
 
-    code, out, _ = cli(capsys, *args, "--set", "train.iterations=40")
+    code, out, _ = cli(*args, "--set", "train.iterations=40")
     assert code == 0 and out.splitlines()[0] == "stages: " + ", ".join(f"{name} cached" for name in info["stages"])
 
-    code, out, _ = cli(capsys, *args, "--set", "train.iterations=41")
+    code, out, _ = cli(*args, "--set", "train.iterations=41")
     outcomes = dict(part.split(" ", 1) for part in out.splitlines()[0].removeprefix("stages: ").split(", "))
     assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "eval"]
-    assert math.isfinite(json.loads(cli(capsys, "info", run_dir, "--json")[1])["stages"]["eval"]["psnr"])
+    assert math.isfinite(json.loads(cli("info", run_dir, "--json")[1])["stages"]["eval"]["psnr"])
