@@ -9,14 +9,13 @@ Readers check everything and never unpickle anything.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save
 
+from radfield.core.atomic import atomic_write_bytes
 from radfield.core.errors import RadfieldError
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.sh import num_sh_coeffs
@@ -41,15 +40,7 @@ def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dic
     if isinstance(prims, NeuralPrimitives):
         meta["omega0"] = repr(float(prims.omega0))
     meta.update({k: v if isinstance(v, str) else json.dumps(v) for k, v in (extra or {}).items()})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(_canonical_header(save(tensors, metadata=meta)))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, _canonical_header(save(tensors, metadata=meta)))
 
 
 def _canonical_header(blob: bytes) -> bytes:

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +27,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
+from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.errors import RadfieldError
 from radfield.core.losses import anisotropy, photometric, psnr
@@ -223,14 +222,7 @@ def save_checkpoint(path: str | Path, state: TrainState) -> None:
     header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
               "omega0": state.omega0}
     meta = {CHECKPOINT_FORMAT: json.dumps(header, sort_keys=True)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")  # not mkstemp: keep the umask's mode
-    try:
-        save_file(tensors, str(tmp), metadata=meta)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
 
 
 def load_checkpoint(path: str | Path) -> TrainState:

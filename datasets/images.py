@@ -9,13 +9,13 @@ and area averaging is exact.
 from __future__ import annotations
 
 import os
-import uuid
 from pathlib import Path
 
 import cv2
 import numpy as np
 import OpenImageIO as oiio
 
+from radfield.core.atomic import atomic_write
 from radfield.core.errors import RadfieldError
 
 # Formats written as 8/16-bit integers (everything else, e.g. EXR, is written as float32).
@@ -65,8 +65,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
 
 
 def write_image(path: str | os.PathLike, array: np.ndarray, bits: int = 8) -> None:
-    """Write float (H, W) or (H, W, C) pixels atomically (temporary name in the same folder, then
-    os.replace). PNG/JPEG/TIFF are quantised to `bits` (8 or 16) with rounding after clipping to
+    """Write float (H, W) or (H, W, C) pixels atomically (core.atomic). PNG/JPEG/TIFF are quantised to `bits` (8 or 16) with rounding after clipping to
     [0, 1]; EXR is written as float32. Alpha (C = 2 or 4) is taken as premultiplied, as read_image
     returns it; it is un-premultiplied here in float so that low-alpha pixels keep their colour."""
     path = Path(path)
@@ -88,18 +87,16 @@ def write_image(path: str | os.PathLike, array: np.ndarray, bits: int = 8) -> No
     spec = oiio.ImageSpec(width, height, channels, fmt)
     if unassociated:
         spec.attribute("oiio:UnassociatedAlpha", 1)
-    # Keep the extension last: OIIO picks the file format from it.
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None:
-        raise RadfieldError(f"cannot write image {path}: {_oiio_error()}")
-    try:
+
+    def write(tmp: Path) -> None:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise RadfieldError(f"cannot write image {path}: {_oiio_error()}")
         if not (out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(pixels))):
             raise RadfieldError(f"cannot write image {path}: {_oiio_error(out)}")
         out.close()
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+
+    atomic_write(path, write)
 
 
 def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:

@@ -15,15 +15,14 @@ import difflib
 import functools
 import importlib.resources
 import json
-import os
 import re
-import secrets
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from radfield.core.atomic import atomic_write_text
 from radfield.core.errors import RadfieldError
 
 DEFAULTS_NAME = "pipeline.yaml"
@@ -170,21 +169,7 @@ def require(config: Mapping[str, Any], key: str, ok: Callable[[Any], bool], what
 
 def save_resolved(config: Mapping[str, Any], path: Path) -> None:
     """Write the resolved config as YAML, atomically (a reader never sees half a file)."""
-    write_atomic(Path(path), yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None))
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write `text` to `path` through a temporary file in the same directory and a rename."""
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")  # not mkstemp: keep the umask's mode
-    try:
-        with open(tmp, "x", encoding="utf-8") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write_text(Path(path), yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None))
 
 
 # --- validation -------------------------------------------------------------------------------

@@ -36,6 +36,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
+from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.errors import RadfieldError
 from radfield.datasets.views import Dataset
@@ -410,18 +411,6 @@ def read_envelope(path) -> tuple[np.ndarray, np.ndarray]:
 def _imwrite(path: Path, rgb: np.ndarray) -> None:
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise RadfieldError(f"{path}: could not write the image")
-
-
-def atomic_write(path: Path, write) -> None:
-    """`write(tmp)` to a temporary name in the same folder (same suffix, so writers that pick the
-    format from it still work), then rename over `path`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _diagonal(points: np.ndarray) -> float:

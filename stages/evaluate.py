@@ -22,12 +22,13 @@ from typing import Any
 
 import torch
 
+from radfield.core.atomic import atomic_write_text
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model
 from radfield.core.metrics import psnr, ssim
 from radfield.core.rasterize import render
 from radfield.datasets.images import write_image
-from radfield.stages.config import load_config, write_atomic
+from radfield.stages.config import load_config
 from radfield.stages.data import SCENE, Scene, load_scene, read_dataset, scene_from_json
 from radfield.stages.info import MODEL_FILE, model_path, run_dataset
 from radfield.stages.pipeline import CONFIG_FILE, Context, Stage, is_run_dir
@@ -106,7 +107,7 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
     scene = scene_from_json(read_dataset(dataset, config["data"])[0], dataset)
     metrics = evaluate(model, scene, split, out_dir / RENDERS, near=config["render"]["near"], device=device,
                        quiet=quiet)
-    write_atomic(out_dir / METRICS, json.dumps(metrics, indent=1) + "\n")
+    atomic_write_text(out_dir / METRICS, json.dumps(metrics, indent=1) + "\n")
     return metrics
 
 

@@ -39,7 +39,7 @@ from radfield.core.sh import num_sh_coeffs, rgb_to_sh_dc
 from radfield.stages.config import require
 from radfield.stages.data import POINTS, SCENE, Scene, load_scene
 from radfield.stages.pipeline import Context, Stage
-from radfield.stages.tetra import CAGE_NPZ, locate_points, read_cage, sample_in_cage, write_binding
+from radfield.core.cage import CAGE_NPZ, locate_points, read_cage, sample_in_cage, write_binding
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
 BINDING = "binding.npz"  # the initial primitives' tets and barycentric coordinates in the cage

@@ -38,8 +38,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from radfield.core.atomic import atomic_write_text
 from radfield.core.errors import RadfieldError
-from radfield.stages.config import save_resolved, section, write_atomic
+from radfield.stages.config import save_resolved, section
 
 INPUT = "input"  # artifact name of the user's input (the dataset path); no stage produces it
 MANIFEST = "manifest.json"
@@ -381,7 +382,7 @@ def _execute(
             "started": started,
             "finished": _now(),
         }
-        write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+        atomic_write_text(tmp / MANIFEST, json.dumps(manifest, indent=2) + "\n")
         _swap_in(tmp, stage_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -403,7 +404,7 @@ def _prepare_work(work: Path, key: dict[str, Any], wipe: bool) -> None:
     if work.exists() and (wipe or stored != key):
         shutil.rmtree(work)
     work.mkdir(exist_ok=True)
-    write_atomic(stamp, json.dumps(key))
+    atomic_write_text(stamp, json.dumps(key))
 
 
 def _swap_in(tmp: Path, stage_dir: Path) -> None:
@@ -459,7 +460,7 @@ def _write_marker(run_dir: Path, input_path: Path | None) -> None:
         marker.update(read_marker(run_dir))
     if input_path is not None:
         marker["input"] = str(input_path)
-    write_atomic(run_dir / RUN_MARKER, json.dumps(marker, indent=2) + "\n")
+    atomic_write_text(run_dir / RUN_MARKER, json.dumps(marker, indent=2) + "\n")
 
 
 def _remove_scratch(run_dir: Path) -> None:
@@ -501,7 +502,7 @@ class HashCache:
         return digest.hexdigest()
 
     def save(self) -> None:
-        write_atomic(self.path, json.dumps(self.used))
+        atomic_write_text(self.path, json.dumps(self.used))
 
     def _file(self, path: Path, key_path: Path) -> str:
         stat = path.stat()

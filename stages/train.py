@@ -28,7 +28,7 @@ from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.init import INIT_MODEL
 from radfield.stages.pipeline import Context, Stage
-from radfield.stages.tetra import CAGE_NPZ, write_binding
+from radfield.core.cage import CAGE_NPZ, write_binding
 
 CHECKPOINT = "checkpoint.safetensors"
 MODEL_BINDING = "model_binding.npz"  # per trained primitive: its cage tet and barycentric coordinates

@@ -16,7 +16,7 @@ from radfield.stages.config import load_defaults
 from radfield.stages.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
 from radfield.datasets.colmap import read_colmap
 from radfield.stages.sfm import compare_poses, run_sfm
-from radfield.stages.tetra import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
+from radfield.core.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
 
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 FOX = DATASETS / "fox_small"

@@ -22,7 +22,7 @@ from radfield.stages.evaluate import eval_report
 from radfield.stages.info import run_dataset, run_info
 from radfield.stages.pipeline import read_manifest, run_pipeline
 from radfield.stages.registry import stages
-from radfield.stages.tetra import bind_to_cage, locate_points, read_cage, write_binding
+from radfield.core.cage import bind_to_cage, locate_points, read_cage, write_binding
 
 FOX = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "fox_small"
 FRONT = ["sfm", "data", "envelope", "tetra", "init"]
