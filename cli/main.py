@@ -4,7 +4,6 @@ and exit code 1; anything else is a bug and keeps its traceback."""
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
@@ -13,6 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 import radfield
+from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
 app = typer.Typer(
@@ -35,41 +35,6 @@ def _version(value: bool):
 def _root(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                                 help="Print the version and exit.")] = False):
     """radfield: editable radiance fields from multi-view images."""
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """'R,G,B' with components in [0, 1] (e.g. 1,1,1 for white)."""
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in values):
-        raise RadfieldError(f"--background must be three numbers in [0, 1] like 1,1,1, got {text!r}")
-    return values
-
-
-def resolve_device(name: str):
-    import torch
-
-    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
-        raise RadfieldError(f"--device must be cpu or cuda[:N], got {name!r}")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise RadfieldError(f"--device {name}: this torch build sees no CUDA device (use --device cpu)")
-    return torch.device(name)
-
-
-def resolve_model(path: Path) -> Path:
-    """A model file, or a run directory whose final model is used."""
-    from radfield.stages.info import model_path
-
-    if path.is_dir():
-        model = model_path(path)
-        if not model.is_file():
-            raise RadfieldError(f"{path}: run directory has no trained model yet ({model} is missing)")
-        return model
-    if not path.exists():
-        raise RadfieldError(f"{path}: no such model file or run directory")
-    return path
 
 
 @app.command()
@@ -188,7 +153,7 @@ def render(
         raise RadfieldError(f"{output}: exists and is not a folder")
     output.mkdir(parents=True, exist_ok=True)
     seconds = []
-    with _progress(quiet) as progress:
+    with progress_bar(quiet) as progress:
         task = progress.add_task(f"rendering {len(cameras)} views", total=len(cameras))
         for view, cam in zip(data.views, cameras):
             start = time.perf_counter()
@@ -242,13 +207,6 @@ def demo_scene(
             return
     generate_scene(name, output, n_train=train_views, n_test=test_views, size=size, seed=seed)
     typer.echo(f"wrote {name}: {train_views} train + {test_views} test views of {size}x{size} to {output}")
-
-
-def _progress(quiet: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                    disable=quiet, transient=True)
 
 
 def main() -> None:

@@ -171,12 +171,14 @@ def sample_in_cage(cage_vertices: np.ndarray, tets: np.ndarray, n: int, rng=None
     return points, index, bary
 
 
-def bind_to_cage(means: np.ndarray, cage_npz) -> tuple[np.ndarray, np.ndarray]:
-    """Binding of points (P, 3) (primitive centres) to the cage in `cage_npz`: tet (P,) int64 and
+def bind_to_cage(means: np.ndarray, cage) -> tuple[np.ndarray, np.ndarray]:
+    """Binding of points (P, 3) (primitive centres) to `cage`, a cage file or a (vertices, tets)
+    pair: tet (P,) int64 and
     barycentric coordinates (P, 4). A point outside the cage (training moves primitives) gets the
     tet it is least outside of among those with the nearest centroids, with barycentric
     coordinates that extrapolate that tet's affine map (some negative), so it still follows edits."""
-    v, t = read_cage(cage_npz)
+    v, t = cage if isinstance(cage, tuple) else read_cage(cage)
+    v, t = np.asarray(v, np.float64), np.asarray(t, np.int64)
     p = np.asarray(means, np.float64).reshape(-1, 3)
     tet, bary = locate_points(v, t, p)
     outside = np.flatnonzero(tet < 0)
