@@ -5,7 +5,6 @@ and exit code 1; anything else is a bug and keeps its traceback."""
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -127,43 +126,35 @@ def info(
 
 @app.command()
 def render(
-    model_or_run: Annotated[Path, typer.Argument(help="A .safetensors model file, or a run directory (its final model).")],
-    dataset: Annotated[Path, typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP).")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created).")],
-    split: Annotated[str, typer.Option(help="Which cameras: train, val, test or all.")] = "test",
-    background: Annotated[str, typer.Option(help="Background colour R,G,B in [0, 1].")] = "1,1,1",
-    downscale: Annotated[int, typer.Option(help="Render at 1/K of the dataset's resolution.")] = 1,
+    model_or_run: Annotated[Path, typer.Argument(metavar="MODEL_OR_RUN", help="A .safetensors model file, or a run directory (its final model).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created; written under a temporary name and renamed at the end).")],
+    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP). Default for a run: the dataset it trained on.")] = None,
+    split: Annotated[str, typer.Option(help="Which cameras: train, val, test or all (without split files: every data.test_every-th view is test).")] = "test",
+    background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] (default: the run's data.background, else 1,1,1).")] = None,
+    downscale: Annotated[Optional[int], typer.Option(help="Render at 1/K of the dataset's resolution (default: the run's data.downscale, else 1).")] = None,
+    near: Annotated[Optional[float], typer.Option(help="Near plane distance (default: the run's render.near, else 0.01).")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ):
-    """Render every camera of a dataset split to OUTPUT/<frame name>.png."""
-    import torch
+    """Render every camera of a dataset split to OUTPUT/<frame name>.png.
 
-    from radfield.core.io import load_model
-    from radfield.core.rasterize import render as render_view
-    from radfield.datasets.images import write_image
-    from radfield.datasets.readers import load_dataset
+    For a run directory every default is the run's own: its dataset, its split rule
+    (data.test_every), background, downscale and near plane; explicit options win."""
+    from radfield.stages.pipeline import is_run_dir
+    from radfield.stages.render import render_frames
 
-    bg = parse_background(background)
+    options = {"data.downscale": downscale, "render.near": near,
+               "data.background": list(parse_background(background)) if background is not None else None}
     dev = resolve_device(device)
-    model = load_model(resolve_model(model_or_run), device=dev)
-    data = load_dataset(dataset, split=split, downscale=downscale, background=bg)
-    cameras = data.cameras
-    if output.exists() and not output.is_dir():
-        raise RadfieldError(f"{output}: exists and is not a folder")
-    output.mkdir(parents=True, exist_ok=True)
-    seconds = []
+    model = resolve_model(model_or_run)
     with progress_bar(quiet) as progress:
-        task = progress.add_task(f"rendering {len(cameras)} views", total=len(cameras))
-        for view, cam in zip(data.views, cameras):
-            start = time.perf_counter()
-            with torch.no_grad():
-                out = render_view(model, cam, background=bg)
-            seconds.append(time.perf_counter() - start)
-            write_image(output / f"{view.image_path.stem}.png", out.color.clamp(0, 1).cpu().numpy())
-            progress.advance(task)
-    typer.echo(f"rendered {len(cameras)} views ({cameras[0].width}x{cameras[0].height}, {len(model)} {model.kind} primitives) "
-               f"to {output}; mean render time {1e3 * sum(seconds) / len(seconds):.1f} ms/frame")
+        task = progress.add_task("rendering", total=None)
+        summary = render_frames(model, model_or_run if is_run_dir(model_or_run) else None, dataset, split, output,
+                                options={k: v for k, v in options.items() if v is not None}, device=dev,
+                                on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} views"),
+                                on_frame=lambda: progress.advance(task))
+    typer.echo(f"rendered {summary['views']} views ({summary['width']}x{summary['height']}, {summary['primitives']} "
+               f"{summary['kind']} primitives) to {output}; mean render time {summary['ms_per_frame']:.1f} ms/frame")
 
 
 @app.command("bench-render")
@@ -210,14 +201,40 @@ def demo_scene(
 
 
 def main() -> None:
+    """The console entry point: every user mistake, on every command, is one line
+    `radfield: error: …` on stderr and exit code 1 (a RadfieldError from the work, or a usage
+    error Click finds while parsing: a wrong option type, a missing or unknown option)."""
+    click = _click_exceptions()
     try:
-        app()
+        code = app(standalone_mode=False)
+    except click.NoArgsIsHelpError as e:  # bare `radfield` or a group without a command
+        typer.echo(e.ctx.get_help())
+        code = 0
+    except click.UsageError as e:
+        command = e.ctx.command_path if e.ctx is not None else "radfield"
+        message = " ".join(e.format_message().split())
+        typer.echo(f"radfield: error: {message} (see '{command} --help')", err=True)
+        sys.exit(1)
+    except click.ClickException as e:  # e.g. a file Click could not open
+        typer.echo(f"radfield: error: {' '.join(e.format_message().split())}", err=True)
+        sys.exit(1)
     except RadfieldError as e:
         typer.echo(f"radfield: error: {e}", err=True)
         sys.exit(1)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, click.Abort, typer.Abort):
         typer.echo("radfield: interrupted", err=True)
         sys.exit(130)
+    if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
+        sys.exit(code)
+
+
+def _click_exceptions():
+    """Click's exception classes: Typer ≥ 0.20 vendors Click as typer._click, older Typer uses Click."""
+    try:
+        from typer._click import exceptions
+    except ImportError:
+        from click import exceptions
+    return exceptions
 
 
 if __name__ == "__main__":

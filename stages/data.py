@@ -50,7 +50,7 @@ import torch
 from radfield.core.cameras import Camera
 from radfield.core.errors import RadfieldError
 from radfield.datasets.images import downscaled_size, image_size
-from radfield.datasets.readers import Dataset, View, detect_format, load_dataset, validate
+from radfield.datasets.readers import SPLITS, Dataset, View, detect_format, load_dataset, validate
 from radfield.datasets.transforms import read_json
 from radfield.stages.info import SFM_DATASET
 from radfield.stages.pipeline import INPUT, Context, Stage
@@ -93,12 +93,8 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
     """The scene.json content and points.npz arrays of the dataset at `path` under the `data`
     config section. Reads every image header: any problem is a RadfieldError naming the file."""
     path = Path(path).resolve()
-    for key, least in (("downscale", 1), ("test_every", 2)):
-        if data[key] < least:
-            raise RadfieldError(f"config key data.{key} must be at least {least}, got {data[key]}")
+    _check_data(data)
     background = tuple(data["background"])
-    if not all(0.0 <= c <= 1.0 for c in background):
-        raise RadfieldError(f"config key data.background must hold numbers in [0, 1], got {list(background)}")
     splits = _splits(path, data["downscale"], background, data["test_every"])
     for dataset in splits.values():
         validate(dataset)
@@ -138,15 +134,46 @@ def _splits(path: Path, downscale: int, background: tuple, test_every: int) -> d
             "test": replace(everything, split="test", views=views[::test_every])}
 
 
+def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
+    """One split ('train' | 'val' | 'test' | 'all') of the dataset at `path`, as a run with the
+    `data` config section sees it (what `radfield render` uses): a split the dataset defines
+    itself (a transforms_SPLIT.json, nerfstudio's SPLIT_filenames) is read as it is; otherwise
+    every `data.test_every`-th view by file name is the test split and the rest train, as the data
+    stage splits it. Images are downscaled by data.downscale and composited on data.background."""
+    path = Path(path).resolve()
+    if split not in SPLITS:
+        raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
+    _check_data(data)
+    downscale, background = data["downscale"], tuple(data["background"])
+    fmt = detect_format(path)
+    if split == "all" or split in _present_splits(path, fmt):
+        return load_dataset(path, split, downscale, background)
+    if split not in ("train", "test"):
+        raise RadfieldError(f"{path}: the dataset has no {split!r} split (without split files it has train and test)")
+    return _splits(path, downscale, background, data["test_every"])[split]
+
+
+def _check_data(data: dict[str, Any]) -> None:
+    for key, least in (("downscale", 1), ("test_every", 2)):
+        if data[key] < least:
+            raise RadfieldError(f"config key data.{key} must be at least {least}, got {data[key]}")
+    if not all(0.0 <= c <= 1.0 for c in data["background"]):
+        raise RadfieldError(f"config key data.background must hold numbers in [0, 1], got {list(data['background'])}")
+
+
+def _present_splits(path: Path, fmt: str) -> list[str]:
+    """The splits the dataset's files name (any of train, val, test)."""
+    if fmt == "nerf_synthetic":
+        return [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
+    if fmt == "nerfstudio":
+        meta = read_json(path if path.is_file() else path / "transforms.json")
+        return [s for s in ("train", "val", "test") if f"{s}_filenames" in meta]
+    return []
+
+
 def _native_splits(path: Path, fmt: str) -> list[str]:
     """The splits the dataset defines itself (empty when it defines no train/test split)."""
-    if fmt == "nerf_synthetic":
-        present = [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
-    elif fmt == "nerfstudio":
-        meta = read_json(path if path.is_file() else path / "transforms.json")
-        present = [s for s in ("train", "val", "test") if f"{s}_filenames" in meta]
-    else:
-        present = []
+    present = _present_splits(path, fmt)
     return present if {"train", "test"} <= set(present) else []
 
 

@@ -1,0 +1,80 @@
+"""`radfield render`: draw every camera of a dataset split with a trained model into a folder of PNGs.
+
+For a run directory every default is the run's own (RUN/config.yaml): the dataset it trained on
+(stages.info.run_dataset), its split rule (data.test_every), background, downscale and near plane;
+`options` ({"data.background": [...], "data.downscale": 2, "render.near": 0.05}) win over them.
+The frames are written into a temporary folder beside the output and moved into place at the end,
+so a failed render leaves no partial output.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from radfield.core.errors import RadfieldError
+from radfield.core.io import load_model
+from radfield.core.rasterize import render
+from radfield.core.timing import clock
+from radfield.datasets.images import write_image
+from radfield.stages.config import load_config
+from radfield.stages.data import load_split
+from radfield.stages.info import run_dataset
+from radfield.stages.pipeline import CONFIG_FILE
+
+
+def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, split: str, out_dir: Path, *,
+                  options: dict[str, Any] | None = None, device: str | torch.device = "cpu",
+                  on_start: Callable[[int], None] | None = None,
+                  on_frame: Callable[[], None] | None = None) -> dict[str, Any]:
+    """Render `split` of `dataset` (default: the run's) with the model into out_dir/<view>.png.
+
+    on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
+    primitives, kind and ms_per_frame (rendering only, the device synchronised before each clock
+    reading)."""
+    config = load_config(Path(run_dir) / CONFIG_FILE if run_dir is not None else None, options=options or {})
+    if dataset is None:
+        dataset = run_dataset(run_dir) if run_dir is not None else None
+        if dataset is None:
+            raise RadfieldError("--dataset is required to render a model file (a run knows its dataset)")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise RadfieldError(f"{out_dir}: exists and is not a folder")
+    model = load_model(model_file, device=device)
+    data = load_split(dataset, split, config["data"])
+    background, near = tuple(config["data"]["background"]), config["render"]["near"]
+    if on_start is not None:
+        on_start(len(data))
+    tmp = out_dir.with_name(f".{out_dir.name}.tmp-{secrets.token_hex(4)}")
+    tmp.mkdir(parents=True)
+    seconds = 0.0
+    try:
+        for view, camera in zip(data.views, data.cameras):
+            start = clock(device)
+            with torch.no_grad():
+                color = render(model, camera, background=background, near=near).color
+            seconds += clock(device) - start
+            write_image(tmp / f"{view.image_path.stem}.png", color.clamp(0, 1).cpu().numpy())
+            if on_frame is not None:
+                on_frame()
+        _move_into(tmp, out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    first = data.cameras[0]
+    return {"views": len(data), "width": first.width, "height": first.height, "primitives": len(model),
+            "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(data)}
+
+
+def _move_into(tmp: Path, out_dir: Path) -> None:
+    """`tmp` becomes `out_dir`; into an existing folder its files move one by one (each rename atomic)."""
+    if not out_dir.exists():
+        os.rename(tmp, out_dir)
+        return
+    for frame in sorted(tmp.iterdir()):
+        os.replace(frame, out_dir / frame.name)
