@@ -2,6 +2,13 @@
 values in [0, 1] (what the renderer returns); every function reduces to a scalar tensor.
 
     loss = (1 − λ) L1 + λ D-SSIM + λ_aniso · anisotropy      (3DGS loss + Splat the Net §3.3)
+
+Valid-pixel masks: `mask` (..., H, W) bool marks the pixels that hold image content (undistortion
+leaves invalid, black pixels at the borders: radfield.datasets.views.Dataset.load_valid_mask).
+Every function then measures the valid pixels only. L1 and PSNR average over the valid pixels'
+channels; SSIM first replaces the invalid pixels of `img` by those of `ref` (so they add no
+difference inside a window) and then averages its map over the windows described in `ssim`.
+No gradient reaches an invalid pixel. mask=None is every pixel valid.
 """
 
 from __future__ import annotations
@@ -15,18 +22,19 @@ SSIM_C1 = 0.01**2   # (K1 · data range)², data range 1
 SSIM_C2 = 0.03**2
 
 
-def l1(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Mean absolute error."""
-    return (img - ref).abs().mean()
+def l1(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean absolute error (over the valid pixels' channels)."""
+    return _masked_mean((img - ref).abs(), mask)
 
 
-def psnr(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Peak signal-to-noise ratio in dB for data range 1, over every pixel and channel
-    (callers clamp renders to [0, 1] first when they report it as a metric)."""
-    return -10.0 * torch.log10(((img - ref) ** 2).mean())
+def psnr(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB for data range 1, over every (valid) pixel and channel:
+    −10 log10(Σ_valid (img − ref)² / (3 · #valid)). Callers clamp renders to [0, 1] first when
+    they report it as a metric."""
+    return -10.0 * torch.log10(_masked_mean((img - ref) ** 2, mask))
 
 
-def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid") -> torch.Tensor:
+def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid", mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean structural similarity with the standard 11×11 Gaussian window (σ = 1.5, C1 = 0.01²,
     C2 = 0.03², population covariances), per channel, averaged over pixels and channels.
 
@@ -35,9 +43,16 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid") -> torch.
     data_range=1, channel_axis=-1)` and is the evaluation metric. padding="same" zero-pads the
     image by 5 pixels and averages every pixel, as 3DGS's training loss does (borders keep a gradient).
     Shapes: img, ref (..., H, W, C); H, W ≥ 11 for "valid".
+
+    With a valid-pixel mask (..., H, W): img's invalid pixels are replaced by ref's, then
+    "valid" averages the SSIM map over the windows whose whole 11×11 support is valid pixels
+    (on a mask that is all valid: every window inside the image, as without a mask), and "same"
+    over the windows centred on a valid pixel. ValueError when no window qualifies.
     """
     if padding not in ("valid", "same"):
         raise ValueError(f"padding must be 'valid' or 'same', not {padding!r}")
+    if mask is not None:
+        img = torch.where(mask[..., None], img, ref)
     channels = img.shape[-1]
     x = img.reshape(-1, *img.shape[-3:]).movedim(-1, 1)   # (B, C, H, W)
     y = ref.reshape(-1, *ref.shape[-3:]).movedim(-1, 1)
@@ -54,17 +69,27 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid") -> torch.
     cov_xy = blur(x * y) - mu_x * mu_y
     ssim_map = ((2 * mu_x * mu_y + SSIM_C1) * (2 * cov_xy + SSIM_C2)) / (
         (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (var_x + var_y + SSIM_C2))
-    return ssim_map.mean()
+    if mask is None:
+        return ssim_map.mean()
+    m = mask.reshape(-1, 1, *mask.shape[-2:]).to(img.dtype)   # (B, 1, H, W)
+    if padding == "valid":  # windows lying on valid pixels only: a box count of 11 × 11
+        box = torch.ones(1, 1, SSIM_WINDOW, SSIM_WINDOW, dtype=img.dtype, device=img.device)
+        m = (F.conv2d(m, box) > SSIM_WINDOW**2 - 0.5).to(img.dtype)
+    weight = m.expand_as(ssim_map)
+    if not bool(weight.sum() > 0):
+        raise ValueError("SSIM: no 11×11 window lies on valid pixels")
+    return (ssim_map * weight).sum() / weight.sum()
 
 
-def dssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+def dssim(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """D-SSIM = 1 − SSIM, with the 3DGS training convention (padding="same")."""
-    return 1.0 - ssim(img, ref, padding="same")
+    return 1.0 - ssim(img, ref, padding="same", mask=mask)
 
 
-def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
-    """The 3DGS image loss (1 − λ) L1 + λ D-SSIM."""
-    return (1.0 - lambda_dssim) * l1(img, ref) + lambda_dssim * dssim(img, ref)
+def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float,
+                mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The 3DGS image loss (1 − λ) L1 + λ D-SSIM (over the valid pixels of `mask`)."""
+    return (1.0 - lambda_dssim) * l1(img, ref, mask) + lambda_dssim * dssim(img, ref, mask)
 
 
 def anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
@@ -74,6 +99,14 @@ def anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
     scales = torch.exp(log_scales)
     ratio = scales / scales.amin(-1, keepdim=True)
     return ratio.std(-1).mean()
+
+
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Mean of (..., H, W, C) values over the channels of the pixels where mask (..., H, W) is true."""
+    if mask is None:
+        return values.mean()
+    weight = mask[..., None].to(values.dtype).expand_as(values)
+    return (values * weight).sum() / weight.sum()
 
 
 def _gaussian_window(dtype, device) -> torch.Tensor:

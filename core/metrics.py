@@ -6,6 +6,11 @@
                       use_sample_covariance=False, data_range=1, channel_axis=-1)
 
 Images are (..., H, W, C) float tensors; clamp renders to [0, 1] before measuring them.
+
+Both take mask= (..., H, W) bool, the valid pixels of an undistorted photo (radfield.core.losses
+explains the rule): PSNR averages the squared error over the valid pixels' channels; SSIM
+replaces the render's invalid pixels by the photo's and averages the SSIM map over the 11×11
+windows that lie wholly on valid pixels (an all-valid mask gives the unmasked value).
 """
 
 from radfield.core.losses import psnr, ssim

@@ -8,6 +8,17 @@ with one group per parameter tensor (means' rate × scene extent, decaying expon
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
 `sh_increase_every` steps; population control by radfield.core.strategy after the step.
 
+Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
+loss and the per-step PSNR, radfield.core.losses). Every `eval_every` steps and at the last,
+`held_out(primitives)` (e.g. the PSNR of held-out views) is reported as info["test_psnr"]: for
+information only, it changes nothing in training.
+
+Continuing: a start_state of a finished run (its step s < the new cfg["iterations"] N) goes on
+from step s with its parameters, Adam moments and strategy accumulators, under the schedules of
+an N-step run: the means' rate is lr0 · r^(t / (N − 1)) at step t (so at step s it is back up to
+lr0 · r^(s / (N − 1)) and decays to lr0 · r at step N − 1), the SH degree and densification
+follow their step thresholds as in an N-step run. It is not the same as a fresh N-step run.
+
 Randomness (view order, split children) is drawn from generators seeded by (seed, step), so a
 run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
 moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
@@ -72,18 +83,22 @@ class TrainState:
 def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], train_images: torch.Tensor,
           cfg: dict, *, background: Sequence[float], extent: float, seed: int, device: str | torch.device = "cpu",
           near: float = 0.01, max_pairs: int = 1 << 20, start_state: TrainState | None = None,
+          masks: torch.Tensor | None = None,
           on_step: Callable[[int, dict], None] | None = None,
+          held_out: Callable[[NeuralPrimitives | Gaussians], float] | None = None,
           checkpoint: Callable[[TrainState], None] | None = None) -> TrainState:
     """Optimise `prims` against the views for cfg["iterations"] steps; returns the final state
     (`.primitives()` is the trained model).
 
     prims: the initial primitives (also when resuming: population control needs their count).
     train_images: (N, H, W, 3) float in [0, 1], matching train_cameras.
+    masks: (N, H, W) bool valid pixels of each image, or None (all valid).
     cfg: the `train` config section (pipeline.yaml documents every key).
     extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
     start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
     on_step(step, info): after every step; info has loss, psnr (of this step's views), primitives
-    and what population control did.
+    and what population control did (and test_psnr on the steps held_out was measured).
+    held_out(primitives): measured every cfg["eval_every"] steps (0: never) and at the last step.
     checkpoint(state): every cfg["checkpoint_every"] steps before the last.
     """
     if len(train_cameras) != len(train_images) or not len(train_cameras):
@@ -94,6 +109,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         raise ValueError(f"{len(prims)} initial primitives exceed train.max_primitives={max_primitives}")
     device = torch.device(device)
     images = train_images.to(device=device, dtype=torch.float32)
+    masks = None if masks is None else masks.to(device=device, dtype=torch.bool)
     state = start_state or initial_state(prims, cfg["sh_degree"])
     params = {name: state.params[name].detach().to(device).clone().requires_grad_(True)
               for name in PARAM_NAMES[state.kind]}
@@ -116,19 +132,24 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
             out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=bg, near=near,
                          sh_degree=degree, max_pairs=max_pairs)
-            loss = photometric(out.color, images[view], cfg["lambda_dssim"])
+            mask = None if masks is None else masks[view]
+            loss = photometric(out.color, images[view], cfg["lambda_dssim"], mask)
             (loss / batch).backward()
             # this view's own gradients (unscaled), what the densification statistics measure
             grads = {n: (params[n].grad - before[n]) * batch for n in strategy.grad_names}
             strategy.accumulate(accumulators, params, grads, train_cameras[view], step + 1)
             loss_sum += float(loss.detach())
-            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), images[view]))
+            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), images[view], mask))
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
+        info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
+        every = cfg["eval_every"]
+        if held_out is not None and ((every and (step + 1) % every == 0) or step + 1 == iterations):
+            with torch.no_grad():
+                info["test_psnr"] = float(held_out(assemble(params, state.kind, state.omega0).map(torch.Tensor.detach)))
         if on_step is not None:
-            on_step(step + 1, {"loss": loss_sum / batch, "psnr": psnr_sum / batch,
-                               "primitives": params["means"].shape[0], **refined})
+            on_step(step + 1, info)
         if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
             checkpoint(snapshot(step + 1, state, params, optimizer, accumulators))
     return snapshot(max(iterations, state.step), state, params, optimizer, accumulators)
@@ -209,9 +230,10 @@ def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
 
 # --- checkpoints -----------------------------------------------------------------------------
 
-def save_checkpoint(path: str | Path, state: TrainState) -> None:
+def save_checkpoint(path: str | Path, state: TrainState, note: dict | None = None) -> None:
     """Write a TrainState atomically as one safetensors file: tensors param.NAME, adam.NAME.KEY,
-    strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind, omega0}."""
+    strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind,
+    omega0, note} (`note`: the caller's own JSON, e.g. what the state is valid for)."""
     path = Path(path)
     tensors = {f"param.{n}": t for n, t in state.params.items()}
     tensors.update({f"adam.{n}.{k}": t for n, m in state.moments.items() for k, t in m.items()})
@@ -220,9 +242,21 @@ def save_checkpoint(path: str | Path, state: TrainState) -> None:
     # one metadata key: safetensors writes several in a random order, and equal states should
     # give equal bytes
     header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
-              "omega0": state.omega0}
+              "omega0": state.omega0, "note": note}
     meta = {CHECKPOINT_FORMAT: json.dumps(header, sort_keys=True)}
     atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
+
+
+def checkpoint_header(path: str | Path) -> dict:
+    """The JSON header of a checkpoint (step, kind, omega0, note) without reading its tensors."""
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            header = json.loads((f.metadata() or {}).get(CHECKPOINT_FORMAT, "{}"))
+    except (OSError, ValueError, SafetensorError) as error:
+        raise RadfieldError(f"{path}: unreadable checkpoint ({error}); remove it to start over") from None
+    if header.get("format") != CHECKPOINT_FORMAT or header.get("version") != CHECKPOINT_VERSION:
+        raise RadfieldError(f"{path}: not a version {CHECKPOINT_VERSION} radfield checkpoint")
+    return header
 
 
 def load_checkpoint(path: str | Path) -> TrainState:
@@ -249,11 +283,14 @@ def load_checkpoint(path: str | Path) -> TrainState:
 
 
 def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
-              background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20) -> float:
-    """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3)."""
+              background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20,
+              masks: torch.Tensor | None = None) -> float:
+    """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3) (over the
+    valid pixels of masks (N, H, W), when given)."""
     total = 0.0
     with torch.no_grad():
-        for camera, image in zip(cameras, images):
+        for k, (camera, image) in enumerate(zip(cameras, images)):
             color = render(prims, camera, background=background, near=near, max_pairs=max_pairs).color
-            total += float(psnr(color.clamp(0, 1), image.to(color)))
+            mask = None if masks is None else masks[k].to(color.device)
+            total += float(psnr(color.clamp(0, 1), image.to(color), mask))
     return total / len(cameras) if len(cameras) else math.nan

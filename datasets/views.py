@@ -67,6 +67,26 @@ def undistort(img: np.ndarray, camera: Camera, coeffs: np.ndarray) -> np.ndarray
     return cv2.undistort(img, K, coeffs).reshape(img.shape)
 
 
+# a pixel is valid when at least this fraction of its interpolation weight came from inside the file
+_VALID_WEIGHT = 1.0 - 1e-3
+_valid_cache: dict[tuple, np.ndarray] = {}
+
+
+def valid_pixels(camera: Camera, coeffs: np.ndarray, downscale: int = 1) -> np.ndarray:
+    """(H, W) bool at 1/downscale resolution: the pixels that undistortion fills from inside the
+    file. The others (the borders a barrel or pincushion lens leaves) come out black and are no
+    image content. Computed by undistorting an all-ones image the same way as the pixels: a pixel
+    is valid when its value is ≥ 1 − 1e-3 (bilinear taps all inside), and after an area downscale
+    when every pixel it averages is valid. Cached per camera intrinsics, coefficients and factor."""
+    key = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+           np.asarray(coeffs, np.float64).tobytes(), downscale)
+    if key not in _valid_cache:
+        ones = np.ones((camera.height, camera.width, 1), np.float32)
+        valid = (undistort(ones, camera, coeffs) >= _VALID_WEIGHT).astype(np.float32)
+        _valid_cache[key] = resize_area(valid, downscale)[..., 0] >= _VALID_WEIGHT
+    return _valid_cache[key]
+
+
 def split_alpha(img: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(H, W, C) pixels -> RGB (H, W, 3) and alpha (H, W) or None; grey is repeated to RGB."""
     channels = img.shape[2]
@@ -125,6 +145,23 @@ class Dataset:
             # Colour is premultiplied (see images.py), so this is the "over" operator.
             rgb = rgb + (1.0 - alpha[..., None]) * np.asarray(self.background, dtype=np.float32)
         return torch.from_numpy(np.ascontiguousarray(rgb)), None if alpha is None else torch.from_numpy(alpha.copy())
+
+    def load_valid_mask(self, i: int) -> torch.Tensor | None:
+        """The valid pixels (H, W) bool of view i after undistortion (`valid_pixels`), or None
+        when the view has no lens distortion (every pixel valid)."""
+        view = self.views[i]
+        if view.distortion is None or view.camera is None:
+            return None
+        return torch.from_numpy(valid_pixels(view.camera, view.distortion, self.downscale).copy())
+
+    def load_valid_masks(self) -> torch.Tensor | None:
+        """Valid pixels of every view (N, H, W) bool (all true for views without distortion), or
+        None when no view has distortion."""
+        masks = [self.load_valid_mask(i) for i in range(len(self))]
+        if all(mask is None for mask in masks):
+            return None
+        shape = next(mask.shape for mask in masks if mask is not None)
+        return torch.stack([torch.ones(shape, dtype=torch.bool) if m is None else m for m in masks])
 
     def load_images(self) -> tuple[torch.Tensor, torch.Tensor | None]:
         """All views at once: RGB (N, H, W, 3) and masks (N, H, W) (1 for views without alpha),

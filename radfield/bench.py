@@ -4,13 +4,13 @@ The scene imitates a trained object: primitives scattered over a unit sphere's s
 training puts them), seen from cameras on an orbit. Both representations get the same centres,
 rotations, SH and cameras, and the same footprint: a neural primitive's ellipsoid has radii s and
 the Gaussian σ = s/3, so the Gaussian's 3σ splat covers the same pixels. The figures that matter
-are ratios measured in one run; absolute times depend on the machine and its load.
+are ratios measured in one run; absolute times depend on the machine and its load. On CUDA the
+device is synchronised before every clock reading (radfield.core.timing), so a time is the work's.
 """
 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import torch
@@ -19,6 +19,7 @@ from radfield.core.cameras import Camera, look_at
 from radfield.core.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
 from radfield.core.rasterize import render
 from radfield.core.sh import num_sh_coeffs
+from radfield.core.timing import clock
 
 
 def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0):
@@ -65,19 +66,19 @@ def time_model(prims, cams, repeats: int, device: str) -> Timing:
     with torch.no_grad():
         for _ in range(repeats):
             for cam in cams:
-                t = time.perf_counter()
+                t = clock(device)  # CUDA runs asynchronously: read the clock only on an idle device
                 out = render(prims, cam)
-                fwd.append(time.perf_counter() - t)
+                fwd.append(clock(device) - t)
                 pairs.append(out.meta["pairs"])
                 contrib.append(out.meta["contributing_pairs"])
     bwd = []
     params = prims.map(lambda t: t.clone().requires_grad_(True))
     for _ in range(repeats):
         for cam in cams:
-            t = time.perf_counter()
+            t = clock(device)
             out = render(params, cam)
             (out.color - 0.5).abs().mean().backward()
-            bwd.append(time.perf_counter() - t)
+            bwd.append(clock(device) - t)
     mean = lambda xs: sum(xs) / len(xs)
     return Timing(1e3 * mean(fwd), 1e3 * mean(bwd), mean(pairs), mean(contrib))
 

@@ -321,6 +321,11 @@ class Scene:
     def test_cameras(self) -> list[Camera]:
         return self.cameras("test")
 
+    def valid_masks(self, split: str) -> torch.Tensor | None:
+        """Valid pixels (N, H, W) bool of a split's undistorted images, or None when no view has
+        lens distortion (every pixel valid): training and evaluation measure these pixels only."""
+        return self.dataset(split).load_valid_masks()
+
     def train_images(self) -> torch.Tensor:
         return self.load_images("train")[0]
 

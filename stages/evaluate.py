@@ -10,7 +10,9 @@ only ever added)::
      "views": N, "width": W, "height": H,
      "per_view": [{"name", "psnr", "ssim", "seconds"}, ...]}
 
-Renders are composited on the scene's background, as the photos are.
+Renders are composited on the scene's background, as the photos are. Undistorted photos are
+measured on their valid pixels only (Scene.valid_masks; radfield.core.metrics gives the rule:
+PSNR over the valid pixels, SSIM over the 11×11 windows lying wholly on valid pixels).
 """
 
 from __future__ import annotations
@@ -55,19 +57,21 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
     model = load_model(model_file, device=device)
     cameras = scene.cameras(split)
     images, _ = scene.load_images(split)
+    masks = scene.valid_masks(split)
     renders.mkdir(parents=True, exist_ok=True)
     draw = torch.no_grad()(lambda camera: render(model, camera, background=scene.background, near=near).color)
     draw(cameras[0])  # warm-up, untimed: fps is the steady rate, without one-off allocations
     per_view = []
     with _progress(quiet) as progress:
         task = progress.add_task(f"evaluating {len(cameras)} {split} views", total=len(cameras))
-        for camera, photo in zip(cameras, images):
+        for k, (camera, photo) in enumerate(zip(cameras, images)):
+            mask = None if masks is None else masks[k]
             start = time.perf_counter()
             color = draw(camera).clamp(0, 1).cpu()
             seconds = time.perf_counter() - start
             write_image(renders / f"{camera.name}.png", color.numpy())
-            per_view.append({"name": camera.name, "psnr": float(psnr(color, photo)),
-                             "ssim": float(ssim(color, photo)), "seconds": seconds})
+            per_view.append({"name": camera.name, "psnr": float(psnr(color, photo, mask)),
+                             "ssim": float(ssim(color, photo, mask=mask)), "seconds": seconds})
             progress.advance(task)
     count = len(per_view)
     return {

@@ -9,6 +9,10 @@ The JSON of `run_info` is a stable interface (scripts and the README rely on it)
       "normalization": "/abs/path/RUN/sfm/colmap/normalization.json" | null,  # runs made from photos:
                                                   # x = scale * (x_sfm - center) maps COLMAP's frame to the
                                                   # run's (the frame of every artifact and model)
+      "pending_checkpoint": {                     # an interrupted training run (else null): the checkpoint
+        "stage": "train", "step": 1500,           #   it resumes from, the step it reached and the steps asked
+        "iterations": 3000, "path": "/abs/..."    #   for (the run's config; null if unreadable)
+      } | null,
       "stages": {                                 # in pipeline order
         "<stage>": {
           "done": true | false,                   # finished (its manifest exists)
@@ -49,6 +53,7 @@ from radfield.stages.pipeline import (
 
 MODEL_STAGE = "train"  # the stage that writes the final model
 MODEL_FILE = "model.safetensors"  # its file name inside RUN/train/ (the train stage's output)
+CHECKPOINT_FILE = "checkpoint.safetensors"  # the train stage's checkpoint inside RUN/train.work/
 SFM_STAGE = "sfm"  # the stage that poses a folder of photos
 SFM_DATASET = "colmap"  # its output: a posed COLMAP dataset folder inside RUN/sfm/
 NORMALIZATION_FILE = "normalization.json"  # inside that folder: how its frame relates to COLMAP's
@@ -99,8 +104,28 @@ def run_info(run_dir: Path) -> dict[str, Any]:
         "input": read_marker(run_dir).get("input"),
         "model": str(model.resolve()) if model.is_file() else None,
         "normalization": str(normalization.resolve()) if normalization.is_file() else None,
+        "pending_checkpoint": pending_checkpoint(run_dir),
         "stages": stages,
     }
+
+
+def pending_checkpoint(run_dir: Path) -> dict[str, Any] | None:
+    """The checkpoint an interrupted training left in RUN/train.work/ (see the module docstring), or None."""
+    from radfield.core.trainer import checkpoint_header  # torch: only when there is a checkpoint
+
+    path = Path(run_dir) / f"{MODEL_STAGE}.work" / CHECKPOINT_FILE
+    if not path.is_file():
+        return None
+    try:
+        step = checkpoint_header(path)["step"]
+    except (RadfieldError, KeyError):
+        step = None  # damaged: the train stage reports it when it resumes
+    iterations = None
+    try:
+        iterations = parse_yaml((Path(run_dir) / CONFIG_FILE).read_text(encoding="utf-8"))["train"]["iterations"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        pass
+    return {"stage": MODEL_STAGE, "step": step, "iterations": iterations, "path": str(path.resolve())}
 
 
 def format_info(info: dict[str, Any]) -> str:
@@ -118,6 +143,12 @@ def format_info(info: dict[str, Any]) -> str:
     console.print(table)
     console.print(f"input: {info['input'] or '-'}")
     console.print(f"model: {info['model'] or '- (not trained yet)'}")
+    pending = info.get("pending_checkpoint")
+    if pending:
+        of = f" of {pending['iterations']}" if pending["iterations"] is not None else ""
+        step = pending["step"] if pending["step"] is not None else "? (unreadable)"
+        console.print(f"pending checkpoint: {pending['stage']} interrupted at step {step}{of}; "
+                      f"`radfield reconstruct` on the run resumes it ({pending['path']})")
     if info["normalization"]:
         console.print(f"normalization (photos -> run frame): {info['normalization']}")
     return buffer.getvalue()

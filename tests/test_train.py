@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -26,10 +27,11 @@ from radfield.core.trainer import (
     train,
     views_for_step,
 )
+from radfield.core.trainlog import read_log
 from radfield.datasets.images import write_image
 from radfield.stages import train as train_stage
 from radfield.stages.config import load_defaults, section
-from radfield.stages.data import Normalization
+from radfield.stages.data import Normalization, load_scene
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Context
 
@@ -402,3 +404,109 @@ def test_stage_writes_the_model_and_resumes_after_a_kill(tmp_path, monkeypatch):
     expected, got = load_model(whole.outputs[MODEL_FILE]), load_model(killed.outputs[MODEL_FILE])
     for name, tensor in expected.tensors().items():
         assert torch.equal(getattr(got, name), tensor), name
+    # the log of the resumed run reads as the uninterrupted run's (seconds aside)
+    strip = lambda records: [{k: v for k, v in r.items() if k != "seconds"} for r in records]
+    whole_log, killed_log = read_log(whole.outputs[train_stage.LOG]), read_log(killed.outputs[train_stage.LOG])
+    assert [r["step"] for r in killed_log] == list(range(1, 11))
+    assert strip(killed_log) == strip(whole_log)
+
+
+def test_stage_logs_every_step_and_draws_the_curves(tmp_path):
+    ctx = stage_context(tmp_path, "run")
+    ctx.config["train"]["eval_every"] = 4
+    figures = train_stage.run(ctx)
+    log = read_log(ctx.outputs[train_stage.LOG])
+    assert [r["step"] for r in log] == list(range(1, 11))
+    assert all({"loss", "psnr", "primitives", "seconds"} <= set(r) for r in log)
+    assert all(math.isfinite(r["loss"]) and r["primitives"] > 0 for r in log)
+    assert [r["seconds"] for r in log] == sorted(r["seconds"] for r in log)
+    # population control at the densification steps (densify start 4, stop 8, every 4)
+    assert {r["step"] for r in log if "pruned" in r} == {4, 8}
+    # held-out PSNR at the multiples of eval_every and at the last step, equal to measuring the model
+    assert [r["step"] for r in log if "test_psnr" in r] == [4, 8, 10]
+    scene = load_scene(ctx.inputs["scene.json"])
+    model = load_model(ctx.outputs[MODEL_FILE])
+    measured = mean_psnr(model, scene.test_cameras, scene.test_images(), background=BG,
+                         near=ctx.config["render"]["near"])
+    assert log[-1]["test_psnr"] == pytest.approx(measured, abs=0.05)
+    assert figures["last_test_psnr"] == log[-1]["test_psnr"]
+    png = ctx.outputs[train_stage.CURVES].read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
+
+
+def _finish(ctx) -> None:
+    """Publish a stage attempt's outputs where the next run of the stage finds them and clear its
+    scratch, as the pipeline does after a success."""
+    ctx.tmp.rename(ctx.stage_dir)
+    shutil.rmtree(ctx.work)
+    ctx.work.mkdir()
+
+
+def test_raising_iterations_continues_from_the_final_state(tmp_path):
+    first = stage_context(tmp_path, "run", iterations=10)
+    train_stage.run(first)
+    _finish(first)
+    previous = load_checkpoint(first.stage_dir / train_stage.FINAL_STATE)
+    assert previous.step == 10
+
+    more = dataclasses.replace(first, tmp=tmp_path / "run" / "tmp2", outputs={
+        name: tmp_path / "run" / "tmp2" / name for name in train_stage.STAGE.outputs})
+    more.tmp.mkdir()
+    more.config["train"]["iterations"] = 14
+    lines = []
+    figures = train_stage.run(dataclasses.replace(more, log=lines.append))
+    assert lines == ["continuing the finished run from step 10"]
+    assert figures["iterations"] == 14 and figures["continued_from"] == 10
+    log = read_log(more.outputs[train_stage.LOG])
+    assert [r["step"] for r in log] == list(range(1, 15))
+    assert log[:10] == read_log(first.stage_dir / train_stage.LOG)
+    # it is exactly the trainer continued from the saved state under the 14-step schedules
+    scene = load_scene(first.inputs["scene.json"])
+    norm = scene.normalization
+    cfg = dict(more.config["train"])
+    cameras = [norm.camera(c) for c in scene.train_cameras]
+    init = train_stage.to_normalized(load_model(first.inputs["init.safetensors"]), norm)
+    state = train(init, cameras, scene.train_images(), cfg, background=BG, extent=scene.extent * norm.scale,
+                  seed=more.config["seed"], near=more.config["render"]["near"] * norm.scale, start_state=previous)
+    expected = train_stage.to_world(state.primitives(), norm)
+    got = load_model(more.outputs[MODEL_FILE])
+    for name, tensor in expected.tensors().items():
+        assert torch.equal(getattr(got, name), tensor.to(torch.float32)), name
+
+    # anything else changed as well: a fresh start
+    other = dataclasses.replace(more, tmp=tmp_path / "run" / "tmp3", outputs={
+        name: tmp_path / "run" / "tmp3" / name for name in train_stage.STAGE.outputs})
+    other.tmp.mkdir()
+    other.config["train"]["iterations"] = 12
+    other.config["train"]["lambda_dssim"] = 0.3
+    lines = []
+    figures = train_stage.run(dataclasses.replace(other, log=lines.append))
+    assert lines == [] and figures["continued_from"] == 0
+    assert [r["step"] for r in read_log(other.outputs[train_stage.LOG])] == list(range(1, 13))
+
+
+def test_masked_losses_measure_only_the_valid_pixels():
+    g = torch.Generator().manual_seed(3)
+    ref = torch.rand(24, 30, 3, generator=g)
+    img = (ref + 0.1 * torch.randn(24, 30, 3, generator=g)).clamp(0, 1)
+    mask = torch.zeros(24, 30, dtype=torch.bool)
+    mask[3:20, 4:27] = True
+    garbage = torch.where(mask[..., None], img, torch.rand(24, 30, 3, generator=g))
+    black = torch.where(mask[..., None], ref, torch.zeros(()))  # a photo with invalid black borders
+    inner = (slice(3, 20), slice(4, 27))
+    # PSNR and L1: over the valid pixels, whatever the invalid ones hold
+    assert float(psnr(garbage, black, mask)) == pytest.approx(float(psnr(img[inner], ref[inner])), abs=1e-4)
+    # SSIM "valid": the windows lying wholly on valid pixels, i.e. skimage on the valid rectangle
+    expected = structural_similarity(img[inner].double().numpy(), ref[inner].double().numpy(), gaussian_weights=True,
+                                     sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=-1)
+    assert float(ssim(garbage.double(), black.double(), mask=mask)) == pytest.approx(expected, abs=1e-6)
+    # an all-valid mask changes nothing
+    full = torch.ones(24, 30, dtype=torch.bool)
+    assert float(ssim(img, ref, mask=full)) == pytest.approx(float(ssim(img, ref)), abs=1e-6)
+    assert float(photometric(img, ref, 0.2, full)) == pytest.approx(float(photometric(img, ref, 0.2)), abs=1e-6)
+    # the training loss sends no gradient to an invalid pixel
+    x = garbage.clone().requires_grad_(True)
+    photometric(x, black, 0.2, mask).backward()
+    assert x.grad[~mask].abs().max() == 0 and x.grad[mask].abs().max() > 0
+    with pytest.raises(ValueError, match="no 11×11 window"):
+        ssim(img, ref, mask=torch.zeros(24, 30, dtype=torch.bool))
