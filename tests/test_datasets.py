@@ -20,7 +20,6 @@ from radfield.core.errors import RadfieldError
 from radfield.datasets import detect_format, load_dataset, read_image, resize_area, validate, write_image
 from radfield.datasets.synthetic import SCENES, generate_scene, orbit_cameras, render_view
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 RED_SPHERE = SCENES["blobs"].primitives[1]  # on top of 'blobs': no other object can hide its centre
 
 
@@ -258,6 +257,31 @@ def test_nerfstudio_split_lists_and_camera_angle(tmp_path):
     assert camera.fx == pytest.approx(6 / math.tan(0.5)) and camera.fy == camera.fx
 
 
+def test_undistortion_marks_its_invalid_border_pixels(tmp_path):
+    """The pixels undistortion cannot fill from the file (black) are exactly the ones the valid mask
+    leaves out, at full and at half resolution; a view without distortion has no mask."""
+    w, h, f = 64, 48, 50.0
+    (tmp_path / "images").mkdir()
+    write_image(tmp_path / "images" / "a.png", np.ones((h, w, 3), np.float32))
+    write_image(tmp_path / "images" / "b.png", np.ones((h, w, 3), np.float32))
+    frames = [{"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist(), "k1": 0.4, "k2": 0.1},
+              {"file_path": "images/b.png", "transform_matrix": np.eye(4).tolist(), "k1": 0.0}]
+    write_transforms(tmp_path, frames, fl_x=f, fl_y=f, w=w, h=h)
+    data = load_dataset(tmp_path, "all")
+    rgb, _ = data.load_image(0)
+    mask = data.load_valid_mask(0)
+    assert mask.shape == (h, w) and mask.dtype == torch.bool
+    assert 0 < int((~mask).sum()) < 0.5 * h * w and bool(mask[h // 2, w // 2])
+    assert not mask[0, 0] and not mask[-1, -1]          # k1 > 0 leaves the corners empty
+    assert rgb[mask].min() > 0.999 and rgb[~mask].max(-1).values.max() < 0.999
+    assert data.load_valid_mask(1) is None
+    masks = data.load_valid_masks()
+    assert masks.shape == (2, h, w) and torch.equal(masks[0], mask) and bool(masks[1].all())
+    half = load_dataset(tmp_path, "all", downscale=2).load_valid_mask(0)
+    blocks = mask.reshape(h // 2, 2, w // 2, 2).all(3).all(1)   # valid only if all four source pixels are
+    assert torch.equal(half, blocks)
+
+
 def test_nerfstudio_undistorts(tmp_path):
     """An image distorted with k1/k2/p1/p2 loads back as the pinhole image it came from."""
     w, h, f = 80, 60, 70.0
@@ -281,7 +305,16 @@ def test_nerfstudio_undistorts(tmp_path):
     assert np.abs(rgb.numpy() - pinhole)[inner].max() < 0.03
 
 
-@pytest.mark.skipif(not (SHARED / "fox_small").is_dir(), reason=f"shared datasets not found in {SHARED}")
+def test_a_missing_shared_dataset_skips_locally_and_fails_in_ci(shared_dataset, monkeypatch):
+    monkeypatch.delenv("CI", raising=False)
+    with pytest.raises(pytest.skip.Exception, match="shared dataset not found"):
+        shared_dataset("no_such_dataset")
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="must not skip"):
+        shared_dataset("no_such_dataset")
+    assert shared_dataset("fox_small", "images").name == "fox_small"  # present: a path either way
+
+
 @pytest.mark.parametrize(
     "name, counts, size, distorted",
     [
@@ -290,9 +323,10 @@ def test_nerfstudio_undistorts(tmp_path):
         ("lego_small", (100, 25), (400, 400), False),
     ],
 )
-def test_shared_datasets(name, counts, size, distorted):
+def test_shared_datasets(name, counts, size, distorted, shared_dataset):
+    root = shared_dataset(name)
     for split, count in zip(("train", "test"), counts):
-        data = load_dataset(SHARED / name, split)
+        data = load_dataset(root, split)
         validate(data)
         assert len(data) == count
         assert {(c.width, c.height) for c in data.cameras} == {size}

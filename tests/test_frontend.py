@@ -18,8 +18,6 @@ from radfield.datasets.colmap import read_colmap
 from radfield.stages.sfm import compare_poses, run_sfm
 from radfield.core.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
-FOX = DATASETS / "fox_small"
 
 
 def cfg(section: str, **overrides) -> dict:
@@ -27,14 +25,12 @@ def cfg(section: str, **overrides) -> dict:
     return {**load_defaults()[section], **overrides}
 
 
-def _fox_images(dst: Path, count: int, scale: float = 0.8) -> list[str]:
+def _fox_images(fox: Path, dst: Path, count: int, scale: float = 0.8) -> list[str]:
     """The first `count` fox_small photos (consecutive views), downscaled into `dst`."""
-    if not (FOX / "images").is_dir():
-        pytest.skip(f"shared dataset not found: {FOX}")
     dst.mkdir(parents=True, exist_ok=True)
-    names = sorted(p.name for p in (FOX / "images").glob("*.jpg"))[:count]
+    names = sorted(p.name for p in (fox / "images").glob("*.jpg"))[:count]
     for name in names:
-        image = cv2.imread(str(FOX / "images" / name))
+        image = cv2.imread(str(fox / "images" / name))
         cv2.imwrite(str(dst / name), cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
     return names
 
@@ -55,8 +51,8 @@ def _leftovers(folder: Path) -> list[str]:
 # ---------------------------------------------------------------- SfM
 
 
-def test_sfm_registers_a_tiny_real_capture(tmp_path):
-    names = _fox_images(tmp_path / "photos", 8)
+def test_sfm_registers_a_tiny_real_capture(tmp_path, fox):
+    names = _fox_images(fox, tmp_path / "photos", 8)
     out = tmp_path / "sfm"
     figures = run_sfm(tmp_path / "photos", out, cfg("sfm", num_threads=2))
 
@@ -76,7 +72,7 @@ def test_sfm_registers_a_tiny_real_capture(tmp_path):
     norm = json.loads((out / "normalization.json").read_text())
     assert len(norm["center"]) == 3 and norm["scale"] > 0
 
-    meta = json.loads((FOX / "transforms.json").read_text())
+    meta = json.loads((fox / "transforms.json").read_text())
     reference = [
         Camera(meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], int(meta["w"]), int(meta["h"]),
                opengl_to_opencv(torch.tensor(f["transform_matrix"])), f["file_path"])
@@ -88,8 +84,8 @@ def test_sfm_registers_a_tiny_real_capture(tmp_path):
     assert errors["position_pct_max"] < 5.0
 
 
-def test_sfm_sequential_matching_for_larger_sets(tmp_path):
-    _fox_images(tmp_path / "photos", 8, scale=0.6)
+def test_sfm_sequential_matching_for_larger_sets(tmp_path, fox):
+    _fox_images(fox, tmp_path / "photos", 8, scale=0.6)
     (tmp_path / "sfm").mkdir()
     (tmp_path / "sfm" / "stale.txt").write_text("from an older run")
     figures = run_sfm(tmp_path / "photos", tmp_path / "sfm", cfg("sfm", exhaustive_max_images=4, sequential_overlap=3))
@@ -124,8 +120,8 @@ def test_sfm_images_without_overlap_fail_cleanly(tmp_path):
     assert not _leftovers(tmp_path)
 
 
-def test_sfm_lists_unregistered_images(tmp_path):
-    names = _fox_images(tmp_path / "photos", 6)
+def test_sfm_lists_unregistered_images(tmp_path, fox):
+    names = _fox_images(fox, tmp_path / "photos", 6)
     shape = cv2.imread(str(tmp_path / "photos" / names[0])).shape[:2]  # same size: one shared camera
     noise = _noise_images(tmp_path / "photos", 3, shape)
     with pytest.raises(RadfieldError, match="only 6 of 9 images registered") as info:

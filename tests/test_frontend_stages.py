@@ -24,7 +24,6 @@ from radfield.stages.pipeline import read_manifest, run_pipeline
 from radfield.stages.registry import stages
 from radfield.core.cage import bind_to_cage, locate_points, read_cage, write_binding
 
-FOX = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "fox_small"
 FRONT = ["sfm", "data", "envelope", "tetra", "init"]
 
 
@@ -36,12 +35,10 @@ def run_until(stage: str, source: Path, run_dir: Path, *sets: str) -> dict[str, 
     return run_pipeline(stages(), run_dir, config(*sets), input_path=source, until_stage=stage, quiet=True)
 
 
-def fox_photos(dst: Path, count: int = 8) -> Path:
+def fox_photos(fox: Path, dst: Path, count: int = 8) -> Path:
     """The first `count` fox_small photos (consecutive views) copied into `dst`."""
-    if not (FOX / "images").is_dir():
-        pytest.skip(f"shared dataset not found: {FOX}")
     dst.mkdir(parents=True)
-    for path in sorted((FOX / "images").glob("*.jpg"))[:count]:
+    for path in sorted((fox / "images").glob("*.jpg"))[:count]:
         shutil.copy(path, dst / path.name)
     return dst
 
@@ -81,10 +78,10 @@ def assert_bound(run_dir: Path) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def photo_run(tmp_path_factory) -> tuple[Path, Path]:
+def photo_run(tmp_path_factory, fox) -> tuple[Path, Path]:
     """(photos, run) of the front end on 8 fox photos."""
     root = tmp_path_factory.mktemp("fox")
-    photos = fox_photos(root / "photos")
+    photos = fox_photos(fox, root / "photos")
     status = run_until("init", photos, root / "run")
     assert status == dict.fromkeys(FRONT, "ran")
     return photos, root / "run"
@@ -117,8 +114,8 @@ def test_photos_become_a_posed_dataset_with_a_cage(photo_run):
     assert from_points.sum() == 270  # the rest were sampled in the cage's volume
 
 
-def test_a_failing_sfm_leaves_the_run_as_it_was(tmp_path, cli):
-    photos = fox_photos(tmp_path / "photos")
+def test_a_failing_sfm_leaves_the_run_as_it_was(tmp_path, cli, fox):
+    photos = fox_photos(fox, tmp_path / "photos")
     run_dir = tmp_path / "run"
     args = ["reconstruct", photos, "-o", run_dir, "-q", "--until", "data"]
     assert cli(*args)[0] == 0
@@ -131,11 +128,11 @@ def test_a_failing_sfm_leaves_the_run_as_it_was(tmp_path, cli):
     assert stage_dirs(run_dir) == before and not leftovers(run_dir)
 
 
-def test_posed_photos_without_points_are_triangulated(tmp_path):
+def test_posed_photos_without_points_are_triangulated(tmp_path, fox):
     """fox_small's own poses (nerfstudio, with lens distortion) for 8 photos, no points: the envelope
     comes from features triangulated with those poses, in the dataset's frame."""
-    photos = fox_photos(tmp_path / "photos")
-    meta = json.loads((FOX / "transforms.json").read_text())
+    photos = fox_photos(fox, tmp_path / "photos")
+    meta = json.loads((fox / "transforms.json").read_text())
     frames = sorted(meta["frames"], key=lambda frame: frame["file_path"])[:8]
     for frame in frames:
         frame["file_path"] = str(photos / Path(frame["file_path"]).name)

@@ -373,7 +373,10 @@ def test_defaults_hold_every_section() -> None:
     assert {"seed", "device", "data", "sfm", "envelope", "tetra", "init", "train", "render", "eval"} <= set(config)
     assert config["train"]["max_primitives"] is None
     assert config["train"]["densify"]["grad_threshold"] == 1e-3  # exponent notation reads as a float
-    assert config == load_defaults()
+    # every call is a fresh copy: a run that edits its config cannot change the defaults of the next
+    config["train"]["lr"]["means"] = -1.0
+    config["stages"].append("eval")
+    assert load_defaults()["train"]["lr"]["means"] == 1.6e-4 and load_config()["stages"] == config["stages"][:-1]
 
 
 def test_overrides_parse_and_merge(tmp_path: Path) -> None:

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cameras import Camera
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model, save_model
 from radfield.core.kernels import neural_line_integral
@@ -24,7 +23,7 @@ from radfield.stages.config import load_config
 from radfield.stages.evaluate import evaluate
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Stage, read_manifest, run_pipeline
-from radfield.stages.registry import stages, train_available
+from radfield.stages.registry import stages
 
 METRIC_KEYS = {"split", "kind", "psnr", "ssim", "num_primitives", "num_params", "file_size_bytes", "fps", "views",
                "width", "height", "per_view"}
@@ -75,7 +74,10 @@ def test_data_stage_describes_the_dataset(scene_dir, tmp_path):
 
     scene = data.load_scene(run_dir / "data" / data.SCENE)
     assert [c.name for c in scene.test_cameras] == [c.name for c in load_dataset(scene_dir, "test").cameras]
-    assert isinstance(scene.train_cameras[0], Camera)
+    first = scene.train_cameras[0]
+    expected = load_dataset(scene_dir, "train", downscale=2).cameras[0]
+    assert (first.name, first.width, first.fx, first.cy) == (expected.name, 12, expected.fx, expected.cy)
+    assert torch.equal(first.c2w, expected.c2w)
     images = scene.train_images()
     assert images.shape == (6, 12, 12, 3) and images.dtype == torch.float32
     assert torch.equal(images, load_dataset(scene_dir, "train", 2, (0, 0, 0)).load_images()[0])
@@ -311,7 +313,6 @@ def test_demo_scene_command(tmp_path, cli):
 # --- reconstruct end to end -------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(not train_available(), reason="the train stage (radfield.stages.train) does not exist yet")
 def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, cli):
     run_dir = tmp_path / "run"
     args = ["reconstruct", scene_dir, "-o", run_dir, "-q", "--set", "init.num_points=300"]
