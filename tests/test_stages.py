@@ -3,6 +3,7 @@ generated scene (6 train + 2 test views of 24×24 pixels)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -15,7 +16,8 @@ import torch
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model, save_model
 from radfield.core.kernels import neural_line_integral
-from radfield.datasets.images import write_image
+from radfield.core.trainer import load_checkpoint, save_checkpoint
+from radfield.datasets.images import read_image, write_image
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.synthetic import generate_scene
 from radfield.stages import data, init
@@ -288,7 +290,8 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
 
     code, out, _ = cli("info", run_dir, "--json")
     info = json.loads(out)
-    assert code == 0 and set(info) == {"run", "input", "model", "normalization", "stages"}
+    assert code == 0 and set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages"}
+    assert info["pending_checkpoint"] is None
     assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "eval"]
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())
     assert info["stages"]["data"]["images"] == 8 and info["stages"]["sfm"]["applicable"] is False
@@ -328,7 +331,34 @@ def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, cl
     code, out, _ = cli(*args, "--set", "train.iterations=40")
     assert code == 0 and out.splitlines()[0] == "stages: " + ", ".join(f"{name} cached" for name in info["stages"])
 
-    code, out, _ = cli(*args, "--set", "train.iterations=41")
+    code, out, err = cli(*args, "--set", "train.iterations=41")
     outcomes = dict(part.split(" ", 1) for part in out.splitlines()[0].removeprefix("stages: ").split(", "))
     assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "eval"]
-    assert math.isfinite(json.loads(cli("info", run_dir, "--json")[1])["stages"]["eval"]["psnr"])
+    info = json.loads(cli("info", run_dir, "--json")[1])
+    assert math.isfinite(info["stages"]["eval"]["psnr"])
+    # one more step continues the finished run; its log has every step once
+    assert info["stages"]["train"]["continued_from"] == 40 and info["stages"]["train"]["iterations"] == 41
+    log = [json.loads(line) for line in (run_dir / "train" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == list(range(1, 42)) and (run_dir / "train" / "curves.png").is_file()
+
+    # render RUN: the run's own dataset, test split, background and near plane (= the eval renders)
+    code, out, err = cli("render", run_dir, "-o", tmp_path / "frames", "-q")
+    assert code == 0, err
+    eval_renders = sorted(p.name for p in (run_dir / "eval" / "renders").iterdir())
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == eval_renders
+    for name in eval_renders:
+        assert np.array_equal(read_image(tmp_path / "frames" / name), read_image(run_dir / "eval" / "renders" / name))
+    # an explicit option wins
+    code, _, err = cli("render", run_dir, "-o", tmp_path / "black", "-q", "--background", "0,0,0", "--split", "train")
+    assert code == 0, err
+    assert len(list((tmp_path / "black").iterdir())) == 6
+    assert read_image(tmp_path / "black" / "r_0.png").min() < 0.05  # the background shows black
+
+    # an interrupted training shows its pending checkpoint
+    assert info["pending_checkpoint"] is None
+    state = load_checkpoint(run_dir / "train" / "final_state.safetensors")
+    save_checkpoint(run_dir / "train.work" / "checkpoint.safetensors", dataclasses.replace(state, step=7))
+    info = json.loads(cli("info", run_dir, "--json")[1])
+    pending = info["pending_checkpoint"]
+    assert (pending["stage"], pending["step"], pending["iterations"]) == ("train", 7, 41)
+    assert "pending checkpoint: train interrupted at step 7 of 41" in cli("info", run_dir)[1]

@@ -1,0 +1,40 @@
+"""Every user mistake on every command is one line `radfield: error: …` and exit code 1, also the
+ones Click finds while parsing (wrong option types, missing or unknown options and commands)."""
+
+import pytest
+
+
+@pytest.mark.parametrize("args, message", [
+    (["reconstruct", "data", "-o", "run", "--iterations", "many"], "Invalid value for '--iterations'"),
+    (["reconstruct", "data"], "Missing option '--output'"),
+    (["reconstruct", "data", "-o", "run", "--frobnicate"], "No such option: --frobnicate"),
+    (["eval", "run", "-o", "report", "--downscale", "half"], "Invalid value for '--downscale'"),
+    (["eval", "run", "-o"], "Option '-o' requires an argument"),
+    (["info"], "Missing argument 'RUN'"),
+    (["render", "model.safetensors", "-o", "out", "--near", "close"], "Invalid value for '--near'"),
+    (["bench-render", "--primitives", "lots"], "Invalid value for '--primitives'"),
+    (["demo-scene", "blobs", "-o", "scene", "--size", "big"], "Invalid value for '--size'"),
+    (["no-such-command"], "No such command 'no-such-command'"),
+])
+def test_usage_errors_are_one_line_and_exit_1(cli, tmp_path, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = cli(*args)
+    assert code == 1 and out == ""
+    assert err.startswith("radfield: error: ") and message in err and err.count("\n") == 1, err
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_work_errors_are_one_line_too(cli, tmp_path):
+    code, _, err = cli("info", tmp_path)
+    assert code == 1 and err == f"radfield: error: {tmp_path} is not a radfield run directory\n"
+    code, _, err = cli("render", tmp_path / "model.safetensors", "-o", tmp_path / "out")
+    assert code == 1 and "no such model file or run directory" in err and err.count("\n") == 1
+
+
+def test_help_and_version_still_exit_0(cli):
+    code, out, _ = cli("render", "--help")
+    assert code == 0 and "MODEL_OR_RUN" in out and "--dataset" in out
+    code, out, _ = cli("--version")
+    assert code == 0 and out.startswith("radfield ")
+    code, out, _ = cli()  # no command: the overview
+    assert code == 0 and "reconstruct" in out
