@@ -42,7 +42,7 @@ def reconstruct(
     output: Annotated[Path, typer.Option("--output", "-o", help="Run directory (created). Run again on it to resume or to redo only what changed.")],
     primitive: Annotated[Optional[str], typer.Option(help="neural (splattable neural primitives) or gaussian (3DGS baseline). (config key train.primitive)")] = None,
     max_primitives: Annotated[Optional[int], typer.Option(help="Hard primitive budget, initialised exactly (the paper's memory-budget protocol). (config key train.max_primitives)")] = None,
-    iterations: Annotated[Optional[int], typer.Option(help="Optimisation steps. (config key train.iterations)")] = None,
+    iterations: Annotated[Optional[int], typer.Option(help="Optimisation steps; raising it on a finished run continues from its final state (see README). (config key train.iterations)")] = None,
     downscale: Annotated[Optional[int], typer.Option(help="Integer image downscale factor. (config key data.downscale)")] = None,
     background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] for RGBA images and renders. (config key data.background)")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Random seed. (config key seed)")] = None,
