@@ -36,8 +36,8 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     """Render `split` of `dataset` (default: the run's) with the model into out_dir/<view>.png.
 
     on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
-    primitives, kind and ms_per_frame (rendering only, the device synchronised before each clock
-    reading)."""
+    primitives, kind and ms_per_frame (rendering only, after one untimed warm-up render, the
+    device synchronised before each clock reading)."""
     config = load_config(Path(run_dir) / CONFIG_FILE if run_dir is not None else None, options=options or {})
     if dataset is None:
         dataset = run_dataset(run_dir) if run_dir is not None else None
@@ -51,6 +51,8 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
     if on_start is not None:
         on_start(len(data))
+    with torch.no_grad():  # warm-up, untimed: the first render loads the fused kernels
+        render(model, data.cameras[0], background=background, near=near)
     tmp = out_dir.with_name(f".{out_dir.name}.tmp-{secrets.token_hex(4)}")
     tmp.mkdir(parents=True)
     seconds = 0.0
