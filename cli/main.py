@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 import radfield
+from radfield.cli import edit as edit_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -207,6 +208,9 @@ def demo_scene(
             return
     generate_scene(name, output, n_train=train_views, n_test=test_views, size=size, seed=seed)
     typer.echo(f"wrote {name}: {train_views} train + {test_views} test views of {size}x{size} to {output}")
+
+
+app.command("edit")(edit_cli.edit)
 
 
 def main() -> None:

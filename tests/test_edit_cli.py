@@ -1,0 +1,141 @@
+"""`radfield edit`: a new run directory that render/eval/info read unchanged; the spec's
+operations; one-line errors that leave nothing behind."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from radfield.core.cage import write_binding, write_cage
+from radfield.core.io import load_model, save_model
+from radfield.core.primitives import random_neural
+from radfield.datasets.synthetic import generate_scene
+from radfield.edit.field import box_cage
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("edit")
+    data = root / "data"
+    generate_scene("blobs", data, n_train=3, n_test=2, size=24, seed=0)
+    run = root / "run"
+    (run / "train").mkdir(parents=True)
+    (run / "tetra").mkdir()
+    prims = random_neural(20, sh_degree=1, extent=0.4, scale=0.15, seed=2)
+    save_model(run / "train" / "model.safetensors", prims)
+    v, t = box_cage([-0.8, -0.8, -0.8], [0.8, 0.8, 0.8], 2)
+    write_cage(run / "tetra", v, t)
+    write_binding(run / "train" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
+    (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
+    (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
+    return root, run, data, v, t
+
+
+def _spec(path, operations):
+    path.write_text(yaml.safe_dump({"operations": operations}))
+    return path
+
+
+def test_edit_writes_a_run_that_render_eval_and_info_read(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    spec = _spec(tmp_path / "edit.yaml", [
+        {"transform": {"select": {"sphere": {"center": [0.8, 0.8, 0.8], "radius": 0.3}}, "translate": [0.1, 0, 0], "falloff": 0.2}},
+        {"twist": {"axis": "z", "degrees_per_unit": 20, "origin": [0, 0, 0], "select": "all"}},
+        {"bend": {"axis": "y", "degrees_per_unit": 15, "select": "all"}},
+        {"taper": {"axis": "z", "factor": 0.2, "select": "all"}},
+    ])
+    out = tmp_path / "edited"
+    code, stdout, err = cli("edit", run, "--spec", spec, "-o", out, "--rotate", "0,0,30", "-q")
+    assert code == 0, err
+    assert "wrote" in stdout
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before   # source untouched
+    for name in ("model.safetensors", "cage.npz", "cage.vtk", "model_binding.npz", "spec.yaml", "manifest.json"):
+        assert (out / "edit" / name).is_file(), name
+    assert (out / "config.yaml").read_text() == (run / "config.yaml").read_text()
+    assert len(yaml.safe_load((out / "edit" / "spec.yaml").read_text())["operations"]) == 5
+    model = load_model(out / "edit" / "model.safetensors")
+    assert not torch.equal(model.means, load_model(run / "train" / "model.safetensors").means)
+
+    code, stdout, err = cli("info", out, "--json")
+    assert code == 0, err
+    info = json.loads(stdout)
+    assert info["model"].endswith("edit/model.safetensors") and info["stages"]["edit"]["done"]
+    assert info["input"] == str(data.resolve())
+    code, stdout, err = cli("eval", out, "-o", tmp_path / "report", "-q")
+    assert code == 0, err
+    assert (tmp_path / "report" / "metrics.json").is_file()
+    code, _, err = cli("render", out, "-d", data, "-o", tmp_path / "frames", "-q")
+    assert code == 0, err
+    assert len(list((tmp_path / "frames").glob("*.png"))) == 2
+    # an edited run is a source too
+    code, _, err = cli("edit", out, "-o", tmp_path / "again", "--translate", "0,0,0.1", "-q")
+    assert code == 0, err
+
+
+def test_identity_deform_keeps_the_model_file_content(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    spec = _spec(tmp_path / "same.yaml", [{"deform": {"cage": str(run / "tetra" / "cage.vtk")}}])
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "same", "-q")
+    assert code == 0, err
+    a, b = load_model(run / "train" / "model.safetensors"), load_model(tmp_path / "same" / "edit" / "model.safetensors")
+    for name, value in a.tensors().items():
+        assert torch.equal(value, b.tensors()[name]), name
+
+
+def test_deform_from_a_moved_cage_file_and_a_model_without_cage(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    moved = v.copy()
+    moved[:, 2] *= 1.3
+    write_cage(tmp_path / "moved", moved, t)
+    spec = _spec(tmp_path / "d.yaml", [{"deform": {"cage": "moved/cage.vtk"}}])   # relative to the spec
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "d", "-q")
+    assert code == 0, err
+    cage = np.load(tmp_path / "d" / "edit" / "cage.npz")
+    assert np.allclose(cage["vertices"], moved)
+    # a model file without a cage: whole-field transforms map the primitives directly
+    model = run / "train" / "model.safetensors"
+    code, _, err = cli("edit", model, "-o", tmp_path / "m", "--scale", "2", "--translate", "1,0,0", "-q")
+    assert code == 0, err
+    a, b = load_model(model), load_model(tmp_path / "m" / "edit" / "model.safetensors")
+    assert torch.allclose(b.means, 2 * a.means + torch.tensor([1.0, 0, 0]), atol=1e-6)
+    assert torch.allclose(b.log_scales.sort(-1).values, (a.log_scales + np.log(2)).sort(-1).values, atol=1e-5)
+
+
+@pytest.mark.parametrize("ops, message", [
+    ([{"explode": {}}], "operations\\[0\\]: unknown operation 'explode'"),
+    ([{"deform": {"cage": "other.npz"}}], "operations\\[0\\].deform.cage: .* has another topology"),
+    ([{"transform": {"select": {"cube": {}}, "translate": [0, 0, 1]}}], "operations\\[0\\].transform.select: unknown selection 'cube'"),
+    ([{"transform": {"select": {"sphere": {"center": [9, 9, 9], "radius": 0.1}}, "translate": [0, 0, 1]}}], "selects no cage vertex"),
+    ([{"twist": {"axis": "z", "degrees_per_unit": "a lot"}}], "operations\\[0\\].twist.degrees_per_unit: expected a number"),
+    ([{"transform": {"scale": 2, "shear": 1}}], "unknown arguments \\['shear'\\]"),
+    ([{"transform": {"select": {"box": {"min": [-1, -1, 0.5], "max": [1, 1, 1]}}, "translate": [0, 0, -2]}}], "inverted tets in the deformed cage"),
+])
+def test_spec_errors_are_one_line_and_leave_nothing(cli, scene, tmp_path, ops, message):
+    root, run, data, v, t = scene
+    other_v, other_t = box_cage([-1, -1, -1], [1, 1, 1], 1)
+    np.savez(tmp_path / "other.npz", vertices=other_v, tets=other_t)
+    spec = _spec(tmp_path / "bad.yaml", ops)
+    out = tmp_path / "out"
+    code, stdout, err = cli("edit", run, "--spec", spec, "-o", out)
+    assert code == 1
+    assert err.startswith("radfield: error: ") and err.count("\n") == 1, err
+    import re
+    assert re.search(message, err), err
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml", "other.npz"]
+
+
+def test_edit_refuses_an_existing_output_and_needs_something_to_do(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    (tmp_path / "exists").mkdir()
+    code, _, err = cli("edit", run, "-o", tmp_path / "exists", "--scale", "2")
+    assert code == 1 and "already exists" in err
+    code, _, err = cli("edit", run, "-o", tmp_path / "new")
+    assert code == 1 and "nothing to do" in err
+    code, _, err = cli("edit", run, "-o", tmp_path / "new", "--rotate", "1,2")
+    assert code == 1 and "--rotate takes three" in err
