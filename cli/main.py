@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 import radfield
+from radfield.cli import animate as animate_cli
 from radfield.cli import edit as edit_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
@@ -136,8 +137,13 @@ def render(
     downscale: Annotated[int, typer.Option(help="Render at 1/K of the dataset's resolution.")] = 1,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    orbit: Annotated[int, typer.Option(help="Instead of the split's cameras: a turntable of this many frames around the scene (README, 'Camera paths').")] = 0,
+    elevation: Annotated[float, typer.Option(help="Orbit elevation in degrees above the horizontal.")] = 20.0,
+    camera_path: Annotated[Optional[Path], typer.Option(help="Instead of the split's cameras: a nerfstudio camera-path JSON (world frame).")] = None,
+    video: Annotated[Optional[Path], typer.Option(help="Also write the frames as an MP4 video (bundled ffmpeg).")] = None,
+    fps: Annotated[float, typer.Option(help="Video frame rate (default 30, or the camera path's).")] = 0.0,
 ):
-    """Render every camera of a dataset split to OUTPUT/<frame name>.png."""
+    """Render every camera of a dataset split (or an orbit / camera path) to OUTPUT/<frame name>.png."""
     import torch
 
     from radfield.core.io import load_model
@@ -150,19 +156,26 @@ def render(
     model = load_model(resolve_model(model_or_run), device=dev)
     data = load_dataset(dataset, split=split, downscale=downscale, background=bg)
     cameras = data.cameras
+    names = [view.image_path.stem for view in data.views]
+    if orbit or camera_path is not None or video is not None:  # camera paths and videos: cli/animate.py
+        cameras, names, fps = animate_cli.path_cameras(cameras, names, orbit, elevation, camera_path, fps)
     if output.exists() and not output.is_dir():
         raise RadfieldError(f"{output}: exists and is not a folder")
     output.mkdir(parents=True, exist_ok=True)
-    seconds = []
+    seconds, frames = [], []
     with progress_bar(quiet) as progress:
         task = progress.add_task(f"rendering {len(cameras)} views", total=len(cameras))
-        for view, cam in zip(data.views, cameras):
+        for name, cam in zip(names, cameras):
             start = time.perf_counter()
             with torch.no_grad():
                 out = render_view(model, cam, background=bg)
             seconds.append(time.perf_counter() - start)
-            write_image(output / f"{view.image_path.stem}.png", out.color.clamp(0, 1).cpu().numpy())
+            write_image(output / f"{name}.png", out.color.clamp(0, 1).cpu().numpy())
+            if video is not None:
+                frames.append(animate_cli.to_uint8(out.color))
             progress.advance(task)
+    if video is not None:
+        animate_cli.write_video(video, frames, fps)
     typer.echo(f"rendered {len(cameras)} views ({cameras[0].width}x{cameras[0].height}, {len(model)} {model.kind} primitives) "
                f"to {output}; mean render time {1e3 * sum(seconds) / len(seconds):.1f} ms/frame")
 
@@ -211,6 +224,7 @@ def demo_scene(
 
 
 app.command("edit")(edit_cli.edit)
+app.command("animate")(animate_cli.animate)
 
 
 def main() -> None:
