@@ -56,11 +56,13 @@ def path_cameras(cameras, names, orbit: int, elevation: float, camera_path: Path
 
 
 def cage_sequence(pattern: str) -> list[Path]:
-    """Cage files of a folder (every .vtk/.vtu/.msh/.npz in it) or a glob pattern, in natural order
-    (frame_2 before frame_10)."""
+    """Cage files of a folder (every .vtk/.vtu/.msh/.npz in it, else the cage.npz of each of its
+    subfolders) or a glob pattern, in natural order (frame_2 before frame_10)."""
     path = Path(pattern)
     if path.is_dir():
-        files = [p for p in path.iterdir() if p.suffix.lower() in CAGE_SUFFIXES]
+        files = [p for p in path.iterdir() if p.is_file() and p.suffix.lower() in CAGE_SUFFIXES]
+        if not files:  # a folder of cage folders, as `animate --simulate` and write_cage write them
+            files = [p / "cage.npz" for p in path.iterdir() if (p / "cage.npz").is_file()]
     else:
         files = [Path(p) for p in glob.glob(os.path.expanduser(pattern)) if Path(p).is_file()]
     key = lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
