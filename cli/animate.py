@@ -8,8 +8,6 @@ import glob
 import json
 import os
 import re
-import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -100,7 +98,7 @@ def animate(
 
     from radfield.cli.common import parse_background, progress_bar, resolve_device
     from radfield.cli.edit import load_source
-    from radfield.core.atomic import atomic_write_text
+    from radfield.core.atomic import atomic_folder, atomic_write_text
     from radfield.core.cage import read_cage, write_cage
     from radfield.core.camera_path import orbit as make_orbit
     from radfield.core.camera_path import orbit_from_cameras
@@ -157,15 +155,14 @@ def animate(
     else:
         cams = [data.cameras[camera]] * len(poses)
 
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
-        frames, per_frame = [], []
+    with atomic_folder(output) as tmp:
+        frames, per_frame, cache = [], [], {}
         with progress_bar(quiet) as progress:
             task = progress.add_task(f"animating {len(poses)} frames", total=len(poses))
             for i, (pose, cam) in enumerate(zip(poses, cams)):
                 start = time.perf_counter()
-                posed = deform_field(fld, pose, gradient=gradient, split=split_threshold or None, where=f"frame {i}")
+                posed = deform_field(fld, pose, gradient=gradient, split=split_threshold or None,
+                                     where=f"frame {i}", cache=cache)
                 prims = posed.prims.to(dev)
                 middle = time.perf_counter()
                 with torch.no_grad():
@@ -179,22 +176,17 @@ def animate(
                                   "primitives": len(prims), "split": posed.notes[-1]["split"]})
                 progress.advance(task)
         write_video(tmp / VIDEO, frames, fps)
-        consecutive = [float(psnr(torch.from_numpy(a / 255.0), torch.from_numpy(b / 255.0)))
+        consecutive = [min(99.0, float(psnr(torch.from_numpy(a / 255.0), torch.from_numpy(b / 255.0))))  # identical frames: 99 dB, not inf
                        for a, b in zip(frames, frames[1:])]
         summary = {"frames": len(frames), "fps": fps, "width": cams[0].width, "height": cams[0].height,
                    "render_ms": float(np.mean([f["render_ms"] for f in per_frame])),
                    "deform_ms": float(np.mean([f["deform_ms"] for f in per_frame])),
                    "consecutive_psnr": float(np.mean(consecutive)) if consecutive else None,
+                   "consecutive_psnr_min": float(np.min(consecutive)) if consecutive else None,
                    "max_split": max(f["split"] for f in per_frame), "per_frame": per_frame}
         if sim_cages is not None:
             summary["simulation"] = sim_figures
         atomic_write_text(tmp / SUMMARY, json.dumps(summary, indent=1) + "\n")
-        if output.exists():
-            output.rmdir()
-        os.replace(tmp, output)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     flicker = f", mean PSNR between consecutive frames {summary['consecutive_psnr']:.2f} dB" if consecutive else ""
     typer.echo(f"animated {len(frames)} frames ({cams[0].width}x{cams[0].height}) to {output / VIDEO}: "
                f"{summary['render_ms']:.1f} ms/frame render, {summary['deform_ms']:.1f} ms/frame deform{flicker}")

@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -16,7 +14,7 @@ from typing import Annotated, Optional
 import typer
 import yaml
 
-from radfield.core.atomic import atomic_write_text
+from radfield.core.atomic import atomic_folder, atomic_write_text
 from radfield.core.errors import RadfieldError
 
 EDIT_STAGE = "edit"  # = radfield.edit.field.EDIT_STAGE (not imported here: keeps `radfield --help` fast)
@@ -130,9 +128,7 @@ def edit(
     marker.update({"created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "edited_from": str(Path(source).resolve())})
     figures = {"operations": len(operations), "primitives": len(edited.prims),
                "split": sum(int(n.get("split", 0)) for n in edited.notes)}
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
+    with atomic_folder(output) as tmp:
         save_field(tmp / EDIT_STAGE, edited)
         atomic_write_text(tmp / EDIT_STAGE / EDIT_SPEC, yaml.safe_dump(
             {"operations": [{name: args} for name, args in operations]}, sort_keys=False))
@@ -143,10 +139,6 @@ def edit(
         if is_run_dir(source) and (source / CONFIG_FILE).is_file():
             shutil.copyfile(source / CONFIG_FILE, tmp / CONFIG_FILE)
         atomic_write_text(tmp / RUN_MARKER, json.dumps(marker, indent=2) + "\n")
-        os.replace(tmp, output)   # fails if OUTPUT appeared meanwhile: nothing half-written is left
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     split_total = figures["split"]
     typer.echo(f"edited {len(fld.prims)} -> {len(edited.prims)} {edited.prims.kind} primitives with "
                f"{len(operations)} operation(s) ({split_total} split); wrote {output}")

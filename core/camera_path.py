@@ -14,6 +14,7 @@ degrees, "aspect"}], "fps"}. Poses are taken in the dataset's world frame.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera, look_at, opengl_to_opencv
 from radfield.core.errors import RadfieldError
 
@@ -91,30 +93,28 @@ def write_video(path: str | Path, frames, fps: float = 30.0) -> None:
     through imageio-ffmpeg's bundled ffmpeg, atomically (temporary name, then rename)."""
     import imageio_ffmpeg
 
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.mp4")
-    writer = None
-    try:
-        for frame in frames:
-            frame = np.asarray(frame)
-            if frame.dtype != np.uint8:
-                frame = (np.clip(frame, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-            if writer is None:
-                height, width = frame.shape[:2]
-                # yuv420p needs even sizes: pad by one edge pixel where necessary (macro_block_size=1 keeps it exact)
-                writer = imageio_ffmpeg.write_frames(str(tmp), (width + width % 2, height + height % 2), fps=fps,
-                                                     codec="libx264", quality=8, macro_block_size=1,
-                                                     output_params=["-pix_fmt", "yuv420p"])
-                writer.send(None)
-            if frame.shape[0] % 2 or frame.shape[1] % 2:
-                frame = np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), mode="edge")
-            writer.send(np.ascontiguousarray(frame[..., :3]))
-        if writer is None:
-            raise RadfieldError(f"{path}: no frames to write")
-        writer.close()
+    frames = iter(frames)
+    first = next(frames, None)
+    if first is None:
+        raise RadfieldError(f"{path}: no frames to write")
+
+    def write(tmp: Path) -> None:
         writer = None
-        tmp.replace(path)
-    finally:
-        if writer is not None:
-            writer.close()
-        tmp.unlink(missing_ok=True)
+        try:
+            for frame in itertools.chain([first], frames):
+                frame = np.asarray(frame)
+                if frame.dtype != np.uint8:
+                    frame = (np.clip(frame, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+                if frame.shape[0] % 2 or frame.shape[1] % 2:   # yuv420p needs even sizes: pad an edge pixel
+                    frame = np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), mode="edge")
+                if writer is None:
+                    writer = imageio_ffmpeg.write_frames(str(tmp), (frame.shape[1], frame.shape[0]), fps=fps,
+                                                         codec="libx264", quality=8, macro_block_size=1,
+                                                         pix_fmt_out="yuv420p")
+                    writer.send(None)
+                writer.send(np.ascontiguousarray(frame[..., :3]))
+        finally:
+            if writer is not None:
+                writer.close()
+
+    atomic_write(path, write)

@@ -196,12 +196,19 @@ def _probe_points(prims) -> np.ndarray:
     return mu[:, None, :] + offsets
 
 
-def nonuniformity(fld: Field, a_tet: np.ndarray) -> np.ndarray:
+def nonuniformity(fld: Field, a_tet: np.ndarray, cache: dict | None = None) -> np.ndarray:
     """Per primitive: max over the tets holding its probe points of |A_j − A_c|₂ / |A_c|₂, with
-    A_c the map of its centre's tet (0 for a uniform neighbourhood)."""
-    probes = _probe_points(fld.prims)
-    p = len(probes)
-    tets, _ = bind_to_cage(probes.reshape(-1, 3), (fld.cage_vertices, fld.cage_tets))
+    A_c the map of its centre's tet (0 for a uniform neighbourhood). `cache` (a dict kept by the
+    caller) remembers the probes' tets of a field deformed again and again (animation frames)."""
+    key = (id(fld.prims), id(fld.cage_vertices))
+    if cache is not None and key in cache:
+        tets = cache[key][1]
+    else:
+        probes = _probe_points(fld.prims)
+        tets, _ = bind_to_cage(probes.reshape(-1, 3), (fld.cage_vertices, fld.cage_tets))
+        if cache is not None:
+            cache[key] = (fld.prims, tets)   # holds the objects, so their ids stay theirs
+    p = len(fld.prims)
     a_probe = a_tet[tets].reshape(p, 7, 3, 3)
     a_c = a_tet[fld.tet][:, None]
     diff = np.linalg.norm(a_probe - a_c, ord=2, axis=(-2, -1)).max(1)
@@ -247,10 +254,10 @@ def split_primitives(prims, index: np.ndarray):
 
 def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAULT_GRADIENT,
                  split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool = False,
-                 where: str = "deform") -> Field:
+                 where: str = "deform", cache: dict | None = None) -> Field:
     """The field with its cage moved to `new_vertices` (same topology), every primitive mapped
     exactly (module docstring). `split`: threshold of `nonuniformity` above which a primitive is
-    halved first (None: never). Appends {"op", "split", "moved_primitives", ...} to the notes."""
+    halved first (None: never); `cache`: see `nonuniformity`. Appends {"op", "split", "moved_primitives", ...} to the notes."""
     if not fld.has_cage:
         raise RadfieldError(f"{where}: this field has no cage (its run has no tetra stage output)")
     new = np.asarray(new_vertices, np.float64)
@@ -259,7 +266,7 @@ def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAUL
     n_split = 0
     if split is not None and moved.any():
         for _ in range(MAX_SPLIT_ROUNDS):
-            flagged = np.flatnonzero(nonuniformity(fld, a_tet) > split)
+            flagged = np.flatnonzero(nonuniformity(fld, a_tet, cache) > split)
             if flagged.size == 0:
                 break
             n_split += flagged.size

@@ -29,11 +29,11 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from radfield.core.cage import tet_volumes
 from radfield.core.errors import RadfieldError
 from radfield.edit.select import number, vector
+from radfield.edit.spec import read_yaml
 
 DEFAULTS = {"gravity": [0.0, 0.0, -9.8], "ground": None, "youngs_modulus": 1e6, "poisson_ratio": 0.3,
             "density": 1000.0, "damping": 0.5, "friction": 0.6, "frames": 60, "fps": 30.0, "substeps": 20,
@@ -71,13 +71,7 @@ def parse_simulation(args: Mapping, where: str = "simulate") -> dict:
 
 def read_simulation(path: str | Path) -> dict:
     """The `simulate:` mapping of a YAML file, checked."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise RadfieldError(f"{path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise RadfieldError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    data = read_yaml(path, "the simulation")
     if not isinstance(data, Mapping) or set(data) != {"simulate"}:
         raise RadfieldError(f"{path}: expected one top-level key 'simulate:' with the simulation's parameters")
     return parse_simulation(data["simulate"] or {}, f"{path}: simulate")
