@@ -63,7 +63,7 @@ def cage_sequence(pattern: str) -> list[Path]:
             files = [p / "cage.npz" for p in path.iterdir() if (p / "cage.npz").is_file()]
     else:
         files = [Path(p) for p in glob.glob(os.path.expanduser(pattern)) if Path(p).is_file()]
-    key = lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
+    key = lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(p))]   # the whole path: */cage.npz
     files = sorted(files, key=key)
     if not files:
         raise RadfieldError(f"--cages {pattern}: no cage files (.vtk/.vtu/.msh/.npz) found")
@@ -155,6 +155,8 @@ def animate(
     else:
         cams = [data.cameras[camera]] * len(poses)
 
+    with torch.no_grad():
+        render(fld.prims.to(dev), cams[0], background=bg)   # warm-up, untimed (kernel loading)
     with atomic_folder(output) as tmp:
         frames, per_frame, cache = [], [], {}
         with progress_bar(quiet) as progress:

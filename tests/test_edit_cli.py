@@ -149,21 +149,28 @@ def test_edit_refuses_an_existing_output_and_needs_something_to_do(cli, scene, t
 def test_animate_a_cage_sequence_to_png_and_mp4(cli, scene, tmp_path):
     root, run_dir, data, v, t = scene
     frames_dir = tmp_path / "cages"
-    for i, angle in enumerate(np.linspace(0, 30, 4)):
+    for i, angle in enumerate(np.linspace(0, 33, 12)):
         a = np.radians(angle) * (v[:, 2] + 0.8)
         c, s = np.cos(a), np.sin(a)
         write_cage(frames_dir / f"pose_{i}", np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], 1), t)
     out = tmp_path / "anim"
-    code, stdout, err = cli("animate", run_dir, "--cages", str(frames_dir / "pose_*" / "cage.vtk"), "-o", out, "-q", "--fps", "10")
+    # a folder of cage folders (pose_N/cage.npz), in natural order: pose_2 before pose_10
+    code, stdout, err = cli("animate", run_dir, "--cages", frames_dir, "-o", out, "-q", "--fps", "10")
     assert code == 0, err
     pngs = sorted(out.glob("frame_*.png"))
-    assert len(pngs) == 4
+    assert len(pngs) == 12
+    drift = [np.abs(read_image(p) - read_image(pngs[0])).mean() for p in pngs]
+    assert all(b > a for a, b in zip(drift[1:], drift[2:])), drift   # the twist grows frame by frame
     summary = json.loads((out / "animation.json").read_text())
-    assert summary["frames"] == 4 and summary["consecutive_psnr"] > 15
+    assert summary["frames"] == 12 and summary["consecutive_psnr"] > 15
+    # a glob pattern gives the same frames
+    code, _, err = cli("animate", run_dir, "--cages", str(frames_dir / "pose_*" / "cage.vtk"), "-o", tmp_path / "glob", "-q")
+    assert code == 0, err
+    assert np.array_equal(read_image(tmp_path / "glob" / "frame_0010.png"), read_image(out / "frame_0010.png"))
     reader = imageio.get_reader(out / "animation.mp4", "ffmpeg")
     video = [frame for frame in reader]
     reader.close()
-    assert len(video) == 4 and video[0].shape == (24, 24, 3)
+    assert len(video) == 12 and video[0].shape == (24, 24, 3)
     first = read_image(pngs[0])[..., :3]
     assert np.abs(video[0] / 255.0 - first).mean() < 0.03       # the video holds the frames (lossy)
     assert np.abs(read_image(pngs[0]) - read_image(pngs[-1])).max() > 0.05   # the twist shows
