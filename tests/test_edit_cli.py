@@ -102,6 +102,17 @@ def test_deform_from_a_moved_cage_file_and_a_model_without_cage(cli, scene, tmp_
     assert code == 0, err
     cage = np.load(tmp_path / "d" / "edit" / "cage.npz")
     assert np.allclose(cage["vertices"], moved)
+    assert load_model(tmp_path / "d" / "edit" / "model.safetensors").rest_metric is None
+    # preserve_opacity: the optional rest_metric tensor, G = r² A⁻ᵀA⁻¹, survives the model file
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "p", "--preserve-opacity", "-q")
+    assert code == 0, err
+    kept = load_model(tmp_path / "p" / "edit" / "model.safetensors")
+    assert kept.rest_metric is not None and kept.rest_metric.shape == (len(kept), 6)
+    assert not torch.allclose(kept.rest_metric[:, 2], torch.ones(len(kept)))   # z stretched by 1.3
+    code, _, err = cli("edit", tmp_path / "p", "-o", tmp_path / "p2", "--scale", "2", "-q")   # a similarity keeps G
+    assert code == 0, err
+    again = load_model(tmp_path / "p2" / "edit" / "model.safetensors")
+    assert torch.allclose(again.rest_metric, kept.rest_metric, rtol=1e-4, atol=1e-6)
     # a model file without a cage: whole-field transforms map the primitives directly
     model = run / "train" / "model.safetensors"
     code, _, err = cli("edit", model, "-o", tmp_path / "m", "--scale", "2", "--translate", "1,0,0", "-q")
