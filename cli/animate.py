@@ -84,7 +84,7 @@ def animate(
     background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
     fps: Annotated[float, typer.Option(help="Video frame rate (default 30, or the simulation's).")] = 0.0,
     gradient: Annotated[str, typer.Option(help="Per-primitive map: centre or tet (see radfield edit).")] = "centre",
-    split_threshold: Annotated[float, typer.Option("--split-threshold", help="Split primitives straddling non-uniform tets (0: never).")] = 0.25,
+    split_threshold: Annotated[float, typer.Option("--split-threshold", help="Split primitives straddling non-uniform tets (0: never).")] = 0.5,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ):

@@ -80,7 +80,7 @@ def edit(
     origin: Annotated[Optional[str], typer.Option(help="Centre of --rotate/--scale: x,y,z (default 0,0,0).")] = None,
     cage: Annotated[Optional[Path], typer.Option(help="Cage file (.npz/.vtk/.vtu/.msh) for a model file, or to replace a run's cage.")] = None,
     gradient: Annotated[str, typer.Option(help="Per-primitive map: centre (deformation gradient interpolated at the centre) or tet (its tet's map).")] = "centre",
-    split: Annotated[float, typer.Option(help="Split primitives whose tets' maps vary by more than this (relative); 0 disables.")] = 0.25,
+    split: Annotated[float, typer.Option(help="Split primitives whose tets' maps vary by more than this (relative); 0 disables.")] = 0.5,
     preserve_opacity: Annotated[bool, typer.Option("--preserve-opacity", help="Measure optical depth in rest-space distance (stretching keeps opacity); adds the rest_metric tensor.")] = False,
     seed: Annotated[int, typer.Option(help="Seed for operations that sample or train.")] = 0,
     device: Annotated[str, typer.Option(help="cpu or cuda, for operations that render or train.")] = "cpu",

@@ -41,7 +41,7 @@ from radfield.edit.field import Field
 
 GRADIENTS = ("centre", "tet")
 DEFAULT_GRADIENT = "centre"
-SPLIT_THRESHOLD = 0.25   # relative variation of A across a primitive's tets above which it is split
+SPLIT_THRESHOLD = 0.5    # relative variation of A across a primitive's tets above which it is split
 MAX_SPLIT_ROUNDS = 2     # each round halves the flagged primitives along their longest axis
 
 

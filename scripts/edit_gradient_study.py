@@ -4,7 +4,8 @@ For a run's model and cage, the cage vertices are moved by an analytic map φ (t
 primitive's affine map x ↦ μ' + A (x − μ) is compared with φ itself on points of its bounding
 ellipsoid (centre ± 0.75 of each radius, and 8 diagonal points): error |φ(y) − μ' − A(y − μ)|
 in units of the primitive's max radius. Prints mean / 95th percentile / max for `tet` and
-`centre`, without splitting.
+`centre` without splitting, and both with and without splitting, also against the cage's own
+piecewise-linear map (what a primitive can follow at best).
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/edit_gradient_study.py RUN
 """
@@ -37,8 +38,20 @@ def bend(x, degrees_per_unit=45.0):
     return centre + np.einsum("nij,nj->ni", axis_rotation(axis, k * h), x - h[:, None] * along - centre)
 
 
-def probe_errors(fld, phi, gradient):
+def cage_map(fld, new):
+    """The piecewise-linear map of the cage itself: y -> Σ λ_i v'_i of the tet holding y."""
+    from radfield.core.cage import bind_to_cage
+
+    def phi(y):
+        tet, bary = bind_to_cage(y, (fld.cage_vertices, fld.cage_tets))
+        return np.einsum("pk,pkd->pd", bary, new[fld.cage_tets[tet]])
+    return phi
+
+
+def probe_errors(fld, phi, gradient, target=None):
+    """Error of each primitive's affine map against `target` (default phi) on its probe points."""
     new = phi(fld.cage_vertices)
+    target = target or phi
     a, means, _ = deform.primitive_maps(fld, new, gradient)
     prims = fld.prims
     rot = quat_to_rotmat(prims.quats.double()).numpy()
@@ -50,7 +63,7 @@ def probe_errors(fld, phi, gradient):
     for z in dirs:
         y = mu + np.einsum("pij,pj->pi", rot, 0.75 * s * z)
         approx = means + np.einsum("pij,pj->pi", a, y - mu)
-        errs.append(np.linalg.norm(phi(y) - approx, axis=1) / s.max(1))
+        errs.append(np.linalg.norm(target(y) - approx, axis=1) / s.max(1))
     return np.max(errs, 0)
 
 
@@ -64,8 +77,19 @@ def main(run):
                   f"p95 {np.percentile(e, 95):.4f}  max {e.max():.4f}")
         new = phi(fld.cage_vertices)
         a_tet, _, _ = deform.tet_maps(fld.cage_vertices, new, fld.cage_tets)
-        nu = deform.nonuniformity(fld, a_tet)
-        print(f"  {name:30s} primitives above the split threshold {deform.SPLIT_THRESHOLD}: {(nu > deform.SPLIT_THRESHOLD).sum()}")
+        for threshold in (0.25, 1e9):
+            split = fld
+            for _ in range(deform.MAX_SPLIT_ROUNDS):   # as deform_field splits
+                flagged = np.flatnonzero(deform.nonuniformity(split, a_tet) > threshold)
+                if flagged.size == 0:
+                    break
+                split = split.with_prims(deform.split_primitives(split.prims, flagged))
+            for gradient in deform.GRADIENTS:
+                e = probe_errors(split, phi, gradient)
+                c = probe_errors(split, phi, gradient, cage_map(fld, new))
+                print(f"  {name:30s} {gradient:7s} split at {threshold}: {len(split.prims) - len(fld.prims)} splits; "
+                      f"error vs φ mean {e.mean():.4f} p95 {np.percentile(e, 95):.4f}; "
+                      f"vs the cage's own map mean {c.mean():.4f} p95 {np.percentile(c, 95):.4f}")
 
 
 if __name__ == "__main__":
