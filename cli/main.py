@@ -11,6 +11,8 @@ from typing import Annotated, Optional
 import typer
 
 import radfield
+from radfield.cli import animate as animate_cli
+from radfield.cli import edit as edit_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -135,8 +137,13 @@ def render(
     near: Annotated[Optional[float], typer.Option(help="Near plane distance (default: the run's render.near, else 0.01).")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    orbit: Annotated[int, typer.Option(help="Instead of the split's cameras: a turntable of this many frames around the scene (README, 'Camera paths').")] = 0,
+    elevation: Annotated[float, typer.Option(help="Orbit elevation in degrees above the horizontal.")] = 20.0,
+    camera_path: Annotated[Optional[Path], typer.Option(help="Instead of the split's cameras: a nerfstudio camera-path JSON (world frame).")] = None,
+    video: Annotated[Optional[Path], typer.Option(help="Also write the frames as an MP4 video (bundled ffmpeg).")] = None,
+    fps: Annotated[float, typer.Option(help="Video frame rate (default 30, or the camera path's).")] = 0.0,
 ):
-    """Render every camera of a dataset split to OUTPUT/<frame name>.png.
+    """Render every camera of a dataset split (or an orbit / a camera path) to OUTPUT/<frame name>.png.
 
     For a run directory every default is the run's own: its dataset, its split rule
     (data.test_every), background, downscale and near plane; explicit options win."""
@@ -147,14 +154,22 @@ def render(
                "data.background": list(parse_background(background)) if background is not None else None}
     dev = resolve_device(device)
     model = resolve_model(model_or_run)
+
+    def path(cameras, names):  # camera paths and videos: cli/animate.py, core/camera_path.py
+        nonlocal fps
+        cameras, names, fps = animate_cli.path_cameras(cameras, names, orbit, elevation, camera_path, fps)
+        return cameras, names
+
     with progress_bar(quiet) as progress:
         task = progress.add_task("rendering", total=None)
         summary = render_frames(model, model_or_run if is_run_dir(model_or_run) else None, dataset, split, output,
                                 options={k: v for k, v in options.items() if v is not None}, device=dev,
+                                camera_path=path if orbit or camera_path is not None else None, video=video, fps=lambda: fps or 30.0,
                                 on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} views"),
                                 on_frame=lambda: progress.advance(task))
     typer.echo(f"rendered {summary['views']} views ({summary['width']}x{summary['height']}, {summary['primitives']} "
-               f"{summary['kind']} primitives) to {output}; mean render time {summary['ms_per_frame']:.1f} ms/frame")
+               f"{summary['kind']} primitives) to {output}{f' and {video}' if video is not None else ''}; "
+               f"mean render time {summary['ms_per_frame']:.1f} ms/frame")
 
 
 @app.command("bench-render")
@@ -198,6 +213,10 @@ def demo_scene(
             return
     generate_scene(name, output, n_train=train_views, n_test=test_views, size=size, seed=seed)
     typer.echo(f"wrote {name}: {train_views} train + {test_views} test views of {size}x{size} to {output}")
+
+
+app.command("edit")(edit_cli.edit)
+app.command("animate")(animate_cli.animate)
 
 
 def main() -> None:

@@ -29,6 +29,9 @@ _SCHEMA = {
                "b2": (), "sh": ("K", 3)},
     "gaussian": {"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (), "sh": ("K", 3)},
 }
+# tensors a file may hold or not: `rest_metric` (P, 6), written by `radfield edit` with
+# preserve_opacity (edit/deform.py; README "Model file format")
+_OPTIONAL = {"neural": {"rest_metric": (6,)}, "gaussian": {}}
 
 
 def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dict | None = None) -> None:
@@ -80,7 +83,8 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             names = set(f.keys())
-            schema = _SCHEMA[kind]
+            schema = dict(_SCHEMA[kind])
+            schema.update({name: tail for name, tail in _OPTIONAL[kind].items() if name in names})
             missing, unknown = sorted(set(schema) - names), sorted(names - set(schema))
             if missing or unknown:
                 what = "; ".join(s for s in (f"missing tensors {missing}" if missing else "",

@@ -98,6 +98,9 @@ class NeuralPrimitives(_Primitives):
     w2: torch.Tensor = None  # (P, N)
     b2: torch.Tensor = None  # (P,)
     omega0: float = DEFAULT_OMEGA0
+    # optional, written by `radfield edit --preserve-opacity` (edit/deform.py): per primitive the
+    # symmetric rest-space metric G (xx yy zz xy xz yz) that scales the optical depth by √(d̂ᵀ G d̂)
+    rest_metric: torch.Tensor | None = None  # (P, 6)
 
     kind = "neural"
 

@@ -141,7 +141,16 @@ def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor, cam_rot: torch.T
     o_ell = (m * rel[:, None, :]).sum(-1)
     w = prims.omega0 * prims.w1
     c = (w * (rel / smax[:, None])[:, None, :]).sum(-1) + prims.omega0 * prims.b1
-    return m @ cam_rot, o_ell, w @ cam_rot, c, prims.w2, prims.b2, 1.0 / smax
+    w2, b2 = prims.w2, prims.b2
+    if prims.rest_metric is not None:
+        # preserve_opacity edits (edit/deform.py): optical depth in rest-space distance,
+        # I·√(d̂ᵀGd̂); I is linear in (w2, b2), so the factor at the central ray d̂ = (μ − o)/|μ − o|
+        # folds into them once per view (exact on that ray, README "Editing")
+        g, d = prims.rest_metric, torch.nn.functional.normalize(-rel, dim=-1)
+        quad = (g[:, :3] * d * d).sum(-1) + 2 * (g[:, 3] * d[:, 0] * d[:, 1] + g[:, 4] * d[:, 0] * d[:, 2] + g[:, 5] * d[:, 1] * d[:, 2])
+        factor = torch.sqrt(torch.clamp_min(quad, 0.0))
+        w2, b2 = w2 * factor[:, None], b2 * factor
+    return m @ cam_rot, o_ell, w @ cam_rot, c, w2, b2, 1.0 / smax
 
 
 def _neural_bounds(prims: NeuralPrimitives, camera: Camera, w2c, means_cam, near):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 C0 = 0.28209479177387814
@@ -22,10 +24,8 @@ def sh_degree_from_coeffs(k: int) -> int:
     return degree
 
 
-def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
-    """SH radiance for coefficients (P, K, 3) along unit directions (P, 3), using bands <= degree.
-
-    Returns the raw value (P, 3); colour = clamp(value + 0.5, min=0) as in 3DGS."""
+def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """The real SH basis functions (..., (degree+1)^2) at unit directions (..., 3), 3DGS order and signs."""
     x, y, z = dirs.unbind(-1)
     basis = [torch.full_like(x, C0)]
     if degree >= 1:
@@ -43,8 +43,47 @@ def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
             C3[5] * z * (xx - yy),
             C3[6] * x * (xx - 3 * yy),
         ]
-    basis = torch.stack(basis, -1)  # (P, B)
+    return torch.stack(basis, -1)
+
+
+def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """SH radiance for coefficients (P, K, 3) along unit directions (P, 3), using bands <= degree.
+
+    Returns the raw value (P, 3); colour = clamp(value + 0.5, min=0) as in 3DGS."""
+    basis = sh_basis(dirs, degree)  # (P, B)
     return (basis[..., None] * coeffs[:, : basis.shape[-1]]).sum(-2)
+
+
+def _fibonacci_sphere(n: int) -> torch.Tensor:
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    r = torch.sqrt(1.0 - z * z)
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+
+
+def rotate_sh(coeffs: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+    """SH coefficients (P, K, 3) of the rotated functions: with c' = rotate_sh(c, R),
+    eval_sh(c', d) = eval_sh(c, Rᵀd) for every unit d (colour turns with an object rotated by R).
+
+    Each band l spans a rotation-invariant space, so band by band c'_l = D_l(R) c_l with the
+    (2l+1)² matrix D_l fitted exactly on fixed directions P: D_l = pinv(Y_l(P)) Y_l(Rᵀ P) (a
+    least-squares fit of a function that lies in the span, exact to rounding). This matches
+    `sh_basis`'s order and signs by construction, whatever convention it uses. rot: (P, 3, 3) or (3, 3)."""
+    degree = sh_degree_from_coeffs(coeffs.shape[1])
+    if degree == 0:
+        return coeffs.clone()
+    dtype = coeffs.dtype
+    rot = torch.as_tensor(rot, dtype=torch.float64, device=coeffs.device).expand(coeffs.shape[0], 3, 3)
+    dirs = _fibonacci_sphere(32).to(coeffs.device)                     # 32 >= 2l+1 for every band
+    rest = dirs @ rot                                                  # rows Rᵀ p  (P, 32, 3)
+    y_fixed, y_rot = sh_basis(dirs, degree), sh_basis(rest, degree)    # (32, K), (P, 32, K)
+    out = coeffs.to(torch.float64).clone()
+    for band in range(1, degree + 1):
+        lo, hi = band * band, (band + 1) * (band + 1)
+        d = torch.linalg.pinv(y_fixed[:, lo:hi]) @ y_rot[..., lo:hi]  # (P, 2l+1, 2l+1)
+        out[:, lo:hi] = d @ out[:, lo:hi]
+    return out.to(dtype)
 
 
 def sh_to_color(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:

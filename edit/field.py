@@ -97,3 +97,22 @@ def save_field(out_dir: str | Path, fld: Field, extra: dict | None = None) -> li
         written += write_cage(out_dir, fld.cage_vertices, fld.cage_tets)
     atomic_write(out_dir / EDIT_BINDING, lambda tmp: np.savez(tmp, tet=fld.tet, bary=fld.bary))
     return written + [out_dir / EDIT_BINDING]
+
+
+def box_cage(lo, hi, n: int | tuple[int, int, int] = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A regular tet cage of the box [lo, hi]: n³ cells of 6 tets each (Kuhn split, positive
+    orientation). For tests, and for fields whose run has no cage."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    n = np.broadcast_to(np.asarray(n), (3,)).astype(int)
+    axes = [np.linspace(lo[i], hi[i], n[i] + 1) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    index = np.arange(grid.shape[0]).reshape(*(n + 1))
+    cube = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]])
+    kuhn = [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]]
+    cells = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
+    corners = index[tuple((cells[:, None, :] + cube[None]).transpose(2, 0, 1))]   # (C, 8)
+    tets = corners[:, kuhn].reshape(-1, 4)
+    c = grid[tets]
+    flip = np.linalg.det(c[:, 1:] - c[:, :1]) < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    return grid, tets

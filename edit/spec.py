@@ -25,7 +25,7 @@ from radfield.core.errors import RadfieldError
 from radfield.edit.field import Field
 
 # modules whose import registers operations (one per operation family)
-OPERATION_MODULES: tuple[str, ...] = ()
+OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.warp",)
 
 
 @dataclass
@@ -80,14 +80,18 @@ def registry() -> dict[str, Operation]:
 
 def read_spec(path: str | Path) -> list[tuple[str, dict]]:
     """The operations of a spec file as (name, args) pairs, checked for form (not for values)."""
+    return parse_spec(read_yaml(path, "the edit spec"), str(path))
+
+
+def read_yaml(path: str | Path, what: str = "the file") -> Any:
+    """A YAML file's content, or a one-line error naming the file."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise RadfieldError(f"{path}: cannot read the edit spec ({exc.strerror})") from None
+        raise RadfieldError(f"{path}: cannot read {what} ({exc.strerror})") from None
     except yaml.YAMLError as exc:
         raise RadfieldError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    return parse_spec(data, str(path))
 
 
 def parse_spec(data: Any, source: str = "spec") -> list[tuple[str, dict]]:

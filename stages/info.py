@@ -59,9 +59,14 @@ SFM_DATASET = "colmap"  # its output: a posed COLMAP dataset folder inside RUN/s
 NORMALIZATION_FILE = "normalization.json"  # inside that folder: how its frame relates to COLMAP's
 
 
+EDIT_STAGE = "edit"  # `radfield edit` writes an edited run's model into NEW_RUN/edit/ (radfield.edit.field)
+
+
 def model_path(run_dir: Path) -> Path:
-    """Where the final model of a run lives (whether or not it exists yet)."""
-    return Path(run_dir) / MODEL_STAGE / MODEL_FILE
+    """Where the final model of a run lives (whether or not it exists yet): an edited run's
+    edit/model.safetensors, else the train stage's."""
+    edited = Path(run_dir) / EDIT_STAGE / MODEL_FILE
+    return edited if edited.is_file() else Path(run_dir) / MODEL_STAGE / MODEL_FILE
 
 
 def normalization_path(run_dir: Path) -> Path:

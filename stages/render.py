@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from radfield.core.camera_path import write_video
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model
 from radfield.core.rasterize import render
@@ -31,9 +32,14 @@ from radfield.stages.pipeline import CONFIG_FILE
 
 def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, split: str, out_dir: Path, *,
                   options: dict[str, Any] | None = None, device: str | torch.device = "cpu",
+                  camera_path: Callable[[list, list[str]], tuple[list, list[str]]] | None = None,
+                  video: Path | None = None, fps: Callable[[], float] = lambda: 30.0,
                   on_start: Callable[[int], None] | None = None,
                   on_frame: Callable[[], None] | None = None) -> dict[str, Any]:
     """Render `split` of `dataset` (default: the run's) with the model into out_dir/<view>.png.
+
+    camera_path(cameras, names) -> (cameras, names) replaces the split's cameras (an orbit around
+    them, a camera-path file); `video`: also write the frames as an MP4 at fps() frames per second.
 
     on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
     primitives, kind and ms_per_frame (rendering only, after one untimed warm-up render, the
@@ -49,28 +55,36 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     model = load_model(model_file, device=device)
     data = load_split(dataset, split, config["data"])
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
+    cameras, names = data.cameras, [view.image_path.stem for view in data.views]
+    if camera_path is not None:
+        cameras, names = camera_path(cameras, names)
     if on_start is not None:
-        on_start(len(data))
+        on_start(len(cameras))
     with torch.no_grad():  # warm-up, untimed: the first render loads the fused kernels
-        render(model, data.cameras[0], background=background, near=near)
+        render(model, cameras[0], background=background, near=near)
     tmp = out_dir.with_name(f".{out_dir.name}.tmp-{secrets.token_hex(4)}")
     tmp.mkdir(parents=True)
-    seconds = 0.0
+    seconds, frames = 0.0, []
     try:
-        for view, camera in zip(data.views, data.cameras):
+        for name, camera in zip(names, cameras):
             start = clock(device)
             with torch.no_grad():
                 color = render(model, camera, background=background, near=near).color
             seconds += clock(device) - start
-            write_image(tmp / f"{view.image_path.stem}.png", color.clamp(0, 1).cpu().numpy())
+            pixels = color.clamp(0, 1).cpu().numpy()
+            write_image(tmp / f"{name}.png", pixels)
+            if video is not None:
+                frames.append((pixels * 255.0 + 0.5).astype("uint8"))
             if on_frame is not None:
                 on_frame()
+        if video is not None:
+            write_video(video, frames, fps())
         _move_into(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    first = data.cameras[0]
-    return {"views": len(data), "width": first.width, "height": first.height, "primitives": len(model),
-            "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(data)}
+    first = cameras[0]
+    return {"views": len(cameras), "width": first.width, "height": first.height, "primitives": len(model),
+            "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(cameras)}
 
 
 def _move_into(tmp: Path, out_dir: Path) -> None:

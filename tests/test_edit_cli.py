@@ -1,0 +1,227 @@
+"""`radfield edit`: a new run directory that render/eval/info read unchanged; the spec's
+operations; one-line errors that leave nothing behind. `radfield animate` (cage sequences and
+simulations to PNG + MP4) and the camera paths of `radfield render`."""
+
+from __future__ import annotations
+
+import json
+
+import imageio
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from radfield.core.cage import write_binding, write_cage
+from radfield.core.camera_path import orbit
+from radfield.core.cameras import Camera, opencv_to_opengl
+from radfield.core.io import load_model, save_model
+from radfield.core.primitives import random_neural
+from radfield.datasets.images import read_image
+from radfield.datasets.synthetic import generate_scene
+from radfield.edit.field import box_cage
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("edit")
+    data = root / "data"
+    generate_scene("blobs", data, n_train=3, n_test=2, size=24, seed=0)
+    run = root / "run"
+    (run / "train").mkdir(parents=True)
+    (run / "tetra").mkdir()
+    prims = random_neural(20, sh_degree=1, extent=0.4, scale=0.15, seed=2)
+    save_model(run / "train" / "model.safetensors", prims)
+    v, t = box_cage([-0.8, -0.8, -0.8], [0.8, 0.8, 0.8], 2)
+    write_cage(run / "tetra", v, t)
+    write_binding(run / "train" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
+    (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
+    (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
+    return root, run, data, v, t
+
+
+def _spec(path, operations):
+    path.write_text(yaml.safe_dump({"operations": operations}))
+    return path
+
+
+def test_edit_writes_a_run_that_render_eval_and_info_read(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    spec = _spec(tmp_path / "edit.yaml", [
+        {"transform": {"select": {"sphere": {"center": [0.8, 0.8, 0.8], "radius": 0.3}}, "translate": [0.1, 0, 0], "falloff": 0.2}},
+        {"twist": {"axis": "z", "degrees_per_unit": 20, "origin": [0, 0, 0], "select": "all"}},
+        {"bend": {"axis": "y", "degrees_per_unit": 15, "select": "all"}},
+        {"taper": {"axis": "z", "factor": 0.2, "select": "all"}},
+    ])
+    out = tmp_path / "edited"
+    code, stdout, err = cli("edit", run, "--spec", spec, "-o", out, "--rotate", "0,0,30", "-q")
+    assert code == 0, err
+    assert "wrote" in stdout
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before   # source untouched
+    for name in ("model.safetensors", "cage.npz", "cage.vtk", "model_binding.npz", "spec.yaml", "manifest.json"):
+        assert (out / "edit" / name).is_file(), name
+    assert (out / "config.yaml").read_text() == (run / "config.yaml").read_text()
+    assert len(yaml.safe_load((out / "edit" / "spec.yaml").read_text())["operations"]) == 5
+    model = load_model(out / "edit" / "model.safetensors")
+    assert not torch.equal(model.means, load_model(run / "train" / "model.safetensors").means)
+
+    code, stdout, err = cli("info", out, "--json")
+    assert code == 0, err
+    info = json.loads(stdout)
+    assert info["model"].endswith("edit/model.safetensors") and info["stages"]["edit"]["done"]
+    assert info["input"] == str(data.resolve())
+    code, stdout, err = cli("eval", out, "-o", tmp_path / "report", "-q")
+    assert code == 0, err
+    assert (tmp_path / "report" / "metrics.json").is_file()
+    code, _, err = cli("render", out, "-d", data, "-o", tmp_path / "frames", "-q")
+    assert code == 0, err
+    assert len(list((tmp_path / "frames").glob("*.png"))) == 2
+    # an edited run is a source too
+    code, _, err = cli("edit", out, "-o", tmp_path / "again", "--translate", "0,0,0.1", "-q")
+    assert code == 0, err
+
+
+def test_identity_deform_keeps_the_model_file_content(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    spec = _spec(tmp_path / "same.yaml", [{"deform": {"cage": str(run / "tetra" / "cage.vtk")}}])
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "same", "-q")
+    assert code == 0, err
+    a, b = load_model(run / "train" / "model.safetensors"), load_model(tmp_path / "same" / "edit" / "model.safetensors")
+    for name, value in a.tensors().items():
+        assert torch.equal(value, b.tensors()[name]), name
+
+
+def test_deform_from_a_moved_cage_file_and_a_model_without_cage(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    moved = v.copy()
+    moved[:, 2] *= 1.3
+    write_cage(tmp_path / "moved", moved, t)
+    spec = _spec(tmp_path / "d.yaml", [{"deform": {"cage": "moved/cage.vtk"}}])   # relative to the spec
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "d", "-q")
+    assert code == 0, err
+    cage = np.load(tmp_path / "d" / "edit" / "cage.npz")
+    assert np.allclose(cage["vertices"], moved)
+    assert load_model(tmp_path / "d" / "edit" / "model.safetensors").rest_metric is None
+    # preserve_opacity: the optional rest_metric tensor, G = r² A⁻ᵀA⁻¹, survives the model file
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "p", "--preserve-opacity", "-q")
+    assert code == 0, err
+    kept = load_model(tmp_path / "p" / "edit" / "model.safetensors")
+    assert kept.rest_metric is not None and kept.rest_metric.shape == (len(kept), 6)
+    assert not torch.allclose(kept.rest_metric[:, 2], torch.ones(len(kept)))   # z stretched by 1.3
+    code, _, err = cli("edit", tmp_path / "p", "-o", tmp_path / "p2", "--scale", "2", "-q")   # a similarity keeps G
+    assert code == 0, err
+    again = load_model(tmp_path / "p2" / "edit" / "model.safetensors")
+    assert torch.allclose(again.rest_metric, kept.rest_metric, rtol=1e-4, atol=1e-6)
+    # a model file without a cage: whole-field transforms map the primitives directly
+    model = run / "train" / "model.safetensors"
+    code, _, err = cli("edit", model, "-o", tmp_path / "m", "--scale", "2", "--translate", "1,0,0", "-q")
+    assert code == 0, err
+    a, b = load_model(model), load_model(tmp_path / "m" / "edit" / "model.safetensors")
+    assert torch.allclose(b.means, 2 * a.means + torch.tensor([1.0, 0, 0]), atol=1e-6)
+    assert torch.allclose(b.log_scales.sort(-1).values, (a.log_scales + np.log(2)).sort(-1).values, atol=1e-5)
+
+
+@pytest.mark.parametrize("ops, message", [
+    ([{"explode": {}}], "operations\\[0\\]: unknown operation 'explode'"),
+    ([{"deform": {"cage": "other.npz"}}], "operations\\[0\\].deform.cage: .* has another topology"),
+    ([{"transform": {"select": {"cube": {}}, "translate": [0, 0, 1]}}], "operations\\[0\\].transform.select: unknown selection 'cube'"),
+    ([{"transform": {"select": {"sphere": {"center": [9, 9, 9], "radius": 0.1}}, "translate": [0, 0, 1]}}], "selects no cage vertex"),
+    ([{"twist": {"axis": "z", "degrees_per_unit": "a lot"}}], "operations\\[0\\].twist.degrees_per_unit: expected a number"),
+    ([{"transform": {"scale": 2, "shear": 1}}], "unknown arguments \\['shear'\\]"),
+    ([{"transform": {"select": {"box": {"min": [-1, -1, 0.5], "max": [1, 1, 1]}}, "translate": [0, 0, -2]}}], "inverted tets in the deformed cage"),
+])
+def test_spec_errors_are_one_line_and_leave_nothing(cli, scene, tmp_path, ops, message):
+    root, run, data, v, t = scene
+    other_v, other_t = box_cage([-1, -1, -1], [1, 1, 1], 1)
+    np.savez(tmp_path / "other.npz", vertices=other_v, tets=other_t)
+    spec = _spec(tmp_path / "bad.yaml", ops)
+    out = tmp_path / "out"
+    code, stdout, err = cli("edit", run, "--spec", spec, "-o", out)
+    assert code == 1
+    assert err.startswith("radfield: error: ") and err.count("\n") == 1, err
+    import re
+    assert re.search(message, err), err
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml", "other.npz"]
+
+
+def test_edit_refuses_an_existing_output_and_needs_something_to_do(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    (tmp_path / "exists").mkdir()
+    code, _, err = cli("edit", run, "-o", tmp_path / "exists", "--scale", "2")
+    assert code == 1 and "already exists" in err
+    code, _, err = cli("edit", run, "-o", tmp_path / "new")
+    assert code == 1 and "nothing to do" in err
+    code, _, err = cli("edit", run, "-o", tmp_path / "new", "--rotate", "1,2")
+    assert code == 1 and "--rotate takes three" in err
+
+
+def test_animate_a_cage_sequence_to_png_and_mp4(cli, scene, tmp_path):
+    root, run_dir, data, v, t = scene
+    frames_dir = tmp_path / "cages"
+    for i, angle in enumerate(np.linspace(0, 33, 12)):
+        a = np.radians(angle) * (v[:, 2] + 0.8)
+        c, s = np.cos(a), np.sin(a)
+        write_cage(frames_dir / f"pose_{i}", np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], 1), t)
+    out = tmp_path / "anim"
+    # a folder of cage folders (pose_N/cage.npz), in natural order: pose_2 before pose_10
+    code, stdout, err = cli("animate", run_dir, "--cages", frames_dir, "-o", out, "-q", "--fps", "10")
+    assert code == 0, err
+    pngs = sorted(out.glob("frame_*.png"))
+    assert len(pngs) == 12
+    drift = [np.abs(read_image(p) - read_image(pngs[0])).mean() for p in pngs]
+    assert all(b > a for a, b in zip(drift[1:], drift[2:])), drift   # the twist grows frame by frame
+    summary = json.loads((out / "animation.json").read_text())
+    assert summary["frames"] == 12 and summary["consecutive_psnr"] > 15
+    # a glob pattern gives the same frames
+    code, _, err = cli("animate", run_dir, "--cages", str(frames_dir / "pose_*" / "cage.vtk"), "-o", tmp_path / "glob", "-q")
+    assert code == 0, err
+    assert np.array_equal(read_image(tmp_path / "glob" / "frame_0010.png"), read_image(out / "frame_0010.png"))
+    reader = imageio.get_reader(out / "animation.mp4", "ffmpeg")
+    video = [frame for frame in reader]
+    reader.close()
+    assert len(video) == 12 and video[0].shape == (24, 24, 3)
+    first = read_image(pngs[0])[..., :3]
+    assert np.abs(video[0] / 255.0 - first).mean() < 0.03       # the video holds the frames (lossy)
+    assert np.abs(read_image(pngs[0]) - read_image(pngs[-1])).max() > 0.05   # the twist shows
+
+    # a wrong topology is a one-line error and leaves nothing
+    other_v, other_t = box_cage([-1, -1, -1], [1, 1, 1], 1)
+    write_cage(tmp_path / "bad", other_v, other_t)
+    code, _, err = cli("animate", run_dir, "--cages", str(tmp_path / "bad"), "-o", tmp_path / "anim2")
+    assert code == 1 and "another topology" in err and err.count("\n") == 1
+    assert not (tmp_path / "anim2").exists()
+
+
+def test_animate_a_simulation(cli, scene, tmp_path):
+    root, run_dir, data, v, t = scene
+    spec = tmp_path / "sim.yaml"
+    spec.write_text("simulate: {gravity: [0, 0, -9.8], ground: -0.8, frames: 5, fps: 10, substeps: 10}\n")
+    out = tmp_path / "sim"
+    code, stdout, err = cli("animate", run_dir, "--simulate", spec, "-o", out, "-q", "--orbit")
+    assert code == 0, err
+    assert len(list(out.glob("frame_*.png"))) == 5 and (out / "animation.mp4").is_file()
+    assert len(list((out / "cages").glob("frame_*/cage.vtk"))) == 5
+    summary = json.loads((out / "animation.json").read_text())
+    assert summary["simulation"]["min_height"] >= -0.8 - 1e-9
+
+
+def test_render_orbit_and_camera_path_with_video(cli, scene, tmp_path):
+    root, run_dir, data, v, t = scene
+    code, stdout, err = cli("render", run_dir, "-d", data, "-o", tmp_path / "orbit", "--orbit", "3", "--video", tmp_path / "o.mp4", "-q")
+    assert code == 0, err
+    assert len(list((tmp_path / "orbit").glob("orbit_*.png"))) == 3
+    reader = imageio.get_reader(tmp_path / "o.mp4", "ffmpeg")
+    assert len([f for f in reader]) == 3
+    reader.close()
+    cams = orbit([0, 0, 0], 3.0, 10.0, 2, Camera(30.0, 30.0, 15.0, 10.0, 30, 20, torch.eye(4, dtype=torch.float64)))
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps({"render_width": 30, "render_height": 20, "camera_path": [
+        {"camera_to_world": opencv_to_opengl(c.c2w).flatten().tolist(), "fov": 50.0} for c in cams]}))
+    code, _, err = cli("render", run_dir, "-d", data, "-o", tmp_path / "path", "--camera-path", path, "-q")
+    assert code == 0, err
+    images = sorted((tmp_path / "path").glob("path_*.png"))
+    assert len(images) == 2 and read_image(images[0]).shape[:2] == (20, 30)
+    code, _, err = cli("render", run_dir, "-d", data, "-o", tmp_path / "x", "--camera-path", path, "--orbit", "3")
+    assert code == 1 and "exclude each other" in err
