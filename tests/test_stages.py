@@ -330,5 +330,5 @@ def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, cl
 
     code, out, _ = cli(*args, "--set", "train.iterations=41")
     outcomes = dict(part.split(" ", 1) for part in out.splitlines()[0].removeprefix("stages: ").split(", "))
-    assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "eval"]
+    assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "bake", "eval"]
     assert math.isfinite(json.loads(cli("info", run_dir, "--json")[1])["stages"]["eval"]["psnr"])
