@@ -12,6 +12,14 @@ from radfield.cli.common import parse_background, resolve_device
 from radfield.core.errors import RadfieldError
 
 
+# options shared by eval and bake
+Dataset = Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth and the cameras (default: the run's input; its SfM output for photos).")]
+Downscale = Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")]
+Background = Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")]
+Device = Annotated[str, typer.Option(help="cpu or cuda.")]
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")]
+
+
 def _data_options(downscale: int | None, background: str | None) -> dict:
     options = {"data.downscale": downscale,
                "data.background": list(parse_background(background)) if background is not None else None}
@@ -22,12 +30,12 @@ def eval_command(
     targets: Annotated[list[Path], typer.Argument(metavar="RUN_OR_MODEL...", help="A run directory (its final model) or a .safetensors model file; several with --compare.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created; entries of an existing one are replaced).")],
     compare: Annotated[bool, typer.Option("--compare", help="Evaluate every RUN_OR_MODEL on the same views: one table and side-by-side grids.")] = False,
-    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth (default: the run's input; its SfM output for photos).")] = None,
+    dataset: Dataset = None,
     split: Annotated[str, typer.Option(help="train, val or test.")] = "test",
-    downscale: Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")] = None,
-    background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    downscale: Downscale = None,
+    background: Background = None,
+    device: Device = "cpu",
+    quiet: Quiet = False,
 ):
     """Measure a trained model on a dataset split: PSNR, SSIM, LPIPS (AlexNet v0.1), FPS.
 
@@ -65,12 +73,12 @@ def bake(
     output: Annotated[Path, typer.Option("--output", "-o", help="The baked model file to write (.safetensors).")],
     min_weight: Annotated[Optional[float], typer.Option(help="Prune primitives whose transmittance-weighted alpha stays below this in every pixel of every training view (default: the run's bake.min_weight, else 1/255).")] = None,
     fp16: Annotated[Optional[bool], typer.Option("--fp16/--fp32", help="Store the tensors as float16 (default: the run's bake.fp16, else float32).")] = None,
-    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the training views (default: the run's input).")] = None,
+    dataset: Dataset = None,
     split: Annotated[str, typer.Option(help="Held-out split for the PSNR before and after.")] = "test",
-    downscale: Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")] = None,
-    background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    downscale: Downscale = None,
+    background: Background = None,
+    device: Device = "cpu",
+    quiet: Quiet = False,
 ):
     """Bake a model for delivery: prune primitives no training view sees, optionally float16.
 

@@ -7,6 +7,7 @@ fails these tests instead of skipping them.
 
 from __future__ import annotations
 
+import importlib
 import io
 import os
 import pickle
@@ -77,7 +78,7 @@ def _import_lpips_package():
     torchvision does not import, that one function is supplied with torchvision's AlexNet feature
     layout (modules 0-12, which lpips slices as [0:2], [2:5], [5:8], [8:10], [10:12])."""
     try:
-        import torchvision  # noqa: F401
+        importlib.import_module("torchvision")
     except Exception:  # not installed, or a CUDA build beside a CPU torch (RuntimeError at import)
         nn = torch.nn
 

@@ -114,4 +114,4 @@ def test_bench_quality_tiny(scene_dir, tmp_path, cli):
             assert r["primitives"] <= r["budget"]
     assert (out / "psnr_vs_params.png").stat().st_size > 1000
     table = (out / "bench.md").read_text()
-    assert table.count("\n| ") == 3 and f"{rows[0]['psnr']:.2f}" in table
+    assert table.count("\n| ") == 4 and f"{rows[0]['psnr']:.2f}" in table  # header, rule, two rows
