@@ -3,8 +3,8 @@
 Neural primitives: float32 `means` (P,3), `log_scales` (P,3), `quats` (P,4, w x y z), `w1` (P,N,3),
 `b1` (P,N), `w2` (P,N), `b2` (P,), `sh` (P,K,3); metadata format=radfield, kind=neural, version,
 omega0, sh_degree. Gaussians: same geometry and `sh`, plus `opacities` (P,) logits, kind=gaussian.
-Every tensor may also be stored as float16 (all of a file's tensors have one dtype; baked models,
-radfield.core.bake); readers accept both and return float32. Readers check everything and never
+Tensors may also be stored as float16 (`radfield bake --fp16` writes all of them so); readers
+accept float32 and float16 and return float32. Readers check everything and never
 unpickle anything.
 """
 
