@@ -13,6 +13,7 @@ import typer
 import radfield
 from radfield.cli import animate as animate_cli
 from radfield.cli import edit as edit_cli
+from radfield.cli import evaluate as evaluate_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -58,7 +59,7 @@ def reconstruct(
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
-    Runs the cached stages sfm → data → envelope → tetra → init → train → eval in the run
+    Runs the cached stages sfm → data → envelope → tetra → init → train → bake → eval in the run
     directory (sfm only for a folder of photos); a stage re-runs only when its inputs or its config
     keys changed."""
     from radfield.stages import registry
@@ -85,31 +86,6 @@ def reconstruct(
                    f"({evaluation['views']} {split} views); report {output / 'eval'}")
     if info["model"]:
         typer.echo(f"model: {info['model']}")
-
-
-@app.command("eval")
-def eval_command(
-    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (its final model) or a .safetensors model file.")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created): metrics.json and renders/.")],
-    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth (default: the run's input; its SfM output for photos).")] = None,
-    split: Annotated[str, typer.Option(help="train, val or test.")] = "test",
-    downscale: Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")] = None,
-    background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
-):
-    """Measure a trained model on a dataset split: PSNR, SSIM, FPS.
-
-    Writes OUTPUT/metrics.json (per view and mean) and the renders to OUTPUT/renders/."""
-    from radfield.stages.evaluate import eval_report
-
-    options = {"data.downscale": downscale,
-               "data.background": list(parse_background(background)) if background is not None else None}
-    metrics = eval_report(target, dataset, split, output, options={k: v for k, v in options.items() if v is not None},
-                          device=str(resolve_device(device)), quiet=quiet)
-    typer.echo(f"{metrics['split']}: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, "
-               f"{metrics['fps']:.1f} fps over {metrics['views']} views ({metrics['num_primitives']} "
-               f"{metrics['kind']} primitives); report in {output}")
 
 
 @app.command()
@@ -217,6 +193,9 @@ def demo_scene(
 
 app.command("edit")(edit_cli.edit)
 app.command("animate")(animate_cli.animate)
+app.command("eval")(evaluate_cli.eval_command)
+app.command("bake")(evaluate_cli.bake)
+app.command("bench-quality")(evaluate_cli.bench_quality)
 
 
 def main() -> None:

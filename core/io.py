@@ -3,7 +3,9 @@
 Neural primitives: float32 `means` (P,3), `log_scales` (P,3), `quats` (P,4, w x y z), `w1` (P,N,3),
 `b1` (P,N), `w2` (P,N), `b2` (P,), `sh` (P,K,3); metadata format=radfield, kind=neural, version,
 omega0, sh_degree. Gaussians: same geometry and `sh`, plus `opacities` (P,) logits, kind=gaussian.
-Readers check everything and never unpickle anything.
+Tensors may also be stored as float16 (`radfield bake --fp16` writes all of them so); readers
+accept float32 and float16 and return float32. Readers check everything and never
+unpickle anything.
 """
 
 from __future__ import annotations
@@ -34,11 +36,20 @@ _SCHEMA = {
 _OPTIONAL = {"neural": {"rest_metric": (6,)}, "gaussian": {}}
 
 
-def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dict | None = None) -> None:
-    """Write `prims` as float32 safetensors, atomically (temporary file, then rename).
+STORAGE_DTYPES = (torch.float32, torch.float16)
+
+
+def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dict | None = None,
+               dtype: torch.dtype = torch.float32) -> None:
+    """Write `prims` as float32 (or float16) safetensors, atomically (temporary file, then rename).
     `extra` adds string metadata (e.g. the scene normalisation as JSON)."""
     path = Path(path)
-    tensors = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in prims.tensors().items()}
+    if dtype not in STORAGE_DTYPES:
+        raise ValueError(f"model files store float32 or float16, not {dtype}")
+    tensors = {k: v.detach().to("cpu", dtype).contiguous() for k, v in prims.tensors().items()}
+    for name, t in tensors.items():
+        if dtype == torch.float16 and torch.isinf(t).any() and torch.isfinite(getattr(prims, name)).all():
+            raise RadfieldError(f"{path}: tensor {name!r} has values beyond the float16 range (store float32)")
     meta = {"format": FORMAT, "kind": prims.kind, "version": str(VERSION), "sh_degree": str(prims.sh_degree)}
     if isinstance(prims, NeuralPrimitives):
         meta["omega0"] = repr(float(prims.omega0))
@@ -101,8 +112,9 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
     for name, tail in schema.items():
         t = tensors[name]
         expected = (num,) + tuple(dims[d] if isinstance(d, str) else d for d in tail)
-        if t.dtype != torch.float32:
-            raise RadfieldError(f"{path}: tensor {name!r} has dtype {str(t.dtype).removeprefix('torch.')}, expected float32")
+        if t.dtype not in STORAGE_DTYPES:
+            raise RadfieldError(f"{path}: tensor {name!r} has dtype {str(t.dtype).removeprefix('torch.')}, "
+                                f"expected float32 or float16")
         if tuple(t.shape) != expected:
             shape = "(" + ", ".join("P" if i == 0 else str(x) for i, x in enumerate(expected)) + ")"
             raise RadfieldError(f"{path}: tensor {name!r} has shape {tuple(t.shape)}, expected {shape} with P={num}"
@@ -111,6 +123,7 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
         if bad.any():
             row = int(torch.nonzero(bad)[0, 0])
             raise RadfieldError(f"{path}: tensor {name!r} holds {int(bad.sum())} NaN/Inf values (first at primitive {row})")
+    tensors = {name: t.to(torch.float32) for name, t in tensors.items()}
     if kind == "neural":
         omega0 = _float_meta(path, meta, "omega0")
         model = NeuralPrimitives(**tensors, omega0=omega0)

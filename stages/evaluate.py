@@ -8,16 +8,25 @@ only ever added)::
      "num_primitives": P, "num_params": n, "file_size_bytes": b,
      "fps": f,                              # renders per second (rendering only, after one warm-up)
      "views": N, "width": W, "height": H,
-     "per_view": [{"name", "psnr", "ssim", "seconds"}, ...]}
+     "per_view": [{"name", "psnr", "ssim", "seconds", "lpips"}, ...],
+     "lpips": l | null,                     # AlexNet LPIPS v0.1 (radfield.core.lpips), mean over the views;
+     "lpips_note": "why lpips is null"}     # null when the weights are not installed or the images are
+                                            # smaller than 31×31 (then lpips_note says which)
 
 Renders are composited on the scene's background, as the photos are. Undistorted photos are
 measured on their valid pixels only (Scene.valid_masks; radfield.core.metrics gives the rule:
 PSNR over the valid pixels, SSIM over the 11×11 windows lying wholly on valid pixels).
+
+Besides metrics.json and renders/, it writes (radfield.core.report) `report.md` (the tables),
+`grids/<view name>.png` (ground truth | render | error map) and `training/` (a copy of the run's
+train/curves.png and train/log.jsonl, when the run has them).
 """
 
 from __future__ import annotations
 
 import json
+import secrets
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -26,39 +35,51 @@ import torch
 
 from radfield.core.atomic import atomic_write_text
 from radfield.core.errors import RadfieldError
+from radfield.core import lpips as lpips_metric
+from radfield.core import report
 from radfield.core.io import load_model
 from radfield.core.metrics import psnr, ssim
 from radfield.core.rasterize import render
 from radfield.datasets.images import write_image
 from radfield.stages.config import load_config
 from radfield.stages.data import SCENE, Scene, load_scene, read_dataset, scene_from_json
-from radfield.stages.info import MODEL_FILE, model_path, run_dataset
+from radfield.stages.info import MODEL_FILE, MODEL_STAGE, model_path, run_dataset
 from radfield.stages.pipeline import CONFIG_FILE, Context, Stage, is_run_dir
 
 METRICS = "metrics.json"
 RENDERS = "renders"
+REPORT = "report.md"
+GRIDS = "grids"
+TRAINING = "training"
+TRAIN_CURVES = ("curves.png", "log.jsonl")  # written by the train stage into RUN/train/, when it logs
 
 
 def run(ctx: Context) -> dict[str, Any]:
     scene = load_scene(ctx.inputs[SCENE])
     metrics = evaluate(ctx.inputs[MODEL_FILE], scene, ctx.config["eval"]["split"], ctx.outputs[RENDERS],
-                       near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet)
+                       near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet, grids=ctx.outputs[GRIDS])
     ctx.outputs[METRICS].write_text(json.dumps(metrics, indent=1) + "\n")
-    return {key: metrics[key] for key in ("psnr", "ssim", "fps", "views")}
+    write_report(ctx.tmp, metrics, model=f"{ctx.run_dir.name}/{MODEL_STAGE}/{MODEL_FILE}", run_dir=ctx.run_dir)
+    return {key: metrics[key] for key in ("psnr", "ssim", "lpips", "fps", "views")}
 
 
-STAGE = Stage("eval", run, config_keys=("eval", "render.near"), inputs=(SCENE, MODEL_FILE), outputs=(METRICS, RENDERS))
+STAGE = Stage("eval", run, config_keys=("eval", "render.near"), inputs=(SCENE, MODEL_FILE),
+              outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING), version=2)
 
 
 def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near: float = 0.01,
-             device: str = "cpu", quiet: bool = True) -> dict[str, Any]:
+             device: str = "cpu", quiet: bool = True, grids: Path | None = None) -> dict[str, Any]:
     """Render `split` of `scene` with the model into `renders/` (created) and return the metrics
-    (module docstring). Everything is loaded before anything is written."""
+    (module docstring); with `grids`, also the grid images there. Everything is loaded before
+    anything is written."""
     model = load_model(model_file, device=device)
     cameras = scene.cameras(split)
     images, _ = scene.load_images(split)
     masks = scene.valid_masks(split)
+    lpips_net, lpips_note = _lpips_network(device, cameras[0])
     renders.mkdir(parents=True, exist_ok=True)
+    if grids is not None:
+        grids.mkdir(parents=True, exist_ok=True)
     draw = torch.no_grad()(lambda camera: render(model, camera, background=scene.background, near=near).color)
     draw(cameras[0])  # warm-up, untimed: fps is the steady rate, without one-off allocations
     per_view = []
@@ -72,6 +93,11 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
             write_image(renders / f"{camera.name}.png", color.numpy())
             per_view.append({"name": camera.name, "psnr": float(psnr(color, photo, mask)),
                              "ssim": float(ssim(color, photo, mask=mask)), "seconds": seconds})
+            # LPIPS sees the photo in the invalid pixels (a render there is never judged)
+            judged = color if mask is None else torch.where(mask[..., None].cpu(), color, photo.cpu())
+            per_view[-1]["lpips"] = lpips_metric.lpips(judged, photo, lpips_net) if lpips_net is not None else None
+            if grids is not None:
+                write_image(grids / f"{camera.name}.png", report.view_grid(photo.cpu().numpy(), color.numpy()))
             progress.advance(task)
     count = len(per_view)
     return {
@@ -87,7 +113,33 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
         "width": cameras[0].width,
         "height": cameras[0].height,
         "per_view": per_view,
+        "lpips": None if lpips_net is None else sum(v["lpips"] for v in per_view) / count,
+        **({"lpips_note": lpips_note} if lpips_net is None else {}),
     }
+
+
+def _lpips_network(device: str, camera) -> tuple[lpips_metric.AlexLPIPS | None, str | None]:
+    """The LPIPS network, or None and the reason it cannot be used for these views."""
+    if min(camera.width, camera.height) < lpips_metric.MIN_SIZE:
+        return None, f"images of {camera.width}×{camera.height} are smaller than LPIPS' {lpips_metric.MIN_SIZE}×{lpips_metric.MIN_SIZE}"
+    try:
+        return lpips_metric.load_network(device), None
+    except lpips_metric.Unavailable as e:
+        return None, str(e)
+
+
+def write_report(out_dir: Path, metrics: dict[str, Any], *, model: str, run_dir: Path | None) -> None:
+    """report.md and training/ in `out_dir` (beside metrics.json and grids/)."""
+    curves = []
+    (out_dir / TRAINING).mkdir(parents=True, exist_ok=True)
+    for name in TRAIN_CURVES:
+        source = run_dir / MODEL_STAGE / name if run_dir is not None else None
+        if source is not None and source.is_file():
+            shutil.copyfile(source, out_dir / TRAINING / name)
+            curves.append(f"{TRAINING}/{name}")
+    text = report.report_markdown(metrics, model=model, grids_dir=GRIDS if (out_dir / GRIDS).is_dir() else None,
+                                  curves=curves)
+    atomic_write_text(out_dir / REPORT, text)
 
 
 def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *,
@@ -95,6 +147,19 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
     """`radfield eval`: evaluate a model file, or a run's final model, on `dataset` (default: the
     run's input, or its SfM output when the input was photos) into `out_dir`/{renders/, metrics.json}. The data settings (downscale, background)
     are the run's, else the defaults, overridden by `options` ({"data.downscale": 2, ...})."""
+    model, scene, run_dir, config = resolve_target(target, dataset, options)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise RadfieldError(f"{out_dir}: exists and is not a folder")
+    with staging(out_dir) as tmp:
+        metrics = evaluate(model, scene, split, tmp / RENDERS, near=config["render"]["near"], device=device,
+                           quiet=quiet, grids=tmp / GRIDS)
+        atomic_write_text(tmp / METRICS, json.dumps(metrics, indent=1) + "\n")
+        write_report(tmp, metrics, model=str(model), run_dir=run_dir)
+    return metrics
+
+
+def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] | None = None):
+    """(model file, Scene, run dir or None, config) of a run directory or a model file."""
     target = Path(target)
     run_dir = target if is_run_dir(target) else None
     model = model_path(target) if run_dir else target
@@ -106,13 +171,37 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
         dataset = run_dataset(run_dir) if run_dir else None
         if dataset is None:
             raise RadfieldError("--dataset is required to evaluate a model file")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise RadfieldError(f"{out_dir}: exists and is not a folder")
     scene = scene_from_json(read_dataset(dataset, config["data"])[0], dataset)
-    metrics = evaluate(model, scene, split, out_dir / RENDERS, near=config["render"]["near"], device=device,
-                       quiet=quiet)
-    atomic_write_text(out_dir / METRICS, json.dumps(metrics, indent=1) + "\n")
-    return metrics
+    return model, scene, run_dir, config
+
+
+class staging:
+    """A temporary sibling folder whose entries replace those of `out_dir` on success (the folder
+    is created if needed); on failure it is removed and `out_dir` is left as it was."""
+
+    def __init__(self, out_dir: Path):
+        self.out_dir = Path(out_dir)
+        self.tmp = self.out_dir.parent / f".{self.out_dir.name}.tmp-{secrets.token_hex(4)}"
+
+    def __enter__(self) -> Path:
+        self.tmp.mkdir(parents=True)
+        return self.tmp
+
+    def __exit__(self, kind, *_) -> None:
+        if kind is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            return
+        if not self.out_dir.exists():
+            self.tmp.rename(self.out_dir)
+            return
+        for entry in self.tmp.iterdir():
+            old = self.out_dir / entry.name
+            if old.is_dir() and not old.is_symlink():
+                shutil.rmtree(old)
+            elif old.exists() or old.is_symlink():
+                old.unlink()
+            entry.rename(old)
+        self.tmp.rmdir()
 
 
 def _progress(quiet: bool):

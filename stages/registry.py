@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from radfield.core.errors import RadfieldError
-from radfield.stages import data, envelope, evaluate, init, sfm, tetra
+from radfield.stages import bake, data, envelope, evaluate, init, sfm, tetra
 from radfield.stages.data import SCENE
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Context, Stage
@@ -27,6 +27,7 @@ def stages() -> list[Stage]:
         tetra.STAGE,
         init.STAGE,
         _stage("train") or Stage("train", _train_missing, inputs=(SCENE, init.INIT_MODEL), outputs=(MODEL_FILE,)),
+        bake.STAGE,
         evaluate.STAGE,
     ]
 
@@ -39,7 +40,7 @@ def check(config: dict[str, Any], input_path: Path) -> None:
     """Everything about the config and the dataset a user can get wrong, checked before the run
     directory is touched (the data stage checks the dataset again, when it runs)."""
     scene, points = data.read_dataset(input_path, config["data"])
-    for module in (sfm, envelope, tetra):
+    for module in (sfm, envelope, tetra, bake):
         module.check_config(config)
     init.check_config(config, points, posed=scene["posed"])
     if config["eval"]["split"] not in scene["splits"]:
