@@ -54,6 +54,7 @@ def reconstruct(
     from_stage: Annotated[Optional[str], typer.Option("--from", metavar="STAGE", help="Re-run this stage and every later one.")] = None,
     until_stage: Annotated[Optional[str], typer.Option("--until", metavar="STAGE", help="Stop after this stage.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output (for CI); the summary is still printed.")] = False,
+    no_cage: Annotated[bool, typer.Option("--no-cage", help="Build no envelope and no editing cage (init and train run as for a dataset without geometry). (config key envelope.source=none)")] = False,
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
@@ -67,7 +68,8 @@ def reconstruct(
 
     flags = {"train.primitive": primitive, "train.max_primitives": max_primitives, "train.iterations": iterations,
              "data.downscale": downscale, "seed": seed, "device": device,
-             "data.background": list(parse_background(background)) if background is not None else None}
+             "data.background": list(parse_background(background)) if background is not None else None,
+             "envelope.source": "none" if no_cage else None}
     cfg = load_config(config, sets or [], {key: value for key, value in flags.items() if value is not None})
     resolve_device(cfg["device"])
     registry.check(cfg, input_path)
