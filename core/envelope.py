@@ -132,8 +132,9 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
     `masks[k]` is (H, W) for `cameras[k]` (bool, or alpha in [0, 1]: foreground above
     MASK_THRESHOLD). A voxel is removed when some view sees it entirely on background, and kept
     only if it projects into at least HULL_MIN_VIEWS of the images (every voxel seen by one view
-    counts when that leaves none; a voxel outside an image, as an object cut by the border, is not
-    judged by that view). Carving is conservative: a voxel goes only when its whole bounding
+    counts when that leaves none). A voxel beyond an image's border is not carved by that view,
+    and counts as seen by it when the silhouette touches the border nearest to it (an object cut
+    off by the frame). Carving is conservative: a voxel goes only when its whole bounding
     sphere projects onto background, so the object lies within half a voxel diagonal of the kept
     voxel centres; the marching-cubes surface at that distance goes through `finish`, which must
     hold every kept voxel centre. Returns vertices, faces and the figures of `build_envelope`
@@ -194,12 +195,11 @@ def finish(surfaces: list[tuple[str, Callable]], points: np.ndarray, diag: float
     for name, make in surfaces:
         try:
             surface = make()
-        except pymeshlab.PyMeshLabException as exc:
+            if not isinstance(surface, str):
+                surface = _wrap_and_decimate(surface, points, cfg["wrap_alpha"] * diag, margin, cfg["target_faces"])
+        except pymeshlab.PyMeshLabException as exc:  # the filters raise on inputs they cannot handle
             surface = f"failed ({exc})"
-        if isinstance(surface, str):
-            failures.append(f"{name}: {surface}")
-            continue
-        result = _wrap_and_decimate(surface, points, cfg["wrap_alpha"] * diag, margin, cfg["target_faces"])
+        result = surface
         if isinstance(result, str):
             failures.append(f"{name}: {result}")
             continue
@@ -522,8 +522,11 @@ def _carve(views, lo: np.ndarray, hi: np.ndarray, resolution: int, min_views: in
         i = np.clip(v.astype(int), 0, cam.height - 1)
         # projected bounding-sphere radius in pixels (+1 pixel for the pixel-centre lookup)
         r_pix = max(cam.fx, cam.fy) * radius / np.sqrt(np.maximum(zs**2 - radius**2, 1e-12)) + 1.0
-        keep &= ~(inside & (to_foreground[i, j] > r_pix))
-        seen += inside
+        on_background = to_foreground[i, j] > r_pix  # at the pixel, or the border pixel nearest to it
+        keep &= ~(inside & on_background)
+        # a voxel beyond the border where the silhouette reaches it may be object cut off by the
+        # frame: the view counts as seeing it, else objects filling the views lose their rims
+        seen += inside | (front & ~on_background)
     return (keep & (seen >= min_views)).reshape(shape), lo, h
 
 
