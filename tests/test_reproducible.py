@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from radfield.core.envelope import read_envelope, signed_distance
+from radfield.core.io import load_model
 from radfield.datasets.synthetic import generate_scene, get_scene
 from radfield.stages.pipeline import read_manifest
 
@@ -115,3 +116,30 @@ def test_no_cage_skips_envelope_and_tetra_on_purpose(objects, tmp_path, cli):
                        "--until", "init", *TINY)
     assert code == 0 and (run_dir / "init" / "init.safetensors").read_bytes() == \
         (tmp_path / "run2" / "init" / "init.safetensors").read_bytes()
+
+
+def test_stage_fallbacks_are_recorded_and_printed_as_one_warning(objects, tmp_path, cli, monkeypatch):
+    """The wrap and fTetWild forced to fail inside a real run: the envelope is the convex hull,
+    the cage the Delaunay fallback; both in the figures, each one warning line, and init still
+    draws its centres inside the envelope."""
+    import pymeshlab
+    import pytetwild
+
+    from radfield.core import envelope
+
+    def broken_wrap(*args, **kwargs):
+        raise pymeshlab.PyMeshLabException("forced wrap failure")
+
+    monkeypatch.setattr(envelope, "_wrap", broken_wrap)
+    monkeypatch.setattr(pytetwild, "tetrahedralize", lambda *a, **k: (np.zeros((0, 3)), np.zeros((0, 4), int)))
+    run_dir = tmp_path / "run"
+    code, out, err = cli("reconstruct", objects, "-o", run_dir, "-q", "--until", "init", *TINY)
+    assert code == 0, err
+    warnings = [line for line in err.splitlines() if "warning" in line]
+    assert len(warnings) == 2 and warnings[0].startswith("radfield: warning: envelope: fell back to the convex_hull")
+    assert warnings[1].startswith("radfield: warning: tetra: fell back to a delaunay cage")
+    assert figures(run_dir, "envelope")["fallback"] == "convex_hull"
+    assert "forced wrap failure" in figures(run_dir, "envelope")["fallback_reason"]
+    assert figures(run_dir, "tetra")["fallback"] == "delaunay" and "no tets" in figures(run_dir, "tetra")["fallback_reason"]
+    means = load_model(run_dir / "init" / "init.safetensors").means.double().numpy()
+    assert (signed_distance(means, *read_envelope(run_dir / "envelope" / "envelope.ply")) < 0).all()
