@@ -266,18 +266,15 @@ def _wrap_and_decimate(surface, points: np.ndarray, alpha: float, margin: float,
         return "no faces"
     wrapped = _wrap(v, f, alpha, margin)
     allowed = MAX_OUTSIDE_FRACTION * len(points)
+    if len(wrapped[1]) <= target_faces:
+        result = _accepted(wrapped, points, allowed)
+        return result if isinstance(result, str) else (result[0], result[1], "none", result[2])
     tried = []
     for name, decimate in (("fast_simplification", _fast_simplification), ("quadric_topology", _quadric)):
-        if len(wrapped[1]) <= target_faces:
-            candidate, name = wrapped, "none"
-        else:
-            candidate = decimate(*wrapped, target_faces)
-        result = _accepted(candidate, points, allowed)
-        if isinstance(result, str):
-            tried.append(f"{name}: {result}")
-            continue
-        v_, f_, outside = result
-        return v_, f_, name, outside
+        result = _accepted(decimate(*wrapped, target_faces), points, allowed)
+        if not isinstance(result, str):
+            return result[0], result[1], name, result[2]
+        tried.append(f"{name}: {result}")
     # No decimation kept it closed: a coarser wrap is closed by construction and needs none.
     for doubling in range(1, COARSER_WRAPS + 1):
         coarse = _wrap(v, f, alpha * 2**doubling, margin)
