@@ -18,6 +18,7 @@ from radfield.core.envelope import read_envelope, signed_distance
 from radfield.core.io import load_model
 from radfield.datasets.synthetic import generate_scene, get_scene
 from radfield.stages.pipeline import read_manifest
+from radfield.stages.train import CHECKPOINT
 
 STAGES = ("sfm", "data", "envelope", "tetra", "init", "train", "eval")
 FAST = ["--set", "train.iterations=30"]
@@ -75,7 +76,7 @@ def test_a_killed_and_resumed_run_equals_a_fresh_run(objects, tmp_path, cli):
     the model equals (bytes) that of an uninterrupted run in another run directory."""
     sets = [*TINY, "--set", "train.iterations=60", "--set", "train.checkpoint_every=10"]
     killed = tmp_path / "killed"
-    checkpoint = killed / "train.work" / "checkpoint.safetensors"
+    checkpoint = killed / "train.work" / CHECKPOINT
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen(_reconstruct(objects, "-o", killed, "-q", *sets), env=env,
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -88,6 +89,7 @@ def test_a_killed_and_resumed_run_equals_a_fresh_run(objects, tmp_path, cli):
     assert not (killed / "train" / "model.safetensors").exists()  # killed before training ended
 
     code, _, err = cli("reconstruct", objects, "-o", killed, *sets)
+    # it must resume (a restart from step 0 would equal the fresh run trivially)
     assert code == 0 and "train: resuming from the checkpoint at step" in err, err
     step = int(err.split("resuming from the checkpoint at step")[1].split()[0])
     assert 10 <= step < 60
