@@ -189,7 +189,7 @@ def bench_render(
 
 @app.command("demo-scene")
 def demo_scene(
-    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods) or checker (high-frequency texture).")],
+    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture) or objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create (must not exist or be empty).")],
     train_views: Annotated[int, typer.Option(help="Training views.")] = 40,
     test_views: Annotated[int, typer.Option(help="Held-out test views.")] = 8,
@@ -197,7 +197,7 @@ def demo_scene(
     seed: Annotated[int, typer.Option(help="Turns the camera spiral.")] = 0,
     exist_ok: Annotated[bool, typer.Option("--exist-ok", help="Do nothing if OUTPUT already holds this scene (same name and seed).")] = False,
 ):
-    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply)."""
+    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply, except for objects)."""
     import json
 
     from radfield.datasets.synthetic import generate_scene
