@@ -194,12 +194,11 @@ def finish(surfaces: list[tuple[str, Callable]], points: np.ndarray, diag: float
     failures = []
     for name, make in surfaces:
         try:
-            surface = make()
-            if not isinstance(surface, str):
-                surface = _wrap_and_decimate(surface, points, cfg["wrap_alpha"] * diag, margin, cfg["target_faces"])
+            result = make()
+            if not isinstance(result, str):
+                result = _wrap_and_decimate(result, points, cfg["wrap_alpha"] * diag, margin, cfg["target_faces"])
         except pymeshlab.PyMeshLabException as exc:  # the filters raise on inputs they cannot handle
-            surface = f"failed ({exc})"
-        result = surface
+            result = f"failed ({exc})"
         if isinstance(result, str):
             failures.append(f"{name}: {result}")
             continue
