@@ -1,4 +1,5 @@
-"""The tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild), its files, and
+"""The tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild; `fallback_cage`
+when fTetWild fails), its files, and
 the point queries that the init and train stages and the editor share (which tet holds a point,
 uniform samples inside, the binding of primitives to tets).
 
@@ -212,7 +213,7 @@ def fallback_cage(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     positively oriented tets and the name of what was built ("delaunay" or "box")."""
     from scipy.spatial import Delaunay, QhullError
 
-    from radfield.core.envelope import inside_envelope
+    from radfield.core.envelope import inside_envelope  # here: VTK is slow to import, the editor needs none
 
     v = np.asarray(vertices, np.float64)
     try:
