@@ -1,7 +1,6 @@
 """The tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild; `fallback_cage`
-when fTetWild fails), its files, and
-the point queries that the init and train stages and the editor share (which tet holds a point,
-uniform samples inside, the binding of primitives to tets).
+when fTetWild fails), its files, and the point queries that the init and train stages and the
+editor share (which tet holds a point, uniform samples inside, the binding of primitives to tets).
 
 A cage is `vertices` (V, 3) float64 and `tets` (T, 4) int64, stored with positive orientation:
 det[v1 - v0, v2 - v0, v3 - v0] > 0. Files: `cage.vtk` (legacy VTK through meshio: ParaView,
