@@ -155,7 +155,9 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
     # views see; asking for many views bounds the hull to the region the capture covers.
     for min_views in dict.fromkeys((max(1, int(np.ceil(HULL_MIN_VIEWS * len(views)))), 1)):
         box = rig_lo, rig_hi
-        for resolution in (32, int(cfg["hull_resolution"])):  # a coarse pass finds the object's box
+        # a coarse pass finds the object's box, a fine one carves it, and a second fine pass in
+        # the fine pass's box (large coarse voxels survive farther out) spends the resolution on it
+        for resolution in (32, int(cfg["hull_resolution"]), int(cfg["hull_resolution"])):
             occupied, origin, h = _carve(views, *box, resolution, min_views)
             if not occupied.any():
                 break
