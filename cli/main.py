@@ -56,6 +56,7 @@ def reconstruct(
     from_stage: Annotated[Optional[str], typer.Option("--from", metavar="STAGE", help="Re-run this stage and every later one.")] = None,
     until_stage: Annotated[Optional[str], typer.Option("--until", metavar="STAGE", help="Stop after this stage.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output (for CI); the summary is still printed.")] = False,
+    no_cage: Annotated[bool, typer.Option("--no-cage", help="Build no envelope and no editing cage (init and train run as for a dataset without geometry). (config key envelope.source=none)")] = False,
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
@@ -69,7 +70,8 @@ def reconstruct(
 
     flags = {"train.primitive": primitive, "train.max_primitives": max_primitives, "train.iterations": iterations,
              "data.downscale": downscale, "seed": seed, "device": device,
-             "data.background": list(parse_background(background)) if background is not None else None}
+             "data.background": list(parse_background(background)) if background is not None else None,
+             "envelope.source": "none" if no_cage else None}
     cfg = load_config(config, sets or [], {key: value for key, value in flags.items() if value is not None})
     resolve_device(cfg["device"])
     registry.check(cfg, input_path)
@@ -169,7 +171,7 @@ def bench_render(
 
 @app.command("demo-scene")
 def demo_scene(
-    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods) or checker (high-frequency texture).")],
+    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture) or objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create (must not exist or be empty).")],
     train_views: Annotated[int, typer.Option(help="Training views.")] = 40,
     test_views: Annotated[int, typer.Option(help="Held-out test views.")] = 8,
@@ -177,7 +179,7 @@ def demo_scene(
     seed: Annotated[int, typer.Option(help="Turns the camera spiral.")] = 0,
     exist_ok: Annotated[bool, typer.Option("--exist-ok", help="Do nothing if OUTPUT already holds this scene (same name and seed).")] = False,
 ):
-    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply)."""
+    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply, except for objects)."""
     import json
 
     from radfield.datasets.synthetic import generate_scene

@@ -1,6 +1,6 @@
-"""The tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild), its files, and
-the point queries that the init and train stages and the editor share (which tet holds a point,
-uniform samples inside, the binding of primitives to tets).
+"""The tetrahedral cage: a coarse tet mesh of the envelope (pytetwild / fTetWild; `fallback_cage`
+when fTetWild fails), its files, and the point queries that the init and train stages and the
+editor share (which tet holds a point, uniform samples inside, the binding of primitives to tets).
 
 A cage is `vertices` (V, 3) float64 and `tets` (T, 4) int64, stored with positive orientation:
 det[v1 - v0, v2 - v0, v3 - v0] > 0. Files: `cage.vtk` (legacy VTK through meshio: ParaView,
@@ -203,3 +203,32 @@ def write_binding(path, means: np.ndarray, cage_npz) -> None:
     else:
         tet, bary = bind_to_cage(means, cage_npz)
     atomic_write(Path(path), lambda tmp: np.savez(tmp, tet=tet, bary=bary))
+
+
+def fallback_cage(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """A cage that cannot fail, for when fTetWild does: the Delaunay tets of the envelope's
+    vertices whose centroids lie inside it (all of them, the convex hull, when none does), or 6
+    tets of the vertices' bounding box when they are degenerate (on a plane). Returns vertices,
+    positively oriented tets and the name of what was built ("delaunay" or "box")."""
+    from scipy.spatial import Delaunay, QhullError
+
+    from radfield.core.envelope import inside_envelope  # here: VTK is slow to import, the editor needs none
+
+    v = np.asarray(vertices, np.float64)
+    try:
+        tets = Delaunay(v).simplices.astype(np.int64)
+        tets = tets[np.abs(tet_volumes(v, tets)) > 1e-12 * max(float(np.ptp(v, 0).max()), 1e-300) ** 3]
+        if len(tets) == 0:
+            raise QhullError("only flat tets")
+        inside = inside_envelope(v[tets].mean(1), v, faces)
+        tets, name = (tets[inside] if inside.any() else tets), "delaunay"
+    except (QhullError, ValueError):
+        lo, hi = v.min(0), v.max(0)
+        grow = 1e-3 * max(float((hi - lo).max()), 1.0)
+        lo, hi = lo - grow, hi + grow
+        v = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        tets, name = np.array([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]]), "box"
+    v, tets = _compact(v, tets)
+    flip = tet_volumes(v, tets) < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    return v, tets, name

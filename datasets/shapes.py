@@ -165,3 +165,61 @@ class Cylinder:
         return pv.Cylinder(
             center=(a + b) / 2, direction=b - a, radius=self.radius, height=np.linalg.norm(b - a), resolution=16
         )
+
+
+@dataclass(frozen=True)
+class Torus:
+    """A torus (a ring, genus 1) around `axis` through `center`: the points at distance `minor`
+    from the circle of radius `major` in the plane normal to `axis`."""
+
+    center: tuple[float, float, float]
+    axis: tuple[float, float, float]
+    major: float
+    minor: float
+    material: Material
+
+    @property
+    def frame(self) -> np.ndarray:
+        """Torus-to-world rotation (3, 3): its third column is the unit axis."""
+        z = np.asarray(self.axis, float) / np.linalg.norm(self.axis)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(helper, z)
+        x /= np.linalg.norm(x)
+        return np.stack([x, np.cross(z, x), z], 1)
+
+    @property
+    def bounding_sphere(self) -> tuple[np.ndarray, float]:
+        return np.asarray(self.center), self.major + self.minor
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # In the torus frame, p = o + t d satisfies (|p|^2 + R^2 - r^2)^2 = 4 R^2 (p_x^2 + p_y^2):
+        # a quartic in t (|d| = 1), solved as the eigenvalues of its companion matrix.
+        F = self.frame
+        R, r = self.major, self.minor
+        o_l, d_l = (o - np.asarray(self.center)) @ F, d @ F
+        b, k = d_l @ o_l, o_l @ o_l + R * R - r * r
+        c3 = 4 * b
+        c2 = 4 * b * b + 2 * k - 4 * R * R * (d_l[:, 0] ** 2 + d_l[:, 1] ** 2)
+        c1 = 4 * b * k - 8 * R * R * (o_l[0] * d_l[:, 0] + o_l[1] * d_l[:, 1])
+        c0 = np.full(len(d), k * k - 4 * R * R * (o_l[0] ** 2 + o_l[1] ** 2))
+        companion = np.zeros((len(d), 4, 4))
+        companion[:, 0] = -np.stack([c3, c2, c1, c0], 1)
+        companion[:, [1, 2, 3], [0, 1, 2]] = 1.0
+        roots = np.linalg.eigvals(companion) if len(d) else np.zeros((0, 4), complex)
+        real = np.abs(roots.imag) <= 1e-6 * np.maximum(1.0, np.abs(roots.real))
+        t = np.where(real & (roots.real > _EPS), roots.real, np.inf).min(1)
+        hit = np.isfinite(t)
+        p = o_l + np.where(hit, t, 0.0)[:, None] * d_l
+        ring = p.copy()
+        ring[:, 2] = 0.0
+        ring *= R / np.maximum(np.linalg.norm(ring, axis=1, keepdims=True), _EPS)  # nearest point of the core circle
+        normal = (p - ring) / np.maximum(np.linalg.norm(p - ring, axis=1, keepdims=True), _EPS)
+        return t, normal @ F.T
+
+    def mesh(self):
+        import pyvista as pv
+
+        torus = pv.ParametricTorus(ringradius=self.major, crosssectionradius=self.minor, u_res=48, v_res=24, w_res=0)
+        matrix = np.eye(4)
+        matrix[:3, :3], matrix[:3, 3] = self.frame, self.center
+        return torus.transform(matrix, inplace=False)

@@ -6,6 +6,7 @@
     train/r_i.png, test/r_i.png                   RGBA, transparent background, 2x2 supersampled
     train/r_i_depth.exr, test/r_i_depth.exr       z-depth of the pixel-centre ray (0 on background)
     mesh.ply                                      the scene triangulated, with vertex colours
+                                                  (not for scenes with `mesh=False`, such as 'objects')
     scene.json                                    the exact analytic shapes, light and cameras
 
 Shading is Lambertian under one fixed directional light plus ambient, so colour is view-independent
@@ -29,7 +30,7 @@ import numpy as np
 from radfield.core.cameras import Camera, look_at, opencv_to_opengl
 from radfield.core.errors import RadfieldError
 from radfield.datasets.images import write_image
-from radfield.datasets.shapes import Box, Cylinder, Material, Sphere
+from radfield.datasets.shapes import Box, Cylinder, Material, Sphere, Torus
 
 LIGHT = tuple(np.array([0.3, 0.5, 1.0]) / np.linalg.norm([0.3, 0.5, 1.0]))
 AMBIENT = 0.35
@@ -45,6 +46,7 @@ class Scene:
     name: str
     description: str
     primitives: tuple
+    mesh: bool = True  # write mesh.ply; without it a run builds its envelope from the alpha masks
 
 
 def _solid(r, g, b) -> Material:
@@ -103,6 +105,19 @@ SCENES: dict[str, Scene] = {
                     yaw=35.0,
                 ),
             ),
+        ),
+        Scene(
+            "objects",
+            "separate objects (sphere, cube, torus, cylinder, two thin rods) and no mesh.ply: the visual hull",
+            (
+                Sphere((-0.55, -0.45, -0.05), 0.28, _solid(0.85, 0.2, 0.15)),
+                Box((0.55, -0.5, -0.15), (0.2, 0.2, 0.2), _solid(0.95, 0.6, 0.15), yaw=25.0),
+                Torus((0.0, 0.5, 0.0), (0.3, 0.0, 1.0), 0.38, 0.1, _solid(0.2, 0.75, 0.3)),
+                Cylinder((-0.65, 0.45, -0.35), (-0.65, 0.45, 0.25), 0.12, _solid(0.2, 0.35, 0.9)),
+                Cylinder((0.6, 0.35, -0.4), (0.6, 0.35, 0.5), 0.025, _solid(0.9, 0.9, 0.85)),
+                Cylinder((0.05, -0.2, -0.45), (0.1, -0.15, 0.45), 0.02, _solid(0.75, 0.3, 0.8)),
+            ),
+            mesh=False,
         ),
     )
 }
@@ -214,7 +229,8 @@ def generate_scene(
         train, test = orbit_cameras(n_train, n_test, size, seed)
         for split, cameras in (("train", train), ("test", test)):
             _write_split(scene, tmp, split, cameras)
-        write_mesh(scene, tmp / "mesh.ply")
+        if scene.mesh:
+            write_mesh(scene, tmp / "mesh.ply")
         (tmp / "scene.json").write_text(json.dumps(_describe(scene, seed), indent=2))
         tmp.chmod(0o755)  # mkdtemp makes it private
         if out_dir.exists():

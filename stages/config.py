@@ -37,7 +37,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     # COLMAP's models that undistort to a pinhole camera
     "sfm.camera_model": ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
                          "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE"),
-    "envelope.source": ("auto", "points", "mesh", "hull", "triangulate"),
+    "envelope.source": ("auto", "points", "mesh", "hull", "triangulate", "none"),
     "envelope.method": ("auto", "poisson", "ball_pivoting", "alpha", "convex"),
     "train.primitive": ("neural", "gaussian"),
     "init.source": ("auto", "mesh", "points", "random"),

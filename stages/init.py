@@ -14,13 +14,17 @@ b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray through the centre crosses τ-length 2
 max(s)) and the cos terms average out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity
 of a 3DGS Gaussian. Gaussians: opacity logit of 0.1, as 3DGS.
 
-With a cage (the tetra stage's cage.npz), every centre starts inside it: `init.cage_fraction` of
-them uniformly in its volume (a tet drawn in proportion to its volume, then a uniform point in it:
-this covers what the points miss, such as textureless parts without SfM points), the rest from
-the source, keeping only the points inside the cage; anything the source cannot fill is sampled
-in the volume too, as are all centres of the `random` source. Volume samples start grey.
-`binding.npz` (see radfield.stages.tetra) then records every primitive's tet and the barycentric
-coordinates of its centre, for the editor; without a cage its `tet` is -1 throughout.
+With an envelope (the envelope stage's envelope.ply), every centre starts inside it:
+`init.cage_fraction` of them uniformly in its volume (uniform in its bounding box, kept when
+inside: this covers what the points miss, such as textureless parts without SfM points), the rest
+from the source, keeping only the points inside the envelope; anything the source cannot fill is
+sampled in the volume too, as are all centres of the `random` source. Volume samples start grey.
+The centres depend on the envelope and the seed only, never on the cage: fTetWild's cage differs
+from run to run, and the same command must give the same model. `binding.npz` (radfield.core.cage)
+then records every primitive's tet in the cage (the tetra stage's cage.npz) and the barycentric
+coordinates of its centre, for the editor (a centre just outside the cage's surface, which
+approximates the envelope's, extrapolates from the nearest tet); without a cage `tet` is -1
+throughout.
 """
 
 from __future__ import annotations
@@ -39,7 +43,9 @@ from radfield.core.sh import num_sh_coeffs, rgb_to_sh_dc
 from radfield.stages.config import require
 from radfield.stages.data import POINTS, SCENE, Scene, load_scene
 from radfield.stages.pipeline import Context, Stage
-from radfield.core.cage import CAGE_NPZ, locate_points, read_cage, sample_in_cage, write_binding
+from radfield.core.cage import CAGE_NPZ, write_binding
+from radfield.core.envelope import inside_envelope, read_envelope, sample_in_envelope
+from radfield.stages.envelope import ENVELOPE
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
 BINDING = "binding.npz"  # the initial primitives' tets and barycentric coordinates in the cage
@@ -58,19 +64,19 @@ def run(ctx: Context) -> dict[str, Any]:
     budget = cfg["train"]["max_primitives"]
     count = cfg["init"]["num_points"] if budget is None else budget
     rng = np.random.default_rng(ctx.seed)
-    cage_file = ctx.inputs[CAGE_NPZ]
-    if cage_file is None:
+    cage_file, envelope_file = ctx.inputs[CAGE_NPZ], ctx.inputs[ENVELOPE]
+    if envelope_file is None:
         source, means, rgb = initial_centres(scene, point_sets, cfg["init"]["source"], count, rng)
         in_volume = 0
     else:
-        source, means, rgb, in_volume = centres_in_cage(read_cage(cage_file), point_sets, cfg["init"]["source"],
-                                                        count, cfg["init"]["cage_fraction"], rng)
+        source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
+                                                            cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
                             cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed)
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
-            + (f", {in_volume} of them sampled in the cage's volume" if cage_file is not None else ""))
+            + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
             "cage_samples": in_volume, "bound": cage_file is not None}
 
@@ -80,9 +86,9 @@ STAGE = Stage(
     run,
     config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0",
                  "render.hidden", "seed"),
-    inputs=(SCENE, POINTS, CAGE_NPZ),
+    inputs=(SCENE, POINTS, ENVELOPE, CAGE_NPZ),
     outputs=(INIT_MODEL, BINDING),
-    version=2,
+    version=3,
 )
 
 
@@ -128,12 +134,13 @@ def initial_centres(scene: Scene, points: dict[str, np.ndarray], source: str, co
     return source, *resample(xyz, rgb, count, rng)
 
 
-def centres_in_cage(cage: tuple[np.ndarray, np.ndarray], points: dict[str, np.ndarray], source: str, count: int,
-                    cage_fraction: float, rng: np.random.Generator) -> tuple[str, np.ndarray, np.ndarray | None, int]:
-    """(source used, centres (count, 3) inside the cage (vertices, tets), their colours or None,
-    how many of them were sampled in the cage's volume); see the module docstring."""
+def centres_in_envelope(envelope: tuple[np.ndarray, np.ndarray], points: dict[str, np.ndarray], source: str,
+                        count: int, volume_fraction: float,
+                        rng: np.random.Generator) -> tuple[str, np.ndarray, np.ndarray | None, int]:
+    """(source used, centres (count, 3) inside the envelope (vertices, faces), their colours or
+    None, how many of them were sampled in the envelope's volume); see the module docstring."""
     source = choose_source(source, points)
-    wanted = 0 if source == "random" else count - round(cage_fraction * count)
+    wanted = 0 if source == "random" else count - round(volume_fraction * count)
     means, rgb = np.zeros((0, 3)), None
     if wanted:
         xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
@@ -141,21 +148,21 @@ def centres_in_cage(cage: tuple[np.ndarray, np.ndarray], points: dict[str, np.nd
         if source == "mesh" and len(points["mesh_faces"]):
             xyz, rgb = surface_samples(xyz, points["mesh_faces"], rgb, wanted, rng)
         else:
-            xyz, rgb = _inside(cage, xyz, rgb)
+            xyz, rgb = _inside(envelope, xyz, rgb)
             if len(xyz):
                 xyz, rgb = resample(xyz, rgb, wanted, rng)
-        means, rgb = _inside(cage, xyz, rgb)  # jittered copies and surface samples may lie just outside
+        means, rgb = _inside(envelope, xyz, rgb)  # jittered copies and surface samples may lie just outside
     # the configured share of volume samples, plus whatever the source could not fill
-    volume = sample_in_cage(*cage, count - len(means), rng)[0]
+    volume = sample_in_envelope(*envelope, count - len(means), rng)
     if rgb is not None:
         rgb = np.concatenate([rgb, np.full((len(volume), 3), 0.5)])
     return source, np.concatenate([means, volume]), rgb, len(volume)
 
 
-def _inside(cage: tuple[np.ndarray, np.ndarray], xyz: np.ndarray,
+def _inside(envelope: tuple[np.ndarray, np.ndarray], xyz: np.ndarray,
             rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """The points (and their colours) that lie inside the cage."""
-    keep = locate_points(*cage, xyz)[0] >= 0
+    """The points (and their colours) that lie inside the envelope."""
+    keep = inside_envelope(xyz, *envelope)
     return xyz[keep], None if rgb is None else rgb[keep]
 
 

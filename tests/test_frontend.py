@@ -13,7 +13,7 @@ import torch
 from radfield.core.cameras import Camera, look_at, opengl_to_opencv, pixel_rays
 from radfield.core.errors import RadfieldError
 from radfield.stages.config import load_defaults
-from radfield.stages.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
+from radfield.core.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
 from radfield.datasets.colmap import read_colmap
 from radfield.stages.sfm import compare_poses, run_sfm
 from radfield.core.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
@@ -260,8 +260,10 @@ def test_visual_hull_errors():
     cameras, masks = _sphere_views()
     with pytest.raises(RadfieldError, match="masks"):
         visual_hull(cameras, masks[:-1], cfg("envelope"))
-    with pytest.raises(RadfieldError, match="no common volume"):
-        visual_hull(cameras, [np.zeros_like(m) for m in masks], cfg("envelope"))
+    # silhouettes without a common volume: the box fallback, around what the cameras look at
+    v, f, figures = visual_hull(cameras, [np.zeros_like(m) for m in masks], cfg("envelope"))
+    assert figures["fallback"] == figures["method"] == "box" and "no common volume" in figures["fallback_reason"]
+    assert mesh_checks(v, f)["watertight"] and len(f) == 12 and _inside(np.zeros((1, 3)), v, f).all()
 
 
 @pytest.fixture(scope="module")
