@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 import radfield
+from radfield.cli import export as export_cli, view as view_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -207,6 +208,10 @@ def demo_scene(
             return
     generate_scene(name, output, n_train=train_views, n_test=test_views, size=size, seed=seed)
     typer.echo(f"wrote {name}: {train_views} train + {test_views} test views of {size}x{size} to {output}")
+
+
+app.command("export")(export_cli.export)
+app.command("view")(view_cli.view)
 
 
 def main() -> None:
