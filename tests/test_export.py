@@ -15,7 +15,7 @@ import torch
 from plyfile import PlyData
 
 from radfield.core.cameras import Camera, look_at
-from radfield.core.export import Content, export
+from radfield.core.export import Content, export, read_gaussian_ply
 from radfield.core.io import save_model
 from radfield.core.moments import gaussians_from_neural
 from radfield.core.primitives import Gaussians, quat_to_rotmat, random_gaussians, random_neural
@@ -144,6 +144,10 @@ def test_3dgs_ply_values_follow_the_3dgs_layout(tmp_path):
     # coefficients are f_rest_15..17, and the bands it does not have are zero
     np.testing.assert_allclose(np.stack([v[f"f_rest_{i}"] for i in (15, 16, 17)], 1), g.sh[:, 1:, 1].numpy(), rtol=1e-6)
     assert not np.any([v[f"f_rest_{i}"] for i in range(45) if i % 15 >= 3])
+    back = read_gaussian_ply(tmp_path / "g.ply")
+    for name in ("means", "log_scales", "opacities"):
+        assert torch.equal(getattr(back, name), getattr(g, name))
+    assert torch.equal(back.sh[:, :4], g.sh) and not back.sh[:, 4:].any()
 
 
 def test_moment_matching_a_uniform_ellipsoid():
