@@ -18,7 +18,7 @@ from radfield.core.cameras import Camera, look_at
 from radfield.core.export import Content, export, read_gaussian_ply
 from radfield.core.io import save_model
 from radfield.core.moments import gaussians_from_neural
-from radfield.core.primitives import Gaussians, quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.rasterize import render
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets.transforms import read_nerfstudio
@@ -28,6 +28,15 @@ from radfield.stages.pipeline import run_pipeline
 from radfield.stages.registry import stages
 
 BACKGROUND = (0.2, 0.3, 0.4)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def torch_kernels():
+    """The readable torch kernels (tests/test_fused.py proves the fused ones equal to them): these
+    tests check file conventions and need not wait for the C++ build on a busy machine."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RADFIELD_KERNELS", "torch")
+        yield
 
 # --- an independent 3DGS splatter (numpy, float64), from the PLY file alone -----------------------
 
