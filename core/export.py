@@ -200,9 +200,13 @@ def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
 def write_cage_mesh(path: Path, vertices: np.ndarray, tets: np.ndarray) -> dict:
     import meshio
 
-    mesh = meshio.Mesh(np.asarray(vertices, np.float64), [("tetra", np.asarray(tets, np.int64))])
+    tets = np.asarray(tets, np.int64)
+    # Gmsh files tag every element with a physical and a geometrical entity: 0 (none)
+    tags = {"gmsh:physical": [np.zeros(len(tets), np.int32)], "gmsh:geometrical": [np.zeros(len(tets), np.int32)]}
+    mesh = meshio.Mesh(np.asarray(vertices, np.float64), [("tetra", tets)],
+                       cell_data=tags if path.suffix.lower() == ".msh" else None)
     file_format = "gmsh22" if path.suffix.lower() == ".msh" else "vtk"
-    atomic_write(path, lambda tmp: meshio.write(tmp, mesh, file_format=file_format, binary=False))
+    atomic_write(path, lambda tmp: meshio.write(tmp, mesh, file_format=file_format, binary=file_format == "vtk"))
     return {"vertices": len(mesh.points), "tets": len(tets)}
 
 

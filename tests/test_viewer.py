@@ -8,7 +8,6 @@ import json
 import math
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -32,9 +31,10 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 WAIT = 90.0   # seconds, upper bound of every wait (the machine may be busy)
 
 
-def test_viser_camera_is_the_radfield_camera():
+def test_viser_camera_is_the_radfield_camera(monkeypatch):
     """viser reports OpenCV-convention cameras (wxyz, position, vertical fov): the same pixels as
     the radfield camera they came from."""
+    monkeypatch.setenv("RADFIELD_KERNELS", "torch")   # a camera check: no need to wait for the C++ build
     c2w = look_at((0.5, -2.5, 1.0), (0, 0, 0))
     fy = 30.0
     ours = Camera(fy, fy, 24.0, 16.0, 48, 32, c2w)
@@ -50,12 +50,6 @@ def test_viser_camera_is_the_radfield_camera():
 def test_tet_edges():
     edges = tet_edges(np.array([[0, 1, 2, 3], [1, 2, 3, 4]]))
     assert len(edges) == 9 and {tuple(e) for e in edges} >= {(0, 1), (3, 4), (1, 2)}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _wait(condition, what: str, timeout: float = WAIT):
@@ -109,17 +103,17 @@ def test_viewer_shows_the_model_in_headless_chromium(colourful_model, tmp_path):
         if os.environ.get("CI") == "true":
             pytest.fail("chromium is missing (apt-get install -y chromium): the viewer test cannot run")
         pytest.skip("chromium is not installed (apt-get install -y chromium)")
-    port = _free_port()
     # the torch kernels: no wait for the C++ extension, and 150 Gaussians render fast either way
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "RADFIELD_KERNELS": "torch"}
     server = subprocess.Popen([sys.executable, "-m", "radfield", "view", str(colourful_model), "--host", "127.0.0.1",
-                               "--port", str(port), "--resolution", "256"],
+                               "--port", "0", "--resolution", "256"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     browser = None
     try:
         log = _Lines(server.stderr)
         _wait(lambda: log.find("viewer: http://") or server.poll() is not None, "the viewer to start")
         assert server.poll() is None, "".join(log.lines)
+        port = int(log.find("viewer: http://").split("http://127.0.0.1:")[1].split()[0])
         profile = tmp_path / "chromium-profile"
         browser = subprocess.Popen([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu-sandbox",
                                     "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
