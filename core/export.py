@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from radfield.core.atomic import atomic_write, atomic_write_bytes, atomic_write_text
-from radfield.core.cameras import opencv_to_opengl
+from radfield.core.cameras import Camera, opencv_to_opengl
 from radfield.core.errors import RadfieldError
 from radfield.core.moments import gaussians_from_neural
 from radfield.core.primitives import Gaussians, NeuralPrimitives
@@ -45,7 +45,8 @@ REST_COEFFS = num_sh_coeffs(3) - 1  # 15 per channel: the 45 f_rest of a degree-
 @dataclass
 class Content:
     """What can be exported: a model, and for a run its cage (V, 3) + (T, 4), envelope (V, 3) +
-    (F, 3), its cameras (scene.json's `splits`: split -> list of VIEW dicts) and background. Missing parts are
+    (F, 3), its cameras (scene.json's `splits`: split -> list of VIEW dicts), background and extent
+    (scene radius, world units). Missing parts are
     None, and `missing` says why (for the error message)."""
 
     model: NeuralPrimitives | Gaussians
@@ -53,6 +54,7 @@ class Content:
     envelope: tuple[np.ndarray, np.ndarray] | None = None
     views: dict[str, list[dict]] | None = None
     background: tuple[float, float, float] | None = None
+    extent: float | None = None
     source: str = ""
     missing: dict[str, str] | None = None
 
@@ -88,6 +90,12 @@ def export(content: Content, format: str, path: str | Path, *, components: int =
     frames = nerfstudio_transforms(part)
     atomic_write_text(path, json.dumps(frames, indent=1) + "\n")
     return {"cameras": len(frames["frames"])}
+
+
+def view_cameras(views: list[dict]) -> list[Camera]:
+    """radfield Cameras of scene.json VIEW dicts (posed views only)."""
+    return [Camera(v["fx"], v["fy"], v["cx"], v["cy"], v["width"], v["height"],
+                   torch.tensor(v["c2w"], dtype=torch.float64), v["name"]) for v in views if "c2w" in v]
 
 
 def as_gaussians(model: NeuralPrimitives | Gaussians, components: int = 1) -> Gaussians:

@@ -122,3 +122,24 @@ def gaussians_from_neural(prims: NeuralPrimitives, components: int = 1, grid: in
             ))
     return Gaussians(**{name: torch.cat([getattr(g, name) for g in parts]).to(torch.float32)
                         for name in ("means", "log_scales", "quats", "sh", "opacities")})
+
+
+def refine_gaussians(gaussians: Gaussians, teacher, cameras, train_cfg: dict, *, steps: int, extent: float,
+                     background=(1.0, 1.0, 1.0), seed: int = 0, on_step=None) -> Gaussians:
+    """Photometric refinement of moment-matched Gaussians against renders of the `teacher` model (the
+    neural primitives) from `cameras`: radfield's trainer (core.trainer, 3DGS's Adam recipe from
+    the `train` config section) for `steps` steps with the full SH degree and no population control,
+    so the result keeps one Gaussian per moment-matched one. The teacher's renders, not the photos,
+    are the targets: the export stays a copy of the model (with its edits)."""
+    from radfield.core.rasterize import render
+    from radfield.core.trainer import train
+
+    with torch.no_grad():
+        targets = torch.stack([render(teacher, c, background=background).color.clamp(0, 1) for c in cameras])
+    densify = {**train_cfg["densify"], "start": steps + 1, "stop": steps + 1,
+               "gaussian": {**train_cfg["densify"]["gaussian"], "opacity_reset_every": steps + 1}}
+    cfg = {**train_cfg, "iterations": steps, "max_primitives": None, "sh_degree": gaussians.sh_degree,
+           "sh_increase_every": 1, "lambda_aniso": 0.0, "densify": densify, "checkpoint_every": steps + 1}
+    state = train(gaussians, cameras, targets, cfg, background=background, extent=extent, seed=seed,
+                  device=gaussians.means.device, on_step=on_step)
+    return state.primitives()

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from radfield.core.cameras import Camera
+from radfield.core.export import view_cameras
 from radfield.core.primitives import quat_to_rotmat, rotmat_to_quat
 from radfield.core.rasterize import render
 
@@ -55,9 +56,7 @@ def tet_edges(tets: np.ndarray) -> np.ndarray:
 
 def viewer_cameras(splits: dict[str, list[dict]] | None) -> list[Camera]:
     """radfield Cameras of scene.json views (every split; the train views first)."""
-    views = [v for split in sorted(splits or {}, key=lambda s: s != "train") for v in splits[split] if "c2w" in v]
-    return [Camera(v["fx"], v["fy"], v["cx"], v["cy"], v["width"], v["height"],
-                   torch.tensor(v["c2w"], dtype=torch.float64), v["name"]) for v in views]
+    return view_cameras([v for split in sorted(splits or {}, key=lambda s: s != "train") for v in splits[split]])
 
 
 def viser_camera(wxyz, position, fov: float, aspect: float, height: int) -> Camera:
