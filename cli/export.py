@@ -63,8 +63,9 @@ def export(
     """Export a model or a run to a file other tools read, in the dataset's world frame.
 
     From a Gaussian model ply-3dgs and splat are exact; neural primitives are approximated by
-    moment-matched Gaussians (--components per primitive)."""
-    from radfield.core.export import FORMATS, as_gaussians, export as export_content
+    moment-matched Gaussians (--components per primitive), for a run refined against renders of
+    the model (--refine)."""
+    from radfield.core.export import FORMATS, as_gaussians, check_target, export as export_content
     from radfield.core.primitives import NeuralPrimitives
 
     if format not in FORMATS:
@@ -73,6 +74,7 @@ def export(
         raise RadfieldError(f"--components must be at least 1, got {components}")
     if refine is not None and refine < 0:
         raise RadfieldError(f"--refine must be 0 or more steps, got {refine}")
+    check_target(format, output)
     if output.exists() and not force:
         raise RadfieldError(f"{output}: already exists (use --force to overwrite)")
     if output.is_dir():

@@ -62,11 +62,7 @@ class Content:
 def export(content: Content, format: str, path: str | Path, *, components: int = 1) -> dict:
     """Write `content` as `format` to `path` (atomically). Returns figures for the report
     (e.g. the number of Gaussians written)."""
-    path = Path(path)
-    if format not in FORMATS:
-        raise RadfieldError(f"unknown export format {format!r} (choose one of {', '.join(FORMATS)})")
-    if path.suffix.lower() not in SUFFIXES[format]:
-        raise RadfieldError(f"{path}: a {format} export is written as {' or '.join(SUFFIXES[format])}")
+    path = check_target(format, path)
     if format == "ply-3dgs":
         gaussians = as_gaussians(content.model, components)
         atomic_write_bytes(path, gaussian_ply_bytes(gaussians))
@@ -96,6 +92,16 @@ def view_cameras(views: list[dict]) -> list[Camera]:
     """radfield Cameras of scene.json VIEW dicts (posed views only)."""
     return [Camera(v["fx"], v["fy"], v["cx"], v["cy"], v["width"], v["height"],
                    torch.tensor(v["c2w"], dtype=torch.float64), v["name"]) for v in views if "c2w" in v]
+
+
+def check_target(format: str, path: str | Path) -> Path:
+    """`path` if `format` is known and `path` has a suffix it is written as."""
+    path = Path(path)
+    if format not in FORMATS:
+        raise RadfieldError(f"unknown export format {format!r} (choose one of {', '.join(FORMATS)})")
+    if path.suffix.lower() not in SUFFIXES[format]:
+        raise RadfieldError(f"{path}: a {format} export is written as {' or '.join(SUFFIXES[format])}")
+    return path
 
 
 def as_gaussians(model: NeuralPrimitives | Gaussians, components: int = 1) -> Gaussians:
