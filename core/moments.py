@@ -17,6 +17,10 @@ A Gaussian density M·N(x; m, C) seen along a unit direction d has peak optical 
 primitive's density between several Gaussians keeps the composite exact where they overlap
 (equal colours: C = c (1 − Π Tⱼ) in any order) and makes each one thinner, where the 3DGS
 opacity profile o·g(r) is closer to the true 1 − exp(−τ g(r)).
+
+`refine_gaussians` then fits the moment-matched Gaussians to renders of the neural model (for a
+run, whose cameras say where to look): 3DGS renderers widen every splat by 0.3 px², which
+moment matching cannot know about and which dominates splats of a pixel or two.
 """
 
 from __future__ import annotations
