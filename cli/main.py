@@ -14,6 +14,7 @@ import radfield
 from radfield.cli import animate as animate_cli
 from radfield.cli import edit as edit_cli
 from radfield.cli import evaluate as evaluate_cli
+from radfield.cli import export as export_cli, view as view_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -198,6 +199,8 @@ app.command("animate")(animate_cli.animate)
 app.command("eval")(evaluate_cli.eval_command)
 app.command("bake")(evaluate_cli.bake)
 app.command("bench-quality")(evaluate_cli.bench_quality)
+app.command("export")(export_cli.export)
+app.command("view")(view_cli.view)
 
 
 def main() -> None:
