@@ -27,7 +27,8 @@ from pathlib import Path
 
 import torch
 
-_SOURCE = Path(__file__).resolve().parent / "csrc" / "block_kernels.cpp"
+_CSRC = Path(__file__).resolve().parent / "csrc"
+_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None}
@@ -63,10 +64,14 @@ def _build():
         pass
     cpp_extension.load(
         name=_NAME,
-        sources=[str(_SOURCE)],
+        sources=[str(p) for p in _SOURCES],
+        extra_include_paths=[str(_CSRC)],
         # IEEE semantics kept (no -ffast-math); -fno-math-errno as torch's own build, so that
-        # sqrt is an instruction (and vectorises) instead of a libm call that may set errno
-        extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", *_simd_flags()],
+        # sqrt is an instruction (and vectorises) instead of a libm call that may set errno;
+        # no FMA contraction: with it, GCC fuses a·b + c wherever -mfma allows, so AVX2/AVX-512
+        # builds rounded differently from the default build and from torch's eager twins
+        # (the cause of issue 7's AVX2-only test failure)
+        extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off", *_simd_flags()],
         extra_ldflags=["-fopenmp"],
         is_python_module=False,   # registers torch.ops.radfield.* (TORCH_LIBRARY), no pybind11
         verbose=False,
@@ -146,3 +151,46 @@ def gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> torch.Tensor:
     """α of 2D Gaussian splats (P,) over blocks of image points u, v (P, A); see
     rasterize._gaussian_block."""
     return _GaussianBlock.apply(u, v, intrinsics, mean2d, conic, opacity)
+
+
+# --- whole-view rasteriser (core/csrc/view_kernels.cpp) -----------------------------------------
+
+class _View(torch.autograd.Function):
+    """Composited sums of one view: (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (3,)),
+    differentiable w.r.t. colors, depth and the kind's per-primitive tensors."""
+
+    @staticmethod
+    def forward(ctx, kind, bounds, intrinsics, height, width, t_min, colors, depth, *params):
+        inputs = [t.contiguous() for t in (colors, depth, *params)]
+        bounds = bounds.contiguous()
+        lead = (bounds, intrinsics.contiguous()) if kind == "neural" else (bounds,)
+        acc_color, acc_depth, trans, trans64, last, offsets, entries, counters = getattr(_ops(), f"{kind}_view_forward")(
+            *lead, *inputs, height, width, t_min)
+        ctx.kind, ctx.lead = kind, lead
+        ctx.save_for_backward(*inputs, trans64, last, offsets, entries)
+        ctx.mark_non_differentiable(counters)
+        return acc_color, acc_depth, trans, counters
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_color, g_depth, g_trans, _):
+        *inputs, trans64, last, offsets, entries = ctx.saved_tensors
+        dtype = inputs[0].dtype
+        grads = [torch.zeros(s, dtype=dtype) if g is None else g.contiguous()
+                 for g, s in zip((g_color, g_depth, g_trans), (last.shape + (3,), last.shape, last.shape))]
+        out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, *ctx.lead, *inputs, trans64, last, offsets, entries)
+        return None, None, None, None, None, None, *out
+
+
+def neural_view(bounds, intrinsics, height, width, t_min, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax):
+    """Front-to-back compositing of depth-sorted neural primitives over a whole view in one fused
+    kernel: returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
+    composited pairs, terminated pixels)). bounds (P, 4) int64 inclusive pixel boxes inside the
+    image; the per-primitive tensors as rasterize._neural_view returns them."""
+    return _View.apply("neural", bounds, intrinsics, height, width, t_min, colors, depth,
+                       m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
+
+
+def gaussian_view(bounds, height, width, t_min, colors, depth, mean2d, conic, opacity):
+    """As neural_view, for EWA splats (mean2d (P, 2), conic (P, 3), opacity (P,))."""
+    return _View.apply("gaussian", bounds, None, height, width, t_min, colors, depth, mean2d, conic, opacity)

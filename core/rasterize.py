@@ -59,20 +59,49 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     if isinstance(prims, NeuralPrimitives):
         bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
         view = _neural_view(prims, campos, c2w[:3, :3])
-        kernel = fused.neural_block if fused.available(device, dtype) else _neural_block
     elif isinstance(prims, Gaussians):
         view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
-        kernel = fused.gaussian_block if fused.available(device, dtype) else _gaussian_block
     else:
         raise TypeError(f"cannot render {type(prims).__name__}")
     intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)
 
     ids = torch.nonzero(visible).squeeze(1)
     ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
-    x0, y0, x1, y1 = bounds[ids].unbind(-1)
+    bounds = bounds[ids]
+    x0, y0, x1, y1 = bounds.unbind(-1)
+    counts = (x1 - x0 + 1) * (y1 - y0 + 1)
+    view = [t[ids] for t in view]
+    if fused.available(device, dtype):
+        # the whole view in one C++ kernel (core/csrc/view_kernels.cpp): same compositing rules
+        if isinstance(prims, NeuralPrimitives):
+            out = fused.neural_view(bounds, intrinsics, height, width, t_min, colors[ids], depth[ids], *view)
+        else:
+            out = fused.gaussian_view(bounds, height, width, t_min, colors[ids], depth[ids], *view)
+        acc_color, acc_depth, transmittance, counters = out
+        n_pairs, n_contrib, n_done = counters.tolist()
+    else:
+        kernel = _neural_block if isinstance(prims, NeuralPrimitives) else _gaussian_block
+        acc_color, acc_depth, transmittance, (n_pairs, n_contrib, n_done) = _composite(
+            kernel, view, bounds, colors[ids], depth[ids], intrinsics, height, width, max_pairs, t_min)
+
+    bg = torch.as_tensor(background, device=device, dtype=dtype)
+    color = acc_color + transmittance[..., None] * bg
+    alpha = 1.0 - transmittance
+    mean_depth = acc_depth / torch.clamp_min(alpha, 1e-10)
+    meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
+            "candidate_pairs": int(counts.sum()), "terminated_pixels": n_done}
+    return Render(color, alpha, mean_depth, meta)
+
+
+def _composite(kernel, view, bounds, colors, depth, intrinsics, height, width, max_pairs, t_min):
+    """The readable torch twin of the fused view kernel: (Σ w c (H, W, 3), Σ w z (H, W), T (H, W),
+    (evaluated pairs, composited pairs, terminated pixels)) for primitives in depth order."""
+    device, dtype = colors.device, colors.dtype
+    x0, y0, x1, y1 = bounds.unbind(-1)
     bw = x1 - x0 + 1
     counts = bw * (y1 - y0 + 1)
     padded = _padded_sizes(counts)
+    rank = torch.arange(len(counts), device=device)
 
     n_pix = height * width
     log_t = torch.zeros(n_pix, device=device, dtype=torch.float64)   # log transmittance, included pairs
@@ -92,32 +121,25 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
             block_pix = torch.where(k < counts[sel, None], row * width + col, -1)   # -1: padding
             live = (block_pix >= 0) & ~done[block_pix.clamp_min(0)]
             n_pairs += int(live.sum())
-            gid = ids[sel]
-            block_alpha = kernel(col.to(dtype) + 0.5, row.to(dtype) + 0.5, intrinsics, *(t[gid] for t in view))
+            block_alpha = kernel(col.to(dtype) + 0.5, row.to(dtype) + 0.5, intrinsics, *(t[sel] for t in view))
             p, q = torch.nonzero(live & (block_alpha > 0), as_tuple=True)
             ranks.append(sel[p])
             pix.append(block_pix[p, q])
             alpha.append(block_alpha[p, q])
         ranks, pix, alpha = torch.cat(ranks), torch.cat(pix), torch.cat(alpha)
-        order = torch.argsort(pix * ids.numel() + ranks)               # by pixel, then depth
-        gid, pix, alpha = ids[ranks[order]], pix[order], alpha[order]
+        order = torch.argsort(pix * len(rank) + ranks)                 # by pixel, then depth
+        ranks, pix, alpha = ranks[order], pix[order], alpha[order]
         log_t_before, log_1m_alpha = _segmented_log_transmittance(pix, alpha, log_t)
         included = (log_t_before + log_1m_alpha >= math.log(t_min)).detach()
         weight = (alpha * torch.exp(log_t_before).to(dtype)) * included
-        acc_color = acc_color.index_add(0, pix, weight[:, None] * colors[gid])
-        acc_depth = acc_depth.index_add(0, pix, weight * depth[gid])
+        acc_color = acc_color.index_add(0, pix, weight[:, None] * colors[ranks])
+        acc_depth = acc_depth.index_add(0, pix, weight * depth[ranks])
         log_t = log_t.index_add(0, pix, log_1m_alpha * included)
         done[pix[~included]] = True
         n_contrib += int(included.sum())
-
     transmittance = torch.exp(log_t).to(dtype).reshape(height, width)
-    bg = torch.as_tensor(background, device=device, dtype=dtype)
-    color = acc_color.reshape(height, width, 3) + transmittance[..., None] * bg
-    alpha = 1.0 - transmittance
-    mean_depth = acc_depth.reshape(height, width) / torch.clamp_min(alpha, 1e-10)
-    meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
-            "candidate_pairs": int(counts.sum()), "terminated_pixels": int(done.sum())}
-    return Render(color, alpha, mean_depth, meta)
+    return (acc_color.reshape(height, width, 3), acc_depth.reshape(height, width), transmittance,
+            (n_pairs, n_contrib, int(done.sum())))
 
 
 # --- per-view preparation --------------------------------------------------------------------

@@ -269,7 +269,10 @@ def test_render_fused_equals_torch(kind, dtype, monkeypatch):
     fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
     slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
     assert slow.meta["contributing_pairs"] > 100
-    assert fast.meta == slow.meta
+    # evaluated pairs differ by design (the fused kernel skips a pixel as soon as it terminates,
+    # the torch twin only between chunks); everything else is the same count
+    evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
+    assert fast.meta == slow.meta and evaluated[0] <= evaluated[1]
     tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
     for name in ("color", "alpha", "depth"):
         torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **tol)
@@ -280,12 +283,12 @@ def test_render_fused_equals_torch(kind, dtype, monkeypatch):
 
 def test_render_uses_fused_kernels(monkeypatch):
     calls = []
-    for name in ("neural_block", "gaussian_block"):
+    for name in ("neural_view", "gaussian_view"):
         original = getattr(fused, name)
         monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name: calls.append(_n) or _f(*a))
     for kind in ("neural", "gaussian"):
         render(*_render_scene(kind, torch.float32))
-    assert "neural_block" in calls and "gaussian_block" in calls
+    assert "neural_view" in calls and "gaussian_view" in calls
     calls.clear()
     monkeypatch.setenv("RADFIELD_KERNELS", "torch")
     assert not fused.available()
