@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 import radfield
+from radfield.cli import bench_train as bench_train_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -183,6 +184,9 @@ def bench_render(
     if min(primitives, width, height, views, repeats) < 1:
         raise RadfieldError("--primitives, --width, --height, --views and --repeats must be positive")
     run_bench(primitives, width, height, views, repeats, str(resolve_device(device)), profile, echo=typer.echo)
+
+
+app.command("bench-train")(bench_train_cli.bench_train)
 
 
 @app.command("demo-scene")

@@ -62,7 +62,7 @@ void neural_forward_kernel(const NeuralInputs<T>& in, T* alpha) {
       T* out = alpha + p * in.A + a0;
       std::fill(out, out + (a1 - a0), T(0));
       tile.chords(in.u + p * in.A + a0, in.v + p * in.A + a0, a1 - a0, in.k, q, nullptr);
-      tile.optical_depth(q, in.N, /*keep_units=*/false);
+      tile.optical_depth(q, /*backward=*/false);
       for (int64_t j = 0; j < tile.n; ++j) out[tile.pixel[j]] = alpha_from_expm1(tile.expm1_neg[j]);  // eq. 9
     }
   }
@@ -87,9 +87,9 @@ void neural_backward_kernel(const NeuralInputs<T>& in, const T* grad, std::vecto
       for (int64_t a0 = 0; a0 < in.A; a0 += kTile) {
         const int64_t i0 = p * in.A + a0;
         tile.chords(in.u + i0, in.v + i0, std::min(a0 + kTile, in.A) - a0, in.k, q, grad + i0);
-        tile.optical_depth(q, N, /*keep_units=*/true);
+        tile.optical_depth(q, /*backward=*/true);
         for (int64_t j = 0; j < tile.n; ++j) tile.g_I[j] *= alpha_slope_from_expm1(tile.expm1_neg[j]);
-        tile.optical_depth_backward(q, N, refs);
+        tile.optical_depth_backward(q, refs);
         tile.chords_backward(q, refs);
       }
       const double* sum = acc.sums.data();

@@ -190,22 +190,28 @@ struct ChordTile {
   std::vector<T> half;                   // half the chord, √((1 − |p|²)/A)
   std::vector<T> l_in_raw, l_in, l_out;  // entry before and after the near-plane clip, exit
   std::vector<T> delta, tau_m;           // Δ = max(ℓ_out − ℓ_in, 0)/max(s), τ_m = (ℓ_in + ℓ_out)/2/max(s)
-  // step 2, the MLP integral: the current unit k (forward), or all units at [k * cap + j] (backward)
+  // step 2, the MLP integral, for pixel j and unit k at [j * units + k] (SIMD over both: a batch
+  // of a small splat has few pixels, but every pixel has `units` terms)
+  int64_t units;
+  std::vector<T> w_t;                    // the primitive's w_cam transposed, (3, N)
   std::vector<T> a, phase, x;            // a_k = w_cam_k · d̂, a_k τ_m + c_k, a_k Δ/2
-  std::vector<T> cos_p, sin_x, sinc_x, cos_x;
-  std::vector<T> unit_a, unit_cos_p, unit_sin_p, unit_sinc, unit_slope;
+  std::vector<T> cos_p, sin_x, sinc_x, sin_p, cos_x, slope;
+  std::vector<double> sum_c, sum_w2, sum_wx, sum_wy, sum_wz;  // backward: per-unit gradient sums
   std::vector<T> integral;               // I
   std::vector<T> neg_depth, expm1_neg;   // −max(I, 0) and expm1 of it (eq. 9)
   // backward: ∂L/∂I, ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂p_r, ∂L/∂ℓ* / A, ∂L/∂A, ∂L/∂d'_r
   std::vector<T> g_I, g_tau, g_delta, g_p0, g_p1, g_p2, g_mid, g_A, g_e;
 
-  ChordTile(int64_t units, int64_t capacity, bool backward) : cap(capacity) {
+  ChordTile(int64_t n_units, int64_t capacity, bool backward) : cap(capacity), units(n_units) {
     for (auto* buf : chord_fields()) buf->resize(cap);
-    for (auto* buf : {&a, &phase, &x, &cos_p, &sin_x, &sinc_x, &integral, &neg_depth, &expm1_neg}) buf->resize(cap);
+    for (auto* buf : {&integral, &neg_depth, &expm1_neg}) buf->resize(cap);
+    for (auto* buf : {&a, &phase, &x, &cos_p, &sin_x, &sinc_x}) buf->resize(cap * units);
+    w_t.resize(3 * units);
     pixel.resize(cap);
     if (backward) {
-      for (auto* buf : {&unit_a, &unit_cos_p, &unit_sin_p, &unit_sinc, &unit_slope}) buf->resize(units * cap);
-      for (auto* buf : {&cos_x, &g_I, &g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_e}) buf->resize(cap);
+      for (auto* buf : {&sin_p, &cos_x, &slope}) buf->resize(cap * units);
+      for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) buf->resize(units);
+      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_e}) buf->resize(cap);
     }
   }
 
@@ -264,80 +270,88 @@ struct ChordTile {
   }
 
   // Step 2, paper eq. 7–8 in the stable sinc form (kernels.py: neural_optical_depth):
-  //   I = Σ_k W2_k Δ cos(a_k τ_m + c_k) sinc(a_k Δ / 2) + b2 Δ,   a_k = ω0 W1_k · d̂,
-  // one unit at a time; the backward keeps each unit's a_k, cos, sin, sinc and sinc slope. Then
-  // eq. 9: expm1_neg = expm1(−max(I, 0)), α = alpha_from_expm1(expm1_neg).
-  void optical_depth(const NeuralParams<T>& q, int64_t units, bool keep_units) {
-    std::fill(integral.begin(), integral.begin() + n, T(0));
-    for (int64_t k = 0; k < units; ++k) {
-      const T* w = q.w_cam + 3 * k;
-      T* ak = keep_units ? unit_a.data() + k * cap : a.data();
-      T* cos_pk = keep_units ? unit_cos_p.data() + k * cap : cos_p.data();
-      T* sk = keep_units ? unit_sinc.data() + k * cap : sinc_x.data();
+  //   I = Σ_k W2_k Δ cos(a_k τ_m + c_k) sinc(a_k Δ / 2) + b2 Δ,   a_k = ω0 W1_k · d̂;
+  // with `backward`, also sin of the phase and sinc's slope. Then eq. 9:
+  // expm1_neg = expm1(−max(I, 0)), α = alpha_from_expm1(expm1_neg).
+  void optical_depth(const NeuralParams<T>& q, bool backward) {
+    const int64_t N = units, L = n * N;
+    T *wx = w_t.data(), *wy = wx + N, *wz = wy + N;
+    for (int64_t k = 0; k < N; ++k) wx[k] = q.w_cam[3 * k], wy[k] = q.w_cam[3 * k + 1], wz[k] = q.w_cam[3 * k + 2];
+    const T* c = q.c;
+    for (int64_t j = 0; j < n; ++j) {
+      const T dx = d0[j], dy = d1[j], dz = d2[j], tm = tau_m[j], dl = delta[j];
+      T *aj = a.data() + j * N, *pj = phase.data() + j * N, *xj = x.data() + j * N;
 #pragma omp simd
-      for (int64_t j = 0; j < n; ++j) {
-        ak[j] = w[0] * d0[j] + w[1] * d1[j] + w[2] * d2[j];
-        phase[j] = ak[j] * tau_m[j] + q.c[k];
-        x[j] = T(0.5) * ak[j] * delta[j];
-      }
-      simd_cos(phase.data(), cos_pk, n);
-      simd_sin(x.data(), sin_x.data(), n);
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j) {
-        sk[j] = sinc(x[j], sin_x[j]);
-        integral[j] += q.w2[k] * delta[j] * cos_pk[j] * sk[j];
-      }
-      if (keep_units) {
-        simd_sin(phase.data(), unit_sin_p.data() + k * cap, n);
-        simd_cos(x.data(), cos_x.data(), n);
-        T* slopek = unit_slope.data() + k * cap;
-#pragma omp simd
-        for (int64_t j = 0; j < n; ++j) slopek[j] = sinc_slope(x[j], cos_x[j], sk[j]);
+      for (int64_t k = 0; k < N; ++k) {
+        aj[k] = wx[k] * dx + wy[k] * dy + wz[k] * dz;
+        pj[k] = aj[k] * tm + c[k];
+        xj[k] = T(0.5) * aj[k] * dl;
       }
     }
+    simd_cos(phase.data(), cos_p.data(), L);
+    simd_sin(x.data(), sin_x.data(), L);
+    const T *xs = x.data(), *sx = sin_x.data();
+    T* s = sinc_x.data();
 #pragma omp simd
+    for (int64_t e = 0; e < L; ++e) s[e] = sinc(xs[e], sx[e]);
     for (int64_t j = 0; j < n; ++j) {
-      integral[j] += q.b2 * delta[j];
+      const T* cj = cos_p.data() + j * N;
+      const T* sj = s + j * N;
+      T sum = T(0);
+      for (int64_t k = 0; k < N; ++k) sum += q.w2[k] * delta[j] * cj[k] * sj[k];  // in order, as the twin
+      integral[j] = sum + q.b2 * delta[j];
       neg_depth[j] = -std::max(integral[j], T(0));
     }
     simd_expm1(neg_depth.data(), expm1_neg.data(), n);
+    if (backward) {
+      simd_sin(phase.data(), sin_p.data(), L);
+      simd_cos(x.data(), cos_x.data(), L);
+      const T* cx = cos_x.data();
+      T* sl = slope.data();
+#pragma omp simd
+      for (int64_t e = 0; e < L; ++e) sl[e] = sinc_slope(xs[e], cx[e], s[e]);
+    }
   }
 
   // Step 2 backward (kernels.py: _CosMLPIntegral.backward), + b2 Δ: from g_I to g_tau and
-  // g_delta, and the sums for c, w2, w_cam and b2, one unit at a time.
-  void optical_depth_backward(const NeuralParams<T>& q, int64_t units, const NeuralGradRefs& acc) {
+  // g_delta, and the sums for c, w2, w_cam and b2.
+  void optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
+    const int64_t N = units;
+    for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
+    double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
+    const T* w2 = q.w2;
     double sum_b2 = 0;
-#pragma omp simd reduction(+ : sum_b2)
     for (int64_t j = 0; j < n; ++j) {
-      sum_b2 += double(g_I[j] * delta[j]);
-      g_delta[j] = g_I[j] * q.b2;
-      g_tau[j] = T(0);
+      const T gI = g_I[j], dl = delta[j], tm = tau_m[j], dx = d0[j], dy = d1[j], dz = d2[j];
+      sum_b2 += double(gI * dl);
+      const int64_t o = j * N;
+      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p.data() + o, *spj = sin_p.data() + o;
+      const T* slj = slope.data() + o;
+      T gt = T(0), gd = gI * q.b2;
+#pragma omp simd reduction(+ : gt, gd)
+      for (int64_t k = 0; k < N; ++k) {
+        const T gwd = gI * w2[k] * dl;
+        const T g_phase = -gwd * spj[k] * sj[k];  // ∂/∂(a_k τ_m + c_k)
+        const T g_x = gwd * cj[k] * slj[k];       // ∂/∂(a_k Δ / 2)
+        const T g_a = g_phase * tm + T(0.5) * g_x * dl;
+        gt += g_phase * aj[k];
+        gd += gI * w2[k] * cj[k] * sj[k] + T(0.5) * g_x * aj[k];
+        sc[k] += double(g_phase);
+        sw2[k] += double(gI * dl * cj[k] * sj[k]);
+        swx[k] += double(g_a * dx);  // a_k = w_cam_k · d̂
+        swy[k] += double(g_a * dy);
+        swz[k] += double(g_a * dz);
+      }
+      g_tau[j] = gt;
+      g_delta[j] = gd;
     }
     *acc.b2 += sum_b2;
-    for (int64_t k = 0; k < units; ++k) {
-      const T *ak = unit_a.data() + k * cap, *sk = unit_sinc.data() + k * cap;
-      const T *cos_pk = unit_cos_p.data() + k * cap, *sin_pk = unit_sin_p.data() + k * cap;
-      const T* slopek = unit_slope.data() + k * cap;
-      double sum_c = 0, sum_w2 = 0, sum_wx = 0, sum_wy = 0, sum_wz = 0;
-#pragma omp simd reduction(+ : sum_c, sum_w2, sum_wx, sum_wy, sum_wz)
-      for (int64_t j = 0; j < n; ++j) {
-        const T gwd = g_I[j] * q.w2[k] * delta[j];
-        const T g_phase = -gwd * sin_pk[j] * sk[j];  // ∂/∂(a_k τ_m + c_k)
-        const T g_x = gwd * cos_pk[j] * slopek[j];   // ∂/∂(a_k Δ / 2)
-        const T g_a = g_phase * tau_m[j] + T(0.5) * g_x * delta[j];
-        g_tau[j] += g_phase * ak[j];
-        g_delta[j] += g_I[j] * q.w2[k] * cos_pk[j] * sk[j] + T(0.5) * g_x * ak[j];
-        sum_c += double(g_phase);
-        sum_w2 += double(g_I[j] * delta[j] * cos_pk[j] * sk[j]);
-        sum_wx += double(g_a * d0[j]);  // a_k = w_cam_k · d̂
-        sum_wy += double(g_a * d1[j]);
-        sum_wz += double(g_a * d2[j]);
-      }
-      acc.c[k] += sum_c;
-      acc.w2[k] += sum_w2;
-      acc.w_cam[3 * k] += sum_wx;
-      acc.w_cam[3 * k + 1] += sum_wy;
-      acc.w_cam[3 * k + 2] += sum_wz;
+    for (int64_t k = 0; k < N; ++k) {
+      acc.c[k] += sc[k];
+      acc.w2[k] += sw2[k];
+      acc.w_cam[3 * k] += swx[k];
+      acc.w_cam[3 * k + 1] += swy[k];
+      acc.w_cam[3 * k + 2] += swz[k];
     }
   }
 

@@ -107,7 +107,7 @@ struct NeuralKind {
     const NeuralParams<T> q = prm.primitive(p);
     std::fill(out, out + m, T(0));
     tile.chords(u, v, m, k, q, nullptr);
-    tile.optical_depth(q, prm.N, /*keep_units=*/false);
+    tile.optical_depth(q, /*backward=*/false);
     for (int64_t j = 0; j < tile.n; ++j) out[tile.pixel[j]] = alpha_from_expm1(tile.expm1_neg[j]);  // eq. 9
   }
 
@@ -116,7 +116,7 @@ struct NeuralKind {
   void backward(int64_t p, const T* u, const T* v, int64_t m, GradOf&& grad_of, double* acc) {
     const NeuralParams<T> q = prm.primitive(p);
     tile.chords(u, v, m, k, q, nullptr);
-    tile.optical_depth(q, prm.N, /*keep_units=*/true);
+    tile.optical_depth(q, /*backward=*/true);
     bool any = false;
     for (int64_t j = 0; j < tile.n; ++j) {
       const T a = alpha_from_expm1(tile.expm1_neg[j]);
@@ -126,7 +126,7 @@ struct NeuralKind {
     }
     if (!any) return;
     const NeuralGradRefs refs = neural_grad_refs(acc, prm.N);
-    tile.optical_depth_backward(q, prm.N, refs);
+    tile.optical_depth_backward(q, refs);
     tile.chords_backward(q, refs);
   }
 };
