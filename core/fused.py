@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp"]
+_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None}
@@ -194,3 +194,55 @@ def neural_view(bounds, intrinsics, height, width, t_min, colors, depth, m_cam, 
 def gaussian_view(bounds, height, width, t_min, colors, depth, mean2d, conic, opacity):
     """As neural_view, for EWA splats (mean2d (P, 2), conic (P, 3), opacity (P,))."""
     return _View.apply("gaussian", bounds, None, height, width, t_min, colors, depth, mean2d, conic, opacity)
+
+
+# --- per-view preparation (core/csrc/prepare_kernels.cpp) ---------------------------------------
+
+class _SHColor(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sh, v, degree):
+        sh, v = sh.contiguous(), v.contiguous()
+        ctx.degree = degree
+        ctx.save_for_backward(sh, v)
+        return _ops().sh_color_forward(sh, v, degree)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        g_sh, g_v = _ops().sh_color_backward(grad.contiguous(), *ctx.saved_tensors, ctx.degree)
+        return g_sh, g_v, None
+
+
+class _NeuralPrep(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, w1, b1, campos, cam_rot, omega0):
+        args = [t.contiguous() for t in (means, log_scales, quats, w1, b1, campos, cam_rot)]
+        ctx.omega0 = float(omega0)
+        ctx.save_for_backward(*args)
+        return tuple(_ops().neural_prep_forward(*args, ctx.omega0))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        args = ctx.saved_tensors
+        grads = [torch.zeros_like(o) if g is None else g.contiguous() for g, o in zip(grads, _prep_shapes(args))]
+        out = _ops().neural_prep_backward(*grads, *args, ctx.omega0)
+        return (*out, None, None, None)
+
+
+def _prep_shapes(args):
+    means, _, _, w1, b1, _, _ = args
+    p, n = b1.shape
+    return [means.new_empty(p, 3, 3), means.new_empty(p, 3), w1.new_empty(p, n, 3), b1.new_empty(p, n), means.new_empty(p)]
+
+
+def sh_color(sh, v, degree: int) -> torch.Tensor:
+    """sh.sh_to_color(sh, normalize(v), degree) in one fused op (v = μ − o, unnormalised)."""
+    return _SHColor.apply(sh, v, degree)
+
+
+def neural_prep(prims, campos, cam_rot) -> tuple:
+    """rasterize._neural_view in one fused op: (m_cam, o_ell, w_cam, c, w2, b2, inv_smax)."""
+    m_cam, o_ell, w_cam, c, inv_smax = _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1,
+                                                         prims.b1, campos, cam_rot, prims.omega0)
+    return m_cam, o_ell, w_cam, c, prims.w2, prims.b2, inv_smax

@@ -53,12 +53,15 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
     depth = means_cam[:, 2]
     degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
-    view_dirs = torch.nn.functional.normalize(prims.means - campos, dim=-1)
-    colors = sh_to_color(prims.sh, view_dirs, degree)
+    use_fused = fused.available(device, dtype)
+    if use_fused:   # the same per-primitive quantities from fused C++ ops (core/csrc/prepare_kernels.cpp)
+        colors = fused.sh_color(prims.sh, prims.means - campos, degree)
+    else:
+        colors = sh_to_color(prims.sh, torch.nn.functional.normalize(prims.means - campos, dim=-1), degree)
 
     if isinstance(prims, NeuralPrimitives):
         bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
-        view = _neural_view(prims, campos, c2w[:3, :3])
+        view = fused.neural_prep(prims, campos, c2w[:3, :3]) if use_fused else _neural_view(prims, campos, c2w[:3, :3])
     elif isinstance(prims, Gaussians):
         view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
     else:
@@ -71,7 +74,7 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     x0, y0, x1, y1 = bounds.unbind(-1)
     counts = (x1 - x0 + 1) * (y1 - y0 + 1)
     view = [t[ids] for t in view]
-    if fused.available(device, dtype):
+    if use_fused:
         # the whole view in one C++ kernel (core/csrc/view_kernels.cpp): same compositing rules
         if isinstance(prims, NeuralPrimitives):
             out = fused.neural_view(bounds, intrinsics, height, width, t_min, colors[ids], depth[ids], *view)

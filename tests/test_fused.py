@@ -309,3 +309,65 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
         render(*_render_scene("neural", torch.float32))
     messages = [str(w.message) for w in caught if "fused" in str(w.message)]
     assert len(messages) == 1 and "\n" not in messages[0] and "torch kernels" in messages[0]
+
+
+# --- per-view preparation ops (core/csrc/prepare_kernels.cpp) against their torch twins ----------
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_color_matches_torch_twin_and_finite_differences(degree):
+    from radfield.core.sh import sh_to_color
+
+    g = torch.Generator().manual_seed(degree)
+    sh = torch.randn(12, 16, 3, generator=g, dtype=torch.float64) * 0.5
+    sh[0, 0] = -5.0                       # colour clamped at 0: no gradient
+    v = torch.randn(12, 3, generator=g, dtype=torch.float64) * 3
+    twin = sh_to_color(sh, torch.nn.functional.normalize(v, dim=-1), degree)
+    assert (twin == 0).any() and (twin > 0).any()
+    torch.testing.assert_close(fused.sh_color(sh, v, degree), twin, rtol=1e-12, atol=1e-12)
+    w = torch.randn(12, 3, generator=g, dtype=torch.float64)
+    grads = [torch.autograd.grad((w * f(sh_, v_)).sum(), (sh_, v_), allow_unused=True) for f, (sh_, v_) in (
+        (lambda a, b: fused.sh_color(a, b, degree), (sh.clone().requires_grad_(), v.clone().requires_grad_())),
+        (lambda a, b: sh_to_color(a, torch.nn.functional.normalize(b, dim=-1), degree),
+         (sh.clone().requires_grad_(), v.clone().requires_grad_())))]
+    for fast, slow in zip(*grads):   # degree 0: the colour does not depend on the direction
+        torch.testing.assert_close(fast, torch.zeros_like(fast) if slow is None else slow, rtol=1e-10, atol=1e-12)
+    keep = sh[1:5].clone().requires_grad_(), v[1:5].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: fused.sh_color(a, b, degree), keep, eps=1e-6, atol=1e-7)
+
+
+def test_neural_prep_matches_torch_twin_and_finite_differences():
+    from radfield.core.rasterize import _neural_view
+
+    prims = random_neural(9, scale=0.3, seed=7).to(dtype=torch.float64)
+    prims.log_scales[0] = math.log(0.2)   # an isotropic primitive: max(s) is a three-way tie
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
+    c2w = cam.c2w.to(torch.float64)
+    campos, cam_rot = c2w[:3, 3], c2w[:3, :3]
+    names = ("means", "log_scales", "quats", "w1", "b1")
+    g = torch.Generator().manual_seed(1)
+
+    def run(fn):
+        p = prims.map(lambda t: t.clone().requires_grad_(True))
+        out = fn(p)
+        loss = sum((torch.randn(t.shape, generator=g, dtype=torch.float64) * t).sum() for t in out)
+        return [t.detach() for t in out], torch.autograd.grad(loss, [getattr(p, n) for n in names])
+
+    g.manual_seed(1)
+    fast, fast_grads = run(lambda p: fused.neural_prep(p, campos, cam_rot))
+    g.manual_seed(1)
+    slow, slow_grads = run(lambda p: _neural_view(p, campos, cam_rot))
+    for f, s in zip(fast, slow):
+        torch.testing.assert_close(f, s, rtol=1e-12, atol=1e-12)
+    for name, f, s in zip(names, fast_grads, slow_grads):
+        torch.testing.assert_close(f, s, rtol=1e-10, atol=1e-11, msg=lambda m: f"d/d{name}: {m}")
+
+    def f(*tensors):
+        p = prims.map(lambda t: t)
+        for n, t in zip(names, tensors):
+            setattr(p, n, t)
+        return fused.neural_prep(p, campos, cam_rot)
+
+    sub = prims.select(slice(1, 4))
+    prims = sub
+    inputs = [getattr(sub, n).clone().requires_grad_(True) for n in names]
+    assert torch.autograd.gradcheck(lambda *t: tuple(x for x in f(*t) if x.requires_grad), inputs, eps=1e-6, atol=1e-6)
