@@ -61,7 +61,7 @@ void neural_forward_kernel(const NeuralInputs<T>& in, T* alpha) {
       const NeuralParams<T> q = in.params.primitive(p);
       T* out = alpha + p * in.A + a0;
       std::fill(out, out + (a1 - a0), T(0));
-      tile.chords(in.u + p * in.A + a0, in.v + p * in.A + a0, a1 - a0, in.k, q, nullptr);
+      tile.chords(in.u + p * in.A + a0, in.v + p * in.A + a0, a1 - a0, in.k, q, nullptr, /*backward=*/false);
       tile.optical_depth(q, /*backward=*/false);
       for (int64_t j = 0; j < tile.n; ++j) out[tile.pixel[j]] = alpha_from_expm1(tile.expm1_neg[j]);  // eq. 9
     }
@@ -86,7 +86,7 @@ void neural_backward_kernel(const NeuralInputs<T>& in, const T* grad, std::vecto
       const NeuralGradRefs refs = neural_grad_refs(acc.sums.data(), N);
       for (int64_t a0 = 0; a0 < in.A; a0 += kTile) {
         const int64_t i0 = p * in.A + a0;
-        tile.chords(in.u + i0, in.v + i0, std::min(a0 + kTile, in.A) - a0, in.k, q, grad + i0);
+        tile.chords(in.u + i0, in.v + i0, std::min(a0 + kTile, in.A) - a0, in.k, q, grad + i0, /*backward=*/true);
         tile.optical_depth(q, /*backward=*/true);
         for (int64_t j = 0; j < tile.n; ++j) tile.g_I[j] *= alpha_slope_from_expm1(tile.expm1_neg[j]);
         tile.optical_depth_backward(q, refs);

@@ -6,7 +6,7 @@
 // SIMD: the code is written per pixel j of a batch (up to `cap` pixels of one primitive, stored as
 // structure of arrays) in loops that the compiler vectorises (`#pragma omp simd`: no reordering
 // except of the double gradient sums). sin, cos, exp and expm1 go through ATen's Vectorized<T>,
-// i.e. the same Sleef routines torch.sin / torch.cos / torch.exp use on this machine. The build
+// i.e. Sleef routines as torch.sin / torch.exp on this machine (see below for sin and cos). The build
 // keeps IEEE semantics and turns off FMA contraction (-ffp-contract=off, core/fused.py), so an
 // AVX2, AVX-512 and default build round every +, −, ×, ÷ alike and as torch's eager ops do.
 //
@@ -34,15 +34,64 @@ constexpr double kAlphaMax = 0.99;         // 3DGS clamp: no primitive fully opa
 constexpr double kAlphaMin = 1.0 / 255.0;  // 3DGS skip threshold
 
 // --- SIMD transcendentals over arrays ---------------------------------------------------------
+//
+// sin and cos call Sleef's 3.5-ULP routines directly (torch.sin / torch.cos use the 1-ULP ones,
+// about twice as slow; either is far inside the float32 rounding of the phases themselves), and
+// sincos gives both from one range reduction. The default build (no SIMD) uses libm.
+
+#if defined(CPU_CAPABILITY_AVX512) || defined(CPU_CAPABILITY_AVX2)
+#include <sleef.h>
+#endif
+
+using VecF = at::vec::Vectorized<float>;
+using VecD = at::vec::Vectorized<double>;
+
+#if defined(CPU_CAPABILITY_AVX512)
+inline VecF vsin(VecF v) { return Sleef_sinf16_u35(v); }
+inline VecD vsin(VecD v) { return Sleef_sind8_u35(v); }
+inline VecF vcos(VecF v) { return Sleef_cosf16_u35(v); }
+inline VecD vcos(VecD v) { return Sleef_cosd8_u35(v); }
+inline void vsincos(VecF v, VecF& s, VecF& c) { const auto r = Sleef_sincosf16_u35(v); s = r.x, c = r.y; }
+inline void vsincos(VecD v, VecD& s, VecD& c) { const auto r = Sleef_sincosd8_u35(v); s = r.x, c = r.y; }
+#elif defined(CPU_CAPABILITY_AVX2)
+inline VecF vsin(VecF v) { return Sleef_sinf8_u35(v); }
+inline VecD vsin(VecD v) { return Sleef_sind4_u35(v); }
+inline VecF vcos(VecF v) { return Sleef_cosf8_u35(v); }
+inline VecD vcos(VecD v) { return Sleef_cosd4_u35(v); }
+inline void vsincos(VecF v, VecF& s, VecF& c) { const auto r = Sleef_sincosf8_u35(v); s = r.x, c = r.y; }
+inline void vsincos(VecD v, VecD& s, VecD& c) { const auto r = Sleef_sincosd4_u35(v); s = r.x, c = r.y; }
+#else
+template <typename V>
+V vsin(V v) { return v.sin(); }
+template <typename V>
+V vcos(V v) { return v.cos(); }
+template <typename V>
+void vsincos(V v, V& s, V& c) { s = v.sin(), c = v.cos(); }
+#endif
 
 template <typename T>
 void simd_sin(const T* x, T* out, int64_t n) {
-  at::vec::map([](at::vec::Vectorized<T> v) { return v.sin(); }, out, x, n);
+  at::vec::map([](at::vec::Vectorized<T> v) { return vsin(v); }, out, x, n);
 }
 
 template <typename T>
 void simd_cos(const T* x, T* out, int64_t n) {
-  at::vec::map([](at::vec::Vectorized<T> v) { return v.cos(); }, out, x, n);
+  at::vec::map([](at::vec::Vectorized<T> v) { return vcos(v); }, out, x, n);
+}
+
+template <typename T>
+void simd_sincos(const T* x, T* s, T* c, int64_t n) {
+  using V = at::vec::Vectorized<T>;
+  int64_t i = 0;
+  V vs, vc;
+  for (; i + V::size() <= n; i += V::size()) {
+    vsincos(V::loadu(x + i), vs, vc);
+    vs.store(s + i), vc.store(c + i);
+  }
+  if (i < n) {
+    vsincos(V::loadu(x + i, n - i), vs, vc);
+    vs.store(s + i, n - i), vc.store(c + i, n - i);
+  }
 }
 
 template <typename T>
@@ -204,7 +253,7 @@ struct ChordTile {
 
   ChordTile(int64_t n_units, int64_t capacity, bool backward) : cap(capacity), units(n_units) {
     for (auto* buf : chord_fields()) buf->resize(cap);
-    for (auto* buf : {&integral, &neg_depth, &expm1_neg}) buf->resize(cap);
+    for (auto* buf : {&integral, &neg_depth, &expm1_neg, &g_I}) buf->resize(cap);
     for (auto* buf : {&a, &phase, &x, &cos_p, &sin_x, &sinc_x}) buf->resize(cap * units);
     w_t.resize(3 * units);
     pixel.resize(cap);
@@ -215,9 +264,9 @@ struct ChordTile {
     }
   }
 
-  std::array<std::vector<T>*, 19> chord_fields() {
+  std::array<std::vector<T>*, 18> chord_fields() {
     return {&d0, &d1, &d2, &l_near, &e0, &e1, &e2, &A, &l_mid, &p0, &p1, &p2, &half,
-            &l_in_raw, &l_in, &l_out, &delta, &tau_m, &g_I};
+            &l_in_raw, &l_in, &l_out, &delta, &tau_m};
   }
 
   // Step 1 for image points (u, v)[0, m) (rasterize.py: _camera_directions, kernels.py:
@@ -225,18 +274,32 @@ struct ChordTile {
   // closest-approach form has no cancellation at grazing rays, where B² − AC of the quadratic
   // loses all its digits in float32 for a primitive many radii away. Keeps the pixels with a chord
   // (with `grad`, also a nonzero upstream gradient, which is kept in g_I).
-  void chords(const T* u, const T* v, int64_t m, const Intrinsics<T>& k, const NeuralParams<T>& q, const T* grad) {
+  void chords(const T* u, const T* v, int64_t m, const Intrinsics<T>& k, const NeuralParams<T>& q, const T* grad,
+              bool backward) {
+    directions(u, v, m, k, d0.data(), d1.data(), d2.data(), l_near.data());
+    intersect(m, q, grad, backward);
+  }
+
+  // d̂ = normalize((u − cx)/fx, (v − cy)/fy, 1), and the near plane at ℓ = near · |(…)|
+  static void directions(const T* u, const T* v, int64_t m, const Intrinsics<T>& k, T* dx, T* dy, T* dz, T* ln) {
+#pragma omp simd
+    for (int64_t j = 0; j < m; ++j) {
+      const T xn = (u[j] - k.cx) / k.fx, yn = (v[j] - k.cy) / k.fy;
+      const T norm = std::sqrt(xn * xn + yn * yn + T(1));
+      dx[j] = xn / norm;
+      dy[j] = yn / norm;
+      dz[j] = T(1) / norm;
+      ln[j] = k.near * norm;
+    }
+  }
+
+  // Step 1 given the directions d0, d1, d2 and l_near of m pixels; `backward` keeps every field
+  // for chords_backward (the forward needs only d̂, Δ and τ_m).
+  void intersect(int64_t m, const NeuralParams<T>& q, const T* grad, bool backward) {
     const T* M = q.m_cam;
     const T* o = q.o_ell;
 #pragma omp simd
     for (int64_t j = 0; j < m; ++j) {
-      // d̂ = normalize((u − cx)/fx, (v − cy)/fy, 1), near plane at ℓ = near · |(…)|
-      const T xn = (u[j] - k.cx) / k.fx, yn = (v[j] - k.cy) / k.fy;
-      const T norm = std::sqrt(xn * xn + yn * yn + T(1));
-      d0[j] = xn / norm;
-      d1[j] = yn / norm;
-      d2[j] = T(1) / norm;
-      l_near[j] = k.near * norm;
       e0[j] = M[0] * d0[j] + M[1] * d1[j] + M[2] * d2[j];
       e1[j] = M[3] * d0[j] + M[4] * d1[j] + M[5] * d2[j];
       e2[j] = M[6] * d0[j] + M[7] * d1[j] + M[8] * d2[j];
@@ -254,7 +317,6 @@ struct ChordTile {
       // a miss contributes nothing (where(hit, I, 0)); give it no chord
       delta[j] = hit ? std::max(l_out[j] - l_in[j], T(0)) * q.inv_smax : T(0);
       tau_m[j] = T(0.5) * (l_in[j] + l_out[j]) * q.inv_smax;
-      g_I[j] = grad != nullptr ? grad[j] : T(0);
     }
     n = 0;
     for (int64_t j = 0; j < m; ++j) {
@@ -262,10 +324,17 @@ struct ChordTile {
       if (grad != nullptr && grad[j] == T(0)) continue;
       pixel[n++] = j;
     }
+    if (grad != nullptr)
+      for (int64_t i = 0; i < n; ++i) g_I[i] = grad[pixel[i]];
     if (n == m) return;
-    for (auto* field : chord_fields()) {  // compact in place (pixel[i] ≥ i)
-      T* f = field->data();
+    const auto compact = [&](std::vector<T>& field) {  // in place (pixel[i] ≥ i)
+      T* f = field.data();
       for (int64_t i = 0; i < n; ++i) f[i] = f[pixel[i]];
+    };
+    if (backward) {
+      for (auto* field : chord_fields()) compact(*field);
+    } else {
+      for (auto* field : {&d0, &d1, &d2, &delta, &tau_m}) compact(*field);
     }
   }
 
@@ -288,8 +357,13 @@ struct ChordTile {
         xj[k] = T(0.5) * aj[k] * dl;
       }
     }
-    simd_cos(phase.data(), cos_p.data(), L);
-    simd_sin(x.data(), sin_x.data(), L);
+    if (backward) {  // also sin of the phase and cos of x, from the same range reductions
+      simd_sincos(phase.data(), sin_p.data(), cos_p.data(), L);
+      simd_sincos(x.data(), sin_x.data(), cos_x.data(), L);
+    } else {
+      simd_cos(phase.data(), cos_p.data(), L);
+      simd_sin(x.data(), sin_x.data(), L);
+    }
     const T *xs = x.data(), *sx = sin_x.data();
     T* s = sinc_x.data();
 #pragma omp simd
@@ -304,8 +378,6 @@ struct ChordTile {
     }
     simd_expm1(neg_depth.data(), expm1_neg.data(), n);
     if (backward) {
-      simd_sin(phase.data(), sin_p.data(), L);
-      simd_cos(x.data(), cos_x.data(), L);
       const T* cx = cos_x.data();
       T* sl = slope.data();
 #pragma omp simd

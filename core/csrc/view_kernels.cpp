@@ -98,24 +98,42 @@ struct NeuralKind {
   NeuralTensors<T> prm;
   Intrinsics<T> k;
   ChordTile<T> tile;
+  std::array<T, kPixels> dx, dy, dz, near;  // the current tile's pixel directions and near planes
   static int64_t stride(int64_t units) { return neural_grad_stride(units); }
 
   NeuralKind(const NeuralTensors<T>& params, const Intrinsics<T>& intrinsics, bool backward)
       : prm(params), k(intrinsics), tile(params.N, kPixels, backward) {}
 
-  void alpha(int64_t p, const T* u, const T* v, int64_t m, T* out) {
+  // directions depend on the pixel only: once per tile, not once per pair
+  void begin_tile(const TileBatch<T>& b) {
+    std::array<T, kPixels> u, v;
+    for (int64_t y = 0; y < kSide; ++y)
+      for (int64_t x = 0; x < kSide; ++x) u[y * kSide + x] = T(b.x0 + x) + T(0.5), v[y * kSide + x] = T(b.y0 + y) + T(0.5);
+    ChordTile<T>::directions(u.data(), v.data(), kPixels, k, dx.data(), dy.data(), dz.data(), near.data());
+  }
+
+  void load(const TileBatch<T>& b) {
+    for (int64_t j = 0; j < b.m; ++j) {
+      const int32_t i = b.local[j];
+      tile.d0[j] = dx[i], tile.d1[j] = dy[i], tile.d2[j] = dz[i], tile.l_near[j] = near[i];
+    }
+  }
+
+  void alpha(int64_t p, const TileBatch<T>& b, T* out) {
     const NeuralParams<T> q = prm.primitive(p);
-    std::fill(out, out + m, T(0));
-    tile.chords(u, v, m, k, q, nullptr);
+    std::fill(out, out + b.m, T(0));
+    load(b);
+    tile.intersect(b.m, q, nullptr, /*backward=*/false);
     tile.optical_depth(q, /*backward=*/false);
     for (int64_t j = 0; j < tile.n; ++j) out[tile.pixel[j]] = alpha_from_expm1(tile.expm1_neg[j]);  // eq. 9
   }
 
   // grad_of(j, α) composites batch pixel j and returns ∂L/∂α; sums go to acc (this primitive's slot)
   template <typename GradOf>
-  void backward(int64_t p, const T* u, const T* v, int64_t m, GradOf&& grad_of, double* acc) {
+  void backward(int64_t p, const TileBatch<T>& b, GradOf&& grad_of, double* acc) {
     const NeuralParams<T> q = prm.primitive(p);
-    tile.chords(u, v, m, k, q, nullptr);
+    load(b);
+    tile.intersect(b.m, q, nullptr, /*backward=*/true);
     tile.optical_depth(q, /*backward=*/true);
     bool any = false;
     for (int64_t j = 0; j < tile.n; ++j) {
@@ -150,13 +168,18 @@ struct GaussianKind {
     simd_exp(e.data(), e.data(), m);
   }
 
-  void alpha(int64_t p, const T* u, const T* v, int64_t m, T* out) {
-    splat(p, u, v, m);
+  void begin_tile(const TileBatch<T>&) {}
+
+  void alpha(int64_t p, const TileBatch<T>& b, T* out) {
+    const int64_t m = b.m;
+    splat(p, b.u.data(), b.v.data(), m);
     for (int64_t j = 0; j < m; ++j) out[j] = gaussian_alpha(power[j], std::min(T(kAlphaMax), opacity[p] * e[j]));
   }
 
   template <typename GradOf>
-  void backward(int64_t p, const T* u, const T* v, int64_t m, GradOf&& grad_of, double* acc) {
+  void backward(int64_t p, const TileBatch<T>& b, GradOf&& grad_of, double* acc) {
+    const int64_t m = b.m;
+    const T *u = b.u.data(), *v = b.v.data();
     splat(p, u, v, m);
     const T* q = conic + 3 * p;
     const T mx = mean2d[2 * p], my = mean2d[2 * p + 1];
@@ -216,6 +239,7 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < g.tiles(); ++t) {
       TileBatch<T> batch(g, t);
+      kind.begin_tile(batch);
       tr.fill(1.0);
       color_r.fill(0.0), color_g.fill(0.0), color_b.fill(0.0), z.fill(0.0);
       last.fill(0);
@@ -226,7 +250,7 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
         batch.gather(view.bounds + 4 * p, [&](int32_t i) { return !done[i]; });
         if (batch.m == 0) continue;
         pairs += batch.m;
-        kind.alpha(p, batch.u.data(), batch.v.data(), batch.m, alpha.data());
+        kind.alpha(p, batch, alpha.data());
         const double cr = view.colors[3 * p], cg = view.colors[3 * p + 1], cb = view.colors[3 * p + 2];
         const double zp = view.depth[p];
         for (int64_t j = 0; j < batch.m; ++j) {
@@ -281,6 +305,7 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < g.tiles(); ++t) {
       TileBatch<T> batch(g, t);
+      kind.begin_tile(batch);
       int32_t longest = 0;
       last.fill(0);
       for (int64_t y = 0; y < batch.h; ++y)
@@ -314,7 +339,7 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
           acc_view[3] += gz[i] * w;
           return T(g_alpha);
         };
-        kind.backward(p, batch.u.data(), batch.v.data(), batch.m, grad_of, acc);
+        kind.backward(p, batch, grad_of, acc);
       }
     }
   }
