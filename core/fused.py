@@ -1,21 +1,21 @@
-"""Fused CPU kernels for the rasteriser's block kernels (a C++/OpenMP torch extension).
+"""Fused CPU kernels (a C++/OpenMP torch extension, core/csrc/) for the rasteriser.
 
-    neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax) -> alpha (P, A)
-    gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> alpha (P, A)
-    available(device=None, dtype=None) -> bool
+    neural_view(bounds, intrinsics, H, W, t_min, colors, depth, *neural params) -> sums, T, counters
+    gaussian_view(bounds, H, W, t_min, colors, depth, mean2d, conic, opacity)   -> sums, T, counters
+    sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
+    neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
+    available(device=None, dtype=None) -> bool, build_error() -> str | None
 
-Same signatures and semantics, forward and backward, as `_neural_block` / `_gaussian_block` in
-core/rasterize.py, which stay the readable pure-torch twins the tests compare against. The eager
-twins make one pass over (P, A, N) tensors per elementwise op (~60 for the neural kernel); the
-fused kernels evaluate a tile of one primitive's pixels at a time in per-thread buffers (SIMD
-over pixels, OpenMP over tiles and primitives), store nothing but their inputs for the backward,
-and recompute the trigonometry there. Sources: core/csrc/block_kernels.cpp.
+The view kernels composite a whole view per 16×16 tile (view_kernels.cpp, the method is in its
+header comment); the per-view ops replace their torch twins in core/rasterize.py and core/sh.py
+(`_neural_view`, `sh_to_color`), and the block kernels have the signatures and semantics of
+`_neural_block` / `_gaussian_block`. Every op has a hand-written backward; the torch twins stay the
+readable references the tests compare against.
 
-The extension is compiled at first use (about 15 s on a 2-core machine, 40 s under load; needs
-g++ and ninja) and cached on disk by torch (TORCH_EXTENSIONS_DIR, default
-~/.cache/torch_extensions), so later processes only load it (~0.1 s). `RADFIELD_KERNELS=torch`
-forces the pure-torch kernels; if the build fails, one warning says so and the torch kernels are
-used.
+The extension is compiled at first use (1–3 minutes on a busy 2-core machine; needs g++ and
+ninja) and cached on disk by torch (TORCH_EXTENSIONS_DIR, default ~/.cache/torch_extensions), so
+later processes only load it (~0.1 s). `RADFIELD_KERNELS=torch` forces the pure-torch path; if the
+build fails, one warning says so and the torch path is used (tests/test_fused.py fails under CI=true).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
-_state: dict = {"tried": False, "ops": None}
+_state: dict = {"tried": False, "ops": None, "error": None}
 
 
 def _forced_torch() -> bool:
@@ -68,9 +68,10 @@ def _build():
         extra_include_paths=[str(_CSRC)],
         # IEEE semantics kept (no -ffast-math); -fno-math-errno as torch's own build, so that
         # sqrt is an instruction (and vectorises) instead of a libm call that may set errno;
-        # no FMA contraction: with it, GCC fuses a·b + c wherever -mfma allows, so AVX2/AVX-512
-        # builds rounded differently from the default build and from torch's eager twins
-        # (the cause of issue 7's AVX2-only test failure)
+        # no FMA contraction: with it GCC fuses a·b + c wherever -mfma allows, so AVX2/AVX-512
+        # builds rounded differently from the default build and from torch's eager twins, which
+        # decided whether an ill-conditioned float32 gradient landed just inside or outside a
+        # test bound that was relative to the twin's own error
         extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off", *_simd_flags()],
         extra_ldflags=["-fopenmp"],
         is_python_module=False,   # registers torch.ops.radfield.* (TORCH_LIBRARY), no pybind11
@@ -86,9 +87,18 @@ def _ops():
             _state["ops"] = _build()
         except Exception as exc:  # no compiler, no ninja, unwritable cache, compile error
             reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            _state["error"] = f"{type(exc).__name__}: {reason[:200]}"
             warnings.warn(f"radfield: fused CPU kernels unavailable ({type(exc).__name__}: {reason[:200]}); "
                           "using the slower torch kernels", RuntimeWarning, stacklevel=3)
     return _state["ops"]
+
+
+def build_error() -> str | None:
+    """Why the kernels are unavailable: the build's first error line, RADFIELD_KERNELS=torch, or None."""
+    if _forced_torch():
+        return "RADFIELD_KERNELS=torch"
+    _ops()
+    return _state["error"]
 
 
 def available(device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> bool:

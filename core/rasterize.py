@@ -2,16 +2,19 @@
 
     render(prims, camera, background=...) -> Render(color (H,W,3), alpha (H,W), depth (H,W), meta)
 
-Pipeline (vectorised torch, no Python loop over pixels or primitives):
+Pipeline:
 1. per primitive, once per view: camera-space depth, frustum culling, a tight projected bound
    (the dual conic of the bounding ellipsoid for neural primitives, 3σ of the EWA covariance for
-   Gaussians), and everything that depends only on the camera centre o (o', c_k, SH colour);
-2. binning: primitives sorted by depth; the pixels of each projected bound become flat
-   (primitive, pixel) pairs. The "tile" is a single pixel: on a CPU there is no shared memory to
-   amortise, and 16×16 tiles evaluated 3–6× more pairs than the pixel bounds on small splats;
-3. pairs are evaluated in depth-ordered chunks of at most `max_pairs` (bounded memory); pixels whose
-   transmittance fell below `t_min` drop out of later chunks (early termination);
-4. front-to-back compositing (paper eq. 4) with segmented cumulative sums of log-transmittance.
+   Gaussians), and everything that depends only on the camera centre (o', c_k, SH colour);
+2. primitives sorted by depth;
+3. front-to-back compositing (paper eq. 4) with early termination, by one of two implementations
+   with the same semantics:
+   - on the CPU, the fused C++ tile rasteriser (core/fused.py, core/csrc/view_kernels.cpp), the
+     default, with fused ops for the colour and the neural frame of step 1;
+   - the readable torch twin `_composite` (RADFIELD_KERNELS=torch, other devices): the pixels of
+     each projected bound become flat (primitive, pixel) pairs, evaluated in depth-ordered chunks
+     of at most `max_pairs` (pixels whose transmittance fell below `t_min` drop out of later
+     chunks) and composited with segmented cumulative sums of log-transmittance.
 """
 
 from __future__ import annotations
@@ -43,7 +46,9 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     """Render one view. Differentiable w.r.t. every tensor of `prims` (and `background` if a tensor).
 
     sh_degree: use SH bands up to this degree (default: all the model has).
-    max_pairs: pixel-primitive pairs evaluated at once; bounds memory, not results.
+    max_pairs: torch path only: pixel-primitive pairs evaluated at once (does not change results;
+    with gradients every chunk's saved tensors live until backward). The fused CPU path keeps
+    nothing per pair: O(pixels + tile lists) memory.
     """
     device, dtype = prims.means.device, prims.means.dtype
     height, width = camera.height, camera.width

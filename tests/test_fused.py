@@ -7,6 +7,7 @@ plane, grazing rays, a_k = 0 and a_k ≈ 0 (sinc's series branch), α at the 0.9
 """
 
 import math
+import os
 import warnings
 
 import pytest
@@ -18,9 +19,17 @@ from radfield.core.kernels import ray_ellipsoid
 from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.rasterize import _camera_directions, _gaussian_block, _neural_block, render
 
+IN_CI = os.environ.get("CI", "").strip().lower() == "true"
+# outside CI a machine without a compiler skips these tests; in CI they run (and fail) regardless
 pytestmark = pytest.mark.skipif(
-    not fused.available(),
+    not IN_CI and not fused.available(),
     reason="fused CPU kernels unavailable (RADFIELD_KERNELS=torch, or the C++ extension failed to build: see its warning)")
+
+
+def test_fused_kernels_build():
+    """CI fails here, with the compiler's first line, when the C++ kernels do not build."""
+    assert fused.available(), f"fused kernels unavailable: {fused.build_error()}"
+
 
 W, H = 24, 20
 INTRINSICS = (26.0, 29.0, 11.3, 9.6, 0.05)   # fx, fy, cx, cy, near
@@ -28,6 +37,12 @@ INTRINSICS = (26.0, 29.0, 11.3, 9.6, 0.05)   # fx, fy, cx, cy, near
 # grazing rays amplify that by 1/√disc; gradients are compared relative to the block's largest.
 TOL64 = dict(rtol=1e-8, atol=1e-10)
 TOL64_GRAD = dict(rtol=1e-7, atol=1e-8)
+# float32: an accuracy target against float64 evaluated on the same (float32-rounded) inputs,
+# the same on every build (AVX-512, AVX2, default) and for both implementations. α is absolute;
+# gradients are relative to the block's largest. The neural bound is float32's ε ≈ 6e-8 times the
+# condition of a chord near the silhouette (the test's grazing rays pass at 1e-3 of the radius:
+# ∂ℓ/∂o' grows like 1/√(1 − |p|²) and its own derivative like (1 − |p|²)^(−3/2) ≈ 1e4).
+TOL32 = {"neural": (1e-4, 1e-3), "gaussian": (1e-5, 1e-5)}
 
 
 def _grid():
@@ -133,13 +148,12 @@ def _evaluate(fn, args, dtype, grad_out):
     return [alpha.detach(), *torch.autograd.grad(alpha, params, grad_out.to(dtype))]
 
 
-def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0):
+def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0, kind="neural"):
     """Forward and every parameter gradient (args[3:]), for a random upstream gradient that is
     zero on the padded elements and on a fifth of the others.
 
-    float64: fused and torch agree to rounding. float32: both are compared with the float64
-    result, and the fused kernel must be at least about as accurate as the torch twin (grazing
-    rays make float32 gradients uncertain in the third digit in both)."""
+    float64: fused and torch agree to rounding. float32: both must meet TOL32 against float64
+    evaluated on the float32-rounded inputs (what float32 arithmetic can be asked for)."""
     g = torch.Generator().manual_seed(seed)
     grad_out = torch.randn(args[0].shape, generator=g, dtype=torch.float64)
     grad_out[torch.rand(grad_out.shape, generator=g) < 0.2] = 0
@@ -153,13 +167,14 @@ def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0):
             scale = s.abs().max().clamp_min(1.0)   # sums over a block: tolerance relative to the largest
             torch.testing.assert_close(f / scale, s / scale, **TOL64_GRAD, msg=lambda m: f"{name}: {m}")
     else:
-        exact = _evaluate(slow_fn, args, torch.float64, grad_out)
-        for name, f, s, e in zip(names, fast, slow, exact):
-            scale = e.abs().max().clamp_min(1.0)
-            err_fast, err_slow = (f.double() - e).abs().max() / scale, (s.double() - e).abs().max() / scale
-            # (not a fixed bound: an element whose α sits within float32 rounding of a clamp or of the
-            # silhouette takes the other branch in float32, in both implementations)
-            assert err_fast <= 2 * err_slow + 1e-5, f"{name}: fused error {err_fast:.3g}, torch error {err_slow:.3g}"
+        rounded = [t.to(dtype).double() for t in args]
+        exact = _evaluate(slow_fn, rounded, torch.float64, grad_out.to(dtype).double())
+        tol_alpha, tol_grad = TOL32[kind]
+        for i, (name, e) in enumerate(zip(names, exact)):
+            scale = 1.0 if i == 0 else float(e.abs().max().clamp_min(1.0))
+            for impl, result in (("fused", fast[i]), ("torch", slow[i])):
+                err = float((result.double() - e).abs().max()) / scale
+                assert err <= (tol_alpha if i == 0 else tol_grad), f"{impl} {name}: error {err:.3g} against float64"
     return slow[0]
 
 
@@ -179,7 +194,7 @@ def test_neural_block_matches_torch_twin(dtype, seed):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_gaussian_block_matches_torch_twin(dtype):
     args, n_pad = gaussian_case()
-    alpha = _compare(fused.gaussian_block, _gaussian_block, args, n_pad, dtype)
+    alpha = _compare(fused.gaussian_block, _gaussian_block, args, n_pad, dtype, kind="gaussian")
     assert (alpha == torch.tensor(0.99, dtype=dtype)).any() and (alpha[1] == 0).all() and (alpha[6] == 0).any()
 
 
@@ -301,7 +316,7 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
         raise RuntimeError("Error building extension 'radfield_kernels'\nmore compiler output")
 
     monkeypatch.setattr(fused, "_build", broken_build)
-    monkeypatch.setattr(fused, "_state", {"tried": False, "ops": None})
+    monkeypatch.setattr(fused, "_state", {"tried": False, "ops": None, "error": None})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert not fused.available()
@@ -309,6 +324,7 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
         render(*_render_scene("neural", torch.float32))
     messages = [str(w.message) for w in caught if "fused" in str(w.message)]
     assert len(messages) == 1 and "\n" not in messages[0] and "torch kernels" in messages[0]
+    assert fused.build_error() == "RuntimeError: Error building extension 'radfield_kernels'"
 
 
 # --- per-view preparation ops (core/csrc/prepare_kernels.cpp) against their torch twins ----------
