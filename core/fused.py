@@ -252,7 +252,7 @@ def sh_color(sh, v, degree: int) -> torch.Tensor:
 
 
 def neural_prep(prims, campos, cam_rot) -> tuple:
-    """rasterize._neural_view in one fused op: (m_cam, o_ell, w_cam, c, w2, b2, inv_smax)."""
-    m_cam, o_ell, w_cam, c, inv_smax = _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1,
-                                                         prims.b1, campos, cam_rot, prims.omega0)
-    return m_cam, o_ell, w_cam, c, prims.w2, prims.b2, inv_smax
+    """The ellipsoid frame and MLP phases of rasterize._neural_view in one fused op:
+    (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from rasterize._density_weights."""
+    return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
+                             prims.omega0)

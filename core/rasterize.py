@@ -66,7 +66,11 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
 
     if isinstance(prims, NeuralPrimitives):
         bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
-        view = fused.neural_prep(prims, campos, c2w[:3, :3]) if use_fused else _neural_view(prims, campos, c2w[:3, :3])
+        if use_fused:
+            m_cam, o_ell, w_cam, c, inv_smax = fused.neural_prep(prims, campos, c2w[:3, :3])
+            view = (m_cam, o_ell, w_cam, c, *_density_weights(prims, campos - prims.means), inv_smax)
+        else:
+            view = _neural_view(prims, campos, c2w[:3, :3])
     elif isinstance(prims, Gaussians):
         view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
     else:
@@ -162,7 +166,14 @@ def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor, cam_rot: torch.T
     o_ell = (m * rel[:, None, :]).sum(-1)
     w = prims.omega0 * prims.w1
     c = (w * (rel / smax[:, None])[:, None, :]).sum(-1) + prims.omega0 * prims.b1
-    return m @ cam_rot, o_ell, w @ cam_rot, c, prims.w2, prims.b2, 1.0 / smax
+    w2, b2 = _density_weights(prims, rel)
+    return m @ cam_rot, o_ell, w @ cam_rot, c, w2, b2, 1.0 / smax
+
+
+def _density_weights(prims: NeuralPrimitives, rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(W2, b2) as the pair kernels see them in this view (rel = o − μ); both the torch twin and
+    the fused path (whose fused op computes the rest of `_neural_view`) take them from here."""
+    return prims.w2, prims.b2
 
 
 def _neural_bounds(prims: NeuralPrimitives, camera: Camera, w2c, means_cam, near):
