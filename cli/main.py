@@ -15,6 +15,7 @@ from radfield.cli import animate as animate_cli
 from radfield.cli import edit as edit_cli
 from radfield.cli import evaluate as evaluate_cli
 from radfield.cli import export as export_cli, view as view_cli
+from radfield.cli import bench_train as bench_train_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -168,6 +169,9 @@ def bench_render(
     if min(primitives, width, height, views, repeats) < 1:
         raise RadfieldError("--primitives, --width, --height, --views and --repeats must be positive")
     run_bench(primitives, width, height, views, repeats, str(resolve_device(device)), profile, echo=typer.echo)
+
+
+app.command("bench-train")(bench_train_cli.bench_train)
 
 
 @app.command("demo-scene")

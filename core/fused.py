@@ -1,21 +1,21 @@
-"""Fused CPU kernels for the rasteriser's block kernels (a C++/OpenMP torch extension).
+"""Fused CPU kernels (a C++/OpenMP torch extension, core/csrc/) for the rasteriser.
 
-    neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax) -> alpha (P, A)
-    gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> alpha (P, A)
-    available(device=None, dtype=None) -> bool
+    neural_view(bounds, intrinsics, H, W, t_min, colors, depth, *neural params) -> sums, T, counters
+    gaussian_view(bounds, H, W, t_min, colors, depth, mean2d, conic, opacity)   -> sums, T, counters
+    sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
+    neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
+    available(device=None, dtype=None) -> bool, build_error() -> str | None
 
-Same signatures and semantics, forward and backward, as `_neural_block` / `_gaussian_block` in
-core/rasterize.py, which stay the readable pure-torch twins the tests compare against. The eager
-twins make one pass over (P, A, N) tensors per elementwise op (~60 for the neural kernel); the
-fused kernels evaluate a tile of one primitive's pixels at a time in per-thread buffers (SIMD
-over pixels, OpenMP over tiles and primitives), store nothing but their inputs for the backward,
-and recompute the trigonometry there. Sources: core/csrc/block_kernels.cpp.
+The view kernels composite a whole view per 16×16 tile (view_kernels.cpp, the method is in its
+header comment); the per-view ops replace their torch twins in core/rasterize.py and core/sh.py
+(`_neural_view`, `sh_to_color`), and the block kernels have the signatures and semantics of
+`_neural_block` / `_gaussian_block`. Every op has a hand-written backward; the torch twins stay the
+readable references the tests compare against.
 
-The extension is compiled at first use (about 15 s on a 2-core machine, 40 s under load; needs
-g++ and ninja) and cached on disk by torch (TORCH_EXTENSIONS_DIR, default
-~/.cache/torch_extensions), so later processes only load it (~0.1 s). `RADFIELD_KERNELS=torch`
-forces the pure-torch kernels; if the build fails, one warning says so and the torch kernels are
-used.
+The extension is compiled at first use (1–3 minutes on a busy 2-core machine; needs g++ and
+ninja) and cached on disk by torch (TORCH_EXTENSIONS_DIR, default ~/.cache/torch_extensions), so
+later processes only load it (~0.1 s). `RADFIELD_KERNELS=torch` forces the pure-torch path; if the
+build fails, one warning says so and the torch path is used (tests/test_fused.py fails under CI=true).
 """
 
 from __future__ import annotations
@@ -27,10 +27,11 @@ from pathlib import Path
 
 import torch
 
-_SOURCE = Path(__file__).resolve().parent / "csrc" / "block_kernels.cpp"
+_CSRC = Path(__file__).resolve().parent / "csrc"
+_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
-_state: dict = {"tried": False, "ops": None}
+_state: dict = {"tried": False, "ops": None, "error": None}
 
 
 def _forced_torch() -> bool:
@@ -63,10 +64,15 @@ def _build():
         pass
     cpp_extension.load(
         name=_NAME,
-        sources=[str(_SOURCE)],
+        sources=[str(p) for p in _SOURCES],
+        extra_include_paths=[str(_CSRC)],
         # IEEE semantics kept (no -ffast-math); -fno-math-errno as torch's own build, so that
-        # sqrt is an instruction (and vectorises) instead of a libm call that may set errno
-        extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", *_simd_flags()],
+        # sqrt is an instruction (and vectorises) instead of a libm call that may set errno;
+        # no FMA contraction: with it GCC fuses a·b + c wherever -mfma allows, so AVX2/AVX-512
+        # builds rounded differently from the default build and from torch's eager twins, which
+        # decided whether an ill-conditioned float32 gradient landed just inside or outside a
+        # test bound that was relative to the twin's own error
+        extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off", *_simd_flags()],
         extra_ldflags=["-fopenmp"],
         is_python_module=False,   # registers torch.ops.radfield.* (TORCH_LIBRARY), no pybind11
         verbose=False,
@@ -81,9 +87,18 @@ def _ops():
             _state["ops"] = _build()
         except Exception as exc:  # no compiler, no ninja, unwritable cache, compile error
             reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            _state["error"] = f"{type(exc).__name__}: {reason[:200]}"
             warnings.warn(f"radfield: fused CPU kernels unavailable ({type(exc).__name__}: {reason[:200]}); "
                           "using the slower torch kernels", RuntimeWarning, stacklevel=3)
     return _state["ops"]
+
+
+def build_error() -> str | None:
+    """Why the kernels are unavailable: the build's first error line, RADFIELD_KERNELS=torch, or None."""
+    if _forced_torch():
+        return "RADFIELD_KERNELS=torch"
+    _ops()
+    return _state["error"]
 
 
 def available(device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> bool:
@@ -146,3 +161,98 @@ def gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> torch.Tensor:
     """α of 2D Gaussian splats (P,) over blocks of image points u, v (P, A); see
     rasterize._gaussian_block."""
     return _GaussianBlock.apply(u, v, intrinsics, mean2d, conic, opacity)
+
+
+# --- whole-view rasteriser (core/csrc/view_kernels.cpp) -----------------------------------------
+
+class _View(torch.autograd.Function):
+    """Composited sums of one view: (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (3,)),
+    differentiable w.r.t. colors, depth and the kind's per-primitive tensors."""
+
+    @staticmethod
+    def forward(ctx, kind, bounds, intrinsics, height, width, t_min, colors, depth, *params):
+        inputs = [t.contiguous() for t in (colors, depth, *params)]
+        bounds = bounds.contiguous()
+        lead = (bounds, intrinsics.contiguous()) if kind == "neural" else (bounds,)
+        acc_color, acc_depth, trans, trans64, last, offsets, entries, counters = getattr(_ops(), f"{kind}_view_forward")(
+            *lead, *inputs, height, width, t_min)
+        ctx.kind, ctx.lead = kind, lead
+        ctx.save_for_backward(*inputs, trans64, last, offsets, entries)
+        ctx.mark_non_differentiable(counters)
+        return acc_color, acc_depth, trans, counters
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_color, g_depth, g_trans, _):
+        *inputs, trans64, last, offsets, entries = ctx.saved_tensors
+        dtype = inputs[0].dtype
+        grads = [torch.zeros(s, dtype=dtype) if g is None else g.contiguous()
+                 for g, s in zip((g_color, g_depth, g_trans), (last.shape + (3,), last.shape, last.shape))]
+        out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, *ctx.lead, *inputs, trans64, last, offsets, entries)
+        return None, None, None, None, None, None, *out
+
+
+def neural_view(bounds, intrinsics, height, width, t_min, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax):
+    """Front-to-back compositing of depth-sorted neural primitives over a whole view in one fused
+    kernel: returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
+    composited pairs, terminated pixels)). bounds (P, 4) int64 inclusive pixel boxes inside the
+    image; the per-primitive tensors as rasterize._neural_view returns them."""
+    return _View.apply("neural", bounds, intrinsics, height, width, t_min, colors, depth,
+                       m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
+
+
+def gaussian_view(bounds, height, width, t_min, colors, depth, mean2d, conic, opacity):
+    """As neural_view, for EWA splats (mean2d (P, 2), conic (P, 3), opacity (P,))."""
+    return _View.apply("gaussian", bounds, None, height, width, t_min, colors, depth, mean2d, conic, opacity)
+
+
+# --- per-view preparation (core/csrc/prepare_kernels.cpp) ---------------------------------------
+
+class _SHColor(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sh, v, degree):
+        sh, v = sh.contiguous(), v.contiguous()
+        ctx.degree = degree
+        ctx.save_for_backward(sh, v)
+        return _ops().sh_color_forward(sh, v, degree)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        g_sh, g_v = _ops().sh_color_backward(grad.contiguous(), *ctx.saved_tensors, ctx.degree)
+        return g_sh, g_v, None
+
+
+class _NeuralPrep(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, w1, b1, campos, cam_rot, omega0):
+        args = [t.contiguous() for t in (means, log_scales, quats, w1, b1, campos, cam_rot)]
+        ctx.omega0 = float(omega0)
+        ctx.save_for_backward(*args)
+        return tuple(_ops().neural_prep_forward(*args, ctx.omega0))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        args = ctx.saved_tensors
+        grads = [torch.zeros_like(o) if g is None else g.contiguous() for g, o in zip(grads, _prep_shapes(args))]
+        out = _ops().neural_prep_backward(*grads, *args, ctx.omega0)
+        return (*out, None, None, None)
+
+
+def _prep_shapes(args):
+    means, _, _, w1, b1, _, _ = args
+    p, n = b1.shape
+    return [means.new_empty(p, 3, 3), means.new_empty(p, 3), w1.new_empty(p, n, 3), b1.new_empty(p, n), means.new_empty(p)]
+
+
+def sh_color(sh, v, degree: int) -> torch.Tensor:
+    """sh.sh_to_color(sh, normalize(v), degree) in one fused op (v = μ − o, unnormalised)."""
+    return _SHColor.apply(sh, v, degree)
+
+
+def neural_prep(prims, campos, cam_rot) -> tuple:
+    """The ellipsoid frame and MLP phases of rasterize._neural_view in one fused op:
+    (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from rasterize._density_weights."""
+    return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
+                             prims.omega0)

@@ -24,14 +24,19 @@ def ellipsoid_frame(means, log_scales, quats) -> tuple[torch.Tensor, torch.Tenso
 
 def ray_ellipsoid(o_ell: torch.Tensor, d_ell: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Entry and exit distances of rays o + ℓ d̂ through the unit sphere, given o' = M(o − μ) and
-    d' = M d̂ (..., 3): solves |o' + ℓ d'|² = 1. Returns (ℓ_in, ℓ_out, hit)."""
+    d' = M d̂ (..., 3): solves |o' + ℓ d'|² = 1. Returns (ℓ_in, ℓ_out, hit).
+
+    In the closest-approach form ℓ = ℓ* ∓ √((1 − |p|²)/A), with A = d'·d', ℓ* = −(o'·d')/A and
+    p = o' + ℓ* d': the textbook discriminant B² − AC (B = o'·d') subtracts two numbers of size
+    |o'|² A to get one of size A (1 − |p|²), and loses every digit of a grazing ray in float32
+    once the primitive is a few radii away (Haines et al., Ray Tracing Gems ch. 7)."""
     a = (d_ell * d_ell).sum(-1)
-    b = (o_ell * d_ell).sum(-1)
-    c = (o_ell * o_ell).sum(-1) - 1.0
-    disc = b * b - a * c
-    hit = disc > 0
-    root = torch.sqrt(torch.where(hit, disc, torch.ones_like(disc)))  # where-guard: no NaN gradients
-    return (-b - root) / a, (-b + root) / a, hit
+    l_mid = -(o_ell * d_ell).sum(-1) / a
+    closest = o_ell + l_mid[..., None] * d_ell
+    h = (closest * closest).sum(-1)
+    hit = h < 1.0
+    half = torch.sqrt(torch.where(hit, (1.0 - h) / a, torch.ones_like(h)))  # where-guard: no NaN gradients
+    return l_mid - half, l_mid + half, hit
 
 
 def sinc(x: torch.Tensor) -> torch.Tensor:

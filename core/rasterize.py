@@ -2,17 +2,19 @@
 
     render(prims, camera, background=...) -> Render(color (H,W,3), alpha (H,W), depth (H,W), meta)
 
-Pipeline (vectorised torch, no Python loop over pixels or primitives):
+Pipeline:
 1. per primitive, once per view: camera-space depth, frustum culling, a tight projected bound
    (the dual conic of the bounding ellipsoid for neural primitives, 3σ of the EWA covariance for
-   Gaussians), and everything that depends only on the camera centre o (o', c_k, SH colour);
-2. binning: primitives sorted by depth; the pixels of each projected bound become flat
-   (primitive, pixel) pairs. The "tile" is a single pixel: on a CPU there is no shared memory to
-   amortise, and 16×16 tiles evaluated 3–6× more pairs than the pixel bounds on small splats;
-3. pairs are evaluated in depth-ordered chunks of at most `max_pairs`; pixels whose transmittance
-   fell below `t_min` drop out of later chunks (early termination). Without gradients this bounds
-   the working memory; with gradients it does not (see render's `max_pairs`);
-4. front-to-back compositing (paper eq. 4) with segmented cumulative sums of log-transmittance.
+   Gaussians), and everything that depends only on the camera centre (o', c_k, SH colour);
+2. primitives sorted by depth;
+3. front-to-back compositing (paper eq. 4) with early termination, by one of two implementations
+   with the same semantics:
+   - on the CPU, the fused C++ tile rasteriser (core/fused.py, core/csrc/view_kernels.cpp), the
+     default, with fused ops for the colour and the neural frame of step 1;
+   - the readable torch twin `_composite` (RADFIELD_KERNELS=torch, other devices): the pixels of
+     each projected bound become flat (primitive, pixel) pairs, evaluated in depth-ordered chunks
+     of at most `max_pairs` (pixels whose transmittance fell below `t_min` drop out of later
+     chunks) and composited with segmented cumulative sums of log-transmittance.
 """
 
 from __future__ import annotations
@@ -44,15 +46,15 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     """Render one view. Differentiable w.r.t. every tensor of `prims` (and `background` if a tensor).
 
     sh_degree: use SH bands up to this degree (default: all the model has).
-    max_pairs: pixel-primitive pairs evaluated at once (results do not depend on it). Under
-        torch.no_grad() it bounds the working memory: one chunk's pair tensors at a time. With
-        gradients it does NOT bound memory: autograd keeps every chunk's saved tensors until
-        backward, so what a differentiable render holds is proportional to all the view's
-        candidate pairs (`meta["candidate_pairs"]`), whatever max_pairs is: measured with float32
-        primitives (scripts/saved_memory.py, 3000 primitives, one 128×128 view) ≈ 420 bytes per
-        pair for neural primitives and ≈ 120 for Gaussians with the torch kernels, ≈ 175 and ≈ 93
-        with the fused CPU kernels, the same for max_pairs = 2^10 … 2^20; max_pairs then bounds
-        only one chunk's transient temporaries on top of that.
+    max_pairs: torch path only: pixel-primitive pairs evaluated at once (results do not depend
+        on it). Under torch.no_grad() it bounds the working memory: one chunk's pair tensors at a
+        time. With gradients it does NOT bound memory: autograd keeps every chunk's saved tensors
+        until backward, so a differentiable torch-path render holds memory proportional to all the
+        view's candidate pairs (`meta["candidate_pairs"]`), whatever max_pairs is: measured with
+        float32 primitives (scripts/saved_memory.py torch, 3000 primitives, one 128×128 view)
+        ≈ 420 bytes per pair for neural primitives and ≈ 120 for Gaussians, the same for
+        max_pairs = 2^10 … 2^20. The fused CPU path keeps nothing per pair: its memory is
+        O(pixels + per-tile primitive lists + per-primitive tensors), with or without gradients.
     """
     device, dtype = prims.means.device, prims.means.dtype
     height, width = camera.height, camera.width
@@ -62,26 +64,62 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
     depth = means_cam[:, 2]
     degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
-    view_dirs = torch.nn.functional.normalize(prims.means - campos, dim=-1)
-    colors = sh_to_color(prims.sh, view_dirs, degree)
+    use_fused = fused.available(device, dtype)
+    if use_fused:   # the same per-primitive quantities from fused C++ ops (core/csrc/prepare_kernels.cpp)
+        colors = fused.sh_color(prims.sh, prims.means - campos, degree)
+    else:
+        colors = sh_to_color(prims.sh, torch.nn.functional.normalize(prims.means - campos, dim=-1), degree)
 
     if isinstance(prims, NeuralPrimitives):
         bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
-        view = _neural_view(prims, campos, c2w[:3, :3])
-        kernel = fused.neural_block if fused.available(device, dtype) else _neural_block
+        if use_fused:
+            m_cam, o_ell, w_cam, c, inv_smax = fused.neural_prep(prims, campos, c2w[:3, :3])
+            view = (m_cam, o_ell, w_cam, c, *_density_weights(prims, campos - prims.means), inv_smax)
+        else:
+            view = _neural_view(prims, campos, c2w[:3, :3])
     elif isinstance(prims, Gaussians):
         view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
-        kernel = fused.gaussian_block if fused.available(device, dtype) else _gaussian_block
     else:
         raise TypeError(f"cannot render {type(prims).__name__}")
     intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)
 
     ids = torch.nonzero(visible).squeeze(1)
     ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
-    x0, y0, x1, y1 = bounds[ids].unbind(-1)
+    bounds = bounds[ids]
+    x0, y0, x1, y1 = bounds.unbind(-1)
+    counts = (x1 - x0 + 1) * (y1 - y0 + 1)
+    view = [t[ids] for t in view]
+    if use_fused:
+        # the whole view in one C++ kernel (core/csrc/view_kernels.cpp): same compositing rules
+        if isinstance(prims, NeuralPrimitives):
+            out = fused.neural_view(bounds, intrinsics, height, width, t_min, colors[ids], depth[ids], *view)
+        else:
+            out = fused.gaussian_view(bounds, height, width, t_min, colors[ids], depth[ids], *view)
+        acc_color, acc_depth, transmittance, counters = out
+        n_pairs, n_contrib, n_done = counters.tolist()
+    else:
+        kernel = _neural_block if isinstance(prims, NeuralPrimitives) else _gaussian_block
+        acc_color, acc_depth, transmittance, (n_pairs, n_contrib, n_done) = _composite(
+            kernel, view, bounds, colors[ids], depth[ids], intrinsics, height, width, max_pairs, t_min)
+
+    bg = torch.as_tensor(background, device=device, dtype=dtype)
+    color = acc_color + transmittance[..., None] * bg
+    alpha = 1.0 - transmittance
+    mean_depth = acc_depth / torch.clamp_min(alpha, 1e-10)
+    meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
+            "candidate_pairs": int(counts.sum()), "terminated_pixels": n_done}
+    return Render(color, alpha, mean_depth, meta)
+
+
+def _composite(kernel, view, bounds, colors, depth, intrinsics, height, width, max_pairs, t_min):
+    """The readable torch twin of the fused view kernel: (Σ w c (H, W, 3), Σ w z (H, W), T (H, W),
+    (evaluated pairs, composited pairs, terminated pixels)) for primitives in depth order."""
+    device, dtype = colors.device, colors.dtype
+    x0, y0, x1, y1 = bounds.unbind(-1)
     bw = x1 - x0 + 1
     counts = bw * (y1 - y0 + 1)
     padded = _padded_sizes(counts)
+    rank = torch.arange(len(counts), device=device)
 
     n_pix = height * width
     log_t = torch.zeros(n_pix, device=device, dtype=torch.float64)   # log transmittance, included pairs
@@ -101,32 +139,25 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
             block_pix = torch.where(k < counts[sel, None], row * width + col, -1)   # -1: padding
             live = (block_pix >= 0) & ~done[block_pix.clamp_min(0)]
             n_pairs += int(live.sum())
-            gid = ids[sel]
-            block_alpha = kernel(col.to(dtype) + 0.5, row.to(dtype) + 0.5, intrinsics, *(t[gid] for t in view))
+            block_alpha = kernel(col.to(dtype) + 0.5, row.to(dtype) + 0.5, intrinsics, *(t[sel] for t in view))
             p, q = torch.nonzero(live & (block_alpha > 0), as_tuple=True)
             ranks.append(sel[p])
             pix.append(block_pix[p, q])
             alpha.append(block_alpha[p, q])
         ranks, pix, alpha = torch.cat(ranks), torch.cat(pix), torch.cat(alpha)
-        order = torch.argsort(pix * ids.numel() + ranks)               # by pixel, then depth
-        gid, pix, alpha = ids[ranks[order]], pix[order], alpha[order]
+        order = torch.argsort(pix * len(rank) + ranks)                 # by pixel, then depth
+        ranks, pix, alpha = ranks[order], pix[order], alpha[order]
         log_t_before, log_1m_alpha = _segmented_log_transmittance(pix, alpha, log_t)
         included = (log_t_before + log_1m_alpha >= math.log(t_min)).detach()
         weight = (alpha * torch.exp(log_t_before).to(dtype)) * included
-        acc_color = acc_color.index_add(0, pix, weight[:, None] * colors[gid])
-        acc_depth = acc_depth.index_add(0, pix, weight * depth[gid])
+        acc_color = acc_color.index_add(0, pix, weight[:, None] * colors[ranks])
+        acc_depth = acc_depth.index_add(0, pix, weight * depth[ranks])
         log_t = log_t.index_add(0, pix, log_1m_alpha * included)
         done[pix[~included]] = True
         n_contrib += int(included.sum())
-
     transmittance = torch.exp(log_t).to(dtype).reshape(height, width)
-    bg = torch.as_tensor(background, device=device, dtype=dtype)
-    color = acc_color.reshape(height, width, 3) + transmittance[..., None] * bg
-    alpha = 1.0 - transmittance
-    mean_depth = acc_depth.reshape(height, width) / torch.clamp_min(alpha, 1e-10)
-    meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
-            "candidate_pairs": int(counts.sum()), "terminated_pixels": int(done.sum())}
-    return Render(color, alpha, mean_depth, meta)
+    return (acc_color.reshape(height, width, 3), acc_depth.reshape(height, width), transmittance,
+            (n_pairs, n_contrib, int(done.sum())))
 
 
 # --- per-view preparation --------------------------------------------------------------------
@@ -141,6 +172,13 @@ def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor, cam_rot: torch.T
     o_ell = (m * rel[:, None, :]).sum(-1)
     w = prims.omega0 * prims.w1
     c = (w * (rel / smax[:, None])[:, None, :]).sum(-1) + prims.omega0 * prims.b1
+    w2, b2 = _density_weights(prims, rel)
+    return m @ cam_rot, o_ell, w @ cam_rot, c, w2, b2, 1.0 / smax
+
+
+def _density_weights(prims: NeuralPrimitives, rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(W2, b2) as the pair kernels see them in this view (rel = o − μ); both the torch twin and
+    the fused path (whose fused op computes the rest of `_neural_view`) take them from here."""
     w2, b2 = prims.w2, prims.b2
     if prims.rest_metric is not None:
         # preserve_opacity edits (edit/deform.py): optical depth in rest-space distance,
@@ -150,7 +188,7 @@ def _neural_view(prims: NeuralPrimitives, campos: torch.Tensor, cam_rot: torch.T
         quad = (g[:, :3] * d * d).sum(-1) + 2 * (g[:, 3] * d[:, 0] * d[:, 1] + g[:, 4] * d[:, 0] * d[:, 2] + g[:, 5] * d[:, 1] * d[:, 2])
         factor = torch.sqrt(torch.clamp_min(quad, 0.0))
         w2, b2 = w2 * factor[:, None], b2 * factor
-    return m @ cam_rot, o_ell, w @ cam_rot, c, w2, b2, 1.0 / smax
+    return w2, b2
 
 
 def _neural_bounds(prims: NeuralPrimitives, camera: Camera, w2c, means_cam, near):

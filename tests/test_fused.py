@@ -7,6 +7,7 @@ plane, grazing rays, a_k = 0 and a_k ≈ 0 (sinc's series branch), α at the 0.9
 """
 
 import math
+import os
 import warnings
 
 import pytest
@@ -18,9 +19,17 @@ from radfield.core.kernels import ray_ellipsoid
 from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.rasterize import _camera_directions, _gaussian_block, _neural_block, render
 
+IN_CI = os.environ.get("CI", "").strip().lower() == "true"
+# outside CI a machine without a compiler skips these tests; in CI they run (and fail) regardless
 pytestmark = pytest.mark.skipif(
-    not fused.available(),
+    not IN_CI and not fused.available(),
     reason="fused CPU kernels unavailable (RADFIELD_KERNELS=torch, or the C++ extension failed to build: see its warning)")
+
+
+def test_fused_kernels_build():
+    """CI fails here, with the compiler's first line, when the C++ kernels do not build."""
+    assert fused.available(), f"fused kernels unavailable: {fused.build_error()}"
+
 
 W, H = 24, 20
 INTRINSICS = (26.0, 29.0, 11.3, 9.6, 0.05)   # fx, fy, cx, cy, near
@@ -28,6 +37,12 @@ INTRINSICS = (26.0, 29.0, 11.3, 9.6, 0.05)   # fx, fy, cx, cy, near
 # grazing rays amplify that by 1/√disc; gradients are compared relative to the block's largest.
 TOL64 = dict(rtol=1e-8, atol=1e-10)
 TOL64_GRAD = dict(rtol=1e-7, atol=1e-8)
+# float32: an accuracy target against float64 evaluated on the same (float32-rounded) inputs,
+# the same on every build (AVX-512, AVX2, default) and for both implementations. α is absolute;
+# gradients are relative to the block's largest. The neural bound is float32's ε ≈ 6e-8 times the
+# condition of a chord near the silhouette (the test's grazing rays pass at 1e-3 of the radius:
+# ∂ℓ/∂o' grows like 1/√(1 − |p|²) and its own derivative like (1 − |p|²)^(−3/2) ≈ 1e4).
+TOL32 = {"neural": (1e-4, 1e-3), "gaussian": (1e-5, 1e-5)}
 
 
 def _grid():
@@ -133,13 +148,12 @@ def _evaluate(fn, args, dtype, grad_out):
     return [alpha.detach(), *torch.autograd.grad(alpha, params, grad_out.to(dtype))]
 
 
-def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0):
+def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0, kind="neural"):
     """Forward and every parameter gradient (args[3:]), for a random upstream gradient that is
     zero on the padded elements and on a fifth of the others.
 
-    float64: fused and torch agree to rounding. float32: both are compared with the float64
-    result, and the fused kernel must be at least about as accurate as the torch twin (grazing
-    rays make float32 gradients uncertain in the third digit in both)."""
+    float64: fused and torch agree to rounding. float32: both must meet TOL32 against float64
+    evaluated on the float32-rounded inputs (what float32 arithmetic can be asked for)."""
     g = torch.Generator().manual_seed(seed)
     grad_out = torch.randn(args[0].shape, generator=g, dtype=torch.float64)
     grad_out[torch.rand(grad_out.shape, generator=g) < 0.2] = 0
@@ -153,13 +167,14 @@ def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0):
             scale = s.abs().max().clamp_min(1.0)   # sums over a block: tolerance relative to the largest
             torch.testing.assert_close(f / scale, s / scale, **TOL64_GRAD, msg=lambda m: f"{name}: {m}")
     else:
-        exact = _evaluate(slow_fn, args, torch.float64, grad_out)
-        for name, f, s, e in zip(names, fast, slow, exact):
-            scale = e.abs().max().clamp_min(1.0)
-            err_fast, err_slow = (f.double() - e).abs().max() / scale, (s.double() - e).abs().max() / scale
-            # (not a fixed bound: an element whose α sits within float32 rounding of a clamp or of the
-            # silhouette takes the other branch in float32, in both implementations)
-            assert err_fast <= 2 * err_slow + 1e-5, f"{name}: fused error {err_fast:.3g}, torch error {err_slow:.3g}"
+        rounded = [t.to(dtype).double() for t in args]
+        exact = _evaluate(slow_fn, rounded, torch.float64, grad_out.to(dtype).double())
+        tol_alpha, tol_grad = TOL32[kind]
+        for i, (name, e) in enumerate(zip(names, exact)):
+            scale = 1.0 if i == 0 else float(e.abs().max().clamp_min(1.0))
+            for impl, result in (("fused", fast[i]), ("torch", slow[i])):
+                err = float((result.double() - e).abs().max()) / scale
+                assert err <= (tol_alpha if i == 0 else tol_grad), f"{impl} {name}: error {err:.3g} against float64"
     return slow[0]
 
 
@@ -179,7 +194,7 @@ def test_neural_block_matches_torch_twin(dtype, seed):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_gaussian_block_matches_torch_twin(dtype):
     args, n_pad = gaussian_case()
-    alpha = _compare(fused.gaussian_block, _gaussian_block, args, n_pad, dtype)
+    alpha = _compare(fused.gaussian_block, _gaussian_block, args, n_pad, dtype, kind="gaussian")
     assert (alpha == torch.tensor(0.99, dtype=dtype)).any() and (alpha[1] == 0).all() and (alpha[6] == 0).any()
 
 
@@ -269,7 +284,10 @@ def test_render_fused_equals_torch(kind, dtype, monkeypatch):
     fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
     slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
     assert slow.meta["contributing_pairs"] > 100
-    assert fast.meta == slow.meta
+    # evaluated pairs differ by design (the fused kernel skips a pixel as soon as it terminates,
+    # the torch twin only between chunks); everything else is the same count
+    evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
+    assert fast.meta == slow.meta and evaluated[0] <= evaluated[1]
     tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
     for name in ("color", "alpha", "depth"):
         torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **tol)
@@ -280,12 +298,12 @@ def test_render_fused_equals_torch(kind, dtype, monkeypatch):
 
 def test_render_uses_fused_kernels(monkeypatch):
     calls = []
-    for name in ("neural_block", "gaussian_block"):
+    for name in ("neural_view", "gaussian_view"):
         original = getattr(fused, name)
         monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name: calls.append(_n) or _f(*a))
     for kind in ("neural", "gaussian"):
         render(*_render_scene(kind, torch.float32))
-    assert "neural_block" in calls and "gaussian_block" in calls
+    assert "neural_view" in calls and "gaussian_view" in calls
     calls.clear()
     monkeypatch.setenv("RADFIELD_KERNELS", "torch")
     assert not fused.available()
@@ -298,7 +316,7 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
         raise RuntimeError("Error building extension 'radfield_kernels'\nmore compiler output")
 
     monkeypatch.setattr(fused, "_build", broken_build)
-    monkeypatch.setattr(fused, "_state", {"tried": False, "ops": None})
+    monkeypatch.setattr(fused, "_state", {"tried": False, "ops": None, "error": None})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert not fused.available()
@@ -306,3 +324,67 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
         render(*_render_scene("neural", torch.float32))
     messages = [str(w.message) for w in caught if "fused" in str(w.message)]
     assert len(messages) == 1 and "\n" not in messages[0] and "torch kernels" in messages[0]
+    assert fused.build_error() == "RuntimeError: Error building extension 'radfield_kernels'"
+
+
+# --- per-view preparation ops (core/csrc/prepare_kernels.cpp) against their torch twins ----------
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_color_matches_torch_twin_and_finite_differences(degree):
+    from radfield.core.sh import sh_to_color
+
+    g = torch.Generator().manual_seed(degree)
+    sh = torch.randn(12, 16, 3, generator=g, dtype=torch.float64) * 0.5
+    sh[0, 0] = -5.0                       # colour clamped at 0: no gradient
+    v = torch.randn(12, 3, generator=g, dtype=torch.float64) * 3
+    twin = sh_to_color(sh, torch.nn.functional.normalize(v, dim=-1), degree)
+    assert (twin == 0).any() and (twin > 0).any()
+    torch.testing.assert_close(fused.sh_color(sh, v, degree), twin, rtol=1e-12, atol=1e-12)
+    w = torch.randn(12, 3, generator=g, dtype=torch.float64)
+    grads = [torch.autograd.grad((w * f(sh_, v_)).sum(), (sh_, v_), allow_unused=True) for f, (sh_, v_) in (
+        (lambda a, b: fused.sh_color(a, b, degree), (sh.clone().requires_grad_(), v.clone().requires_grad_())),
+        (lambda a, b: sh_to_color(a, torch.nn.functional.normalize(b, dim=-1), degree),
+         (sh.clone().requires_grad_(), v.clone().requires_grad_())))]
+    for fast, slow in zip(*grads):   # degree 0: the colour does not depend on the direction
+        torch.testing.assert_close(fast, torch.zeros_like(fast) if slow is None else slow, rtol=1e-10, atol=1e-12)
+    keep = sh[1:5].clone().requires_grad_(), v[1:5].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: fused.sh_color(a, b, degree), keep, eps=1e-6, atol=1e-7)
+
+
+def test_neural_prep_matches_torch_twin_and_finite_differences():
+    from radfield.core.rasterize import _neural_view
+
+    prims = random_neural(9, scale=0.3, seed=7).to(dtype=torch.float64)
+    prims.log_scales[0] = math.log(0.2)   # an isotropic primitive: max(s) is a three-way tie
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
+    c2w = cam.c2w.to(torch.float64)
+    campos, cam_rot = c2w[:3, 3], c2w[:3, :3]
+    names = ("means", "log_scales", "quats", "w1", "b1")
+    g = torch.Generator().manual_seed(1)
+
+    def run(fn):
+        p = prims.map(lambda t: t.clone().requires_grad_(True))
+        out = fn(p)
+        loss = sum((torch.randn(t.shape, generator=g, dtype=torch.float64) * t).sum() for t in out)
+        return [t.detach() for t in out], torch.autograd.grad(loss, [getattr(p, n) for n in names])
+
+    frame = lambda out: [out[i] for i in (0, 1, 2, 3, 6)]   # _neural_view without (w2, b2)
+    g.manual_seed(1)
+    fast, fast_grads = run(lambda p: fused.neural_prep(p, campos, cam_rot))
+    g.manual_seed(1)
+    slow, slow_grads = run(lambda p: frame(_neural_view(p, campos, cam_rot)))
+    for f, s in zip(fast, slow):
+        torch.testing.assert_close(f, s, rtol=1e-12, atol=1e-12)
+    for name, f, s in zip(names, fast_grads, slow_grads):
+        torch.testing.assert_close(f, s, rtol=1e-10, atol=1e-11, msg=lambda m: f"d/d{name}: {m}")
+
+    def f(*tensors):
+        p = prims.map(lambda t: t)
+        for n, t in zip(names, tensors):
+            setattr(p, n, t)
+        return fused.neural_prep(p, campos, cam_rot)
+
+    sub = prims.select(slice(1, 4))
+    prims = sub
+    inputs = [getattr(sub, n).clone().requires_grad_(True) for n in names]
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6)

@@ -7,7 +7,7 @@ import torch
 
 from radfield.core.cameras import Camera, look_at, opengl_to_opencv
 from radfield.core.kernels import neural_line_integral
-from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat, random_gaussians, random_neural, rotmat_to_quat
+from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, random_gaussians, random_neural, rotmat_to_quat
 from radfield.core.rasterize import render
 from radfield.core.reference import quadrature_optical_depth, reference_render
 from radfield.core.sh import eval_sh
@@ -252,3 +252,17 @@ def test_quaternion_round_trip():
     torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(100, 3, 3))
     torch.testing.assert_close(torch.linalg.det(r), torch.ones(100, dtype=torch.float64))
     torch.testing.assert_close(quat_to_rotmat(rotmat_to_quat(r)), r)
+
+
+def test_bench_train_prints_every_part(cli):
+    code, out, err = cli("bench-train", "--primitives", "300", "--sizes", "32", "--steps", "1", "--quiet")
+    assert code == 0, err
+    header = next(line for line in out.splitlines() if "forward" in line and "population" in line)
+    rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["neural"], ["gaussian"])]
+    assert len(rows) == 2 and "train()" in header
+    for row in rows:   # kind, count, size, 5 parts, sum, train(), Mpairs/s
+        parts = [float(x) for x in row[3:8]]
+        assert row[1] == "300" and row[2] == "32x32" and all(p >= 0 for p in parts)
+        assert float(row[8]) == pytest.approx(sum(parts), abs=0.2) and float(row[10]) >= 0
+    code, _, err = cli("bench-train", "--sizes", "0")
+    assert code == 1 and "radfield: error: --sizes" in err

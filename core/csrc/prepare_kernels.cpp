@@ -1,0 +1,312 @@
+// Per-view, per-primitive preparation in C++, forward and backward: what rasterize.py computes
+// once per primitive per view before compositing, as two fused ops whose readable torch twins
+// stay in core/rasterize.py and core/sh.py (tests/test_fused.py compares them, and gradchecks
+// these ops in float64). In torch they are some hundred small ops over (P, …) tensors, forward
+// and backward, which cost a training step at 64×64 more than the whole tile rasteriser.
+//
+//   sh_color:    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|, v = μ − o   (core/sh.py)
+//   neural_prep: M = S⁻¹Rᵀ, m_cam = M R_cam, o' = M (o − μ), w_cam = ω0 W1 R_cam,
+//                c_k = ω0 (W1_k·(o − μ)/max(s) + b1_k), 1/max(s)           (rasterize._neural_view)
+//
+// Threads: OpenMP over primitives (each primitive's gradient is its own).
+
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "pair_kernels.h"
+
+namespace {
+
+using radfield::check_params;
+
+// --- SH colour (3DGS's real SH basis and order, core/sh.py) -----------------------------------
+
+constexpr double C0 = 0.28209479177387814;
+constexpr double C1 = 0.4886025119029199;
+constexpr double C2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                          0.5462742152960396};
+constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                          -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+
+// basis values b[0..count) at unit direction (x, y, z), and with grad != nullptr their gradients
+template <typename T>
+int sh_basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
+  int n = 0;
+  auto put = [&](T value, T gx, T gy, T gz) {
+    b[n] = value;
+    if (grad != nullptr) grad[n][0] = gx, grad[n][1] = gy, grad[n][2] = gz;
+    ++n;
+  };
+  put(T(C0), 0, 0, 0);
+  if (degree >= 1) {
+    put(T(-C1) * y, 0, T(-C1), 0);
+    put(T(C1) * z, 0, 0, T(C1));
+    put(T(-C1) * x, T(-C1), 0, 0);
+  }
+  if (degree >= 2) {
+    const T xx = x * x, yy = y * y, zz = z * z;
+    put(T(C2[0]) * x * y, T(C2[0]) * y, T(C2[0]) * x, 0);
+    put(T(C2[1]) * y * z, 0, T(C2[1]) * z, T(C2[1]) * y);
+    put(T(C2[2]) * (T(2) * zz - xx - yy), T(C2[2]) * T(-2) * x, T(C2[2]) * T(-2) * y, T(C2[2]) * T(4) * z);
+    put(T(C2[3]) * x * z, T(C2[3]) * z, 0, T(C2[3]) * x);
+    put(T(C2[4]) * (xx - yy), T(C2[4]) * T(2) * x, T(C2[4]) * T(-2) * y, 0);
+  }
+  if (degree >= 3) {
+    const T xx = x * x, yy = y * y, zz = z * z;
+    put(T(C3[0]) * y * (T(3) * xx - yy), T(C3[0]) * T(6) * x * y, T(C3[0]) * (T(3) * xx - T(3) * yy), 0);
+    put(T(C3[1]) * x * y * z, T(C3[1]) * y * z, T(C3[1]) * x * z, T(C3[1]) * x * y);
+    put(T(C3[2]) * y * (T(4) * zz - xx - yy), T(C3[2]) * T(-2) * x * y, T(C3[2]) * (T(4) * zz - xx - T(3) * yy),
+        T(C3[2]) * T(8) * y * z);
+    put(T(C3[3]) * z * (T(2) * zz - T(3) * xx - T(3) * yy), T(C3[3]) * T(-6) * x * z, T(C3[3]) * T(-6) * y * z,
+        T(C3[3]) * (T(6) * zz - T(3) * xx - T(3) * yy));
+    put(T(C3[4]) * x * (T(4) * zz - xx - yy), T(C3[4]) * (T(4) * zz - T(3) * xx - yy), T(C3[4]) * T(-2) * x * y,
+        T(C3[4]) * T(8) * x * z);
+    put(T(C3[5]) * z * (xx - yy), T(C3[5]) * T(2) * x * z, T(C3[5]) * T(-2) * y * z, T(C3[5]) * (xx - yy));
+    put(T(C3[6]) * x * (xx - T(3) * yy), T(C3[6]) * (T(3) * xx - T(3) * yy), T(C3[6]) * T(-6) * x * y, 0);
+  }
+  return n;
+}
+
+// d̂ = v / max(|v|, 1e-12) as torch.nn.functional.normalize
+template <typename T>
+T unit(const T* v, T* d) {
+  const T norm = std::max(std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), T(1e-12));
+  d[0] = v[0] / norm, d[1] = v[1] / norm, d[2] = v[2] / norm;
+  return norm;
+}
+
+at::Tensor sh_color_forward(const at::Tensor& sh, const at::Tensor& v, int64_t degree) {
+  check_params({sh, v});
+  TORCH_CHECK(sh.dim() == 3 && sh.size(2) == 3 && (degree + 1) * (degree + 1) <= sh.size(1) && degree >= 0 && degree <= 3,
+              "sh must be (P, K, 3) with K ≥ (degree + 1)², degree in 0..3");
+  const int64_t P = sh.size(0), K = sh.size(1);
+  TORCH_CHECK(v.sizes() == at::IntArrayRef({P, 3}), "v must be (P, 3)");
+  at::Tensor out = at::empty({P, 3}, sh.options());
+  AT_DISPATCH_FLOATING_TYPES(sh.scalar_type(), "sh_color_forward", [&] {
+    using T = scalar_t;
+    const T *s = sh.data_ptr<T>(), *vp = v.data_ptr<T>();
+    T* o = out.data_ptr<T>();
+    at::parallel_for(0, P, 256, [&](int64_t p0, int64_t p1) {
+      T b[16], d[3];
+      for (int64_t p = p0; p < p1; ++p) {
+        unit(vp + 3 * p, d);
+        const int n = sh_basis<T>(int(degree), d[0], d[1], d[2], b, nullptr);
+        for (int ch = 0; ch < 3; ++ch) {
+          T raw = T(0);
+          for (int k = 0; k < n; ++k) raw += b[k] * s[(p * K + k) * 3 + ch];
+          o[3 * p + ch] = std::max(raw + T(0.5), T(0));
+        }
+      }
+    });
+  });
+  return out;
+}
+
+// Gradients for (sh, v).
+std::vector<at::Tensor> sh_color_backward(const at::Tensor& grad, const at::Tensor& sh, const at::Tensor& v,
+                                          int64_t degree) {
+  check_params({grad, sh, v});
+  const int64_t P = sh.size(0), K = sh.size(1);
+  at::Tensor g_sh = at::zeros_like(sh), g_v = at::empty_like(v);
+  AT_DISPATCH_FLOATING_TYPES(sh.scalar_type(), "sh_color_backward", [&] {
+    using T = scalar_t;
+    const T *s = sh.data_ptr<T>(), *vp = v.data_ptr<T>(), *g = grad.data_ptr<T>();
+    T *gs = g_sh.data_ptr<T>(), *gv = g_v.data_ptr<T>();
+    at::parallel_for(0, P, 256, [&](int64_t p0, int64_t p1) {
+      T b[16], db[16][3], d[3];
+      for (int64_t p = p0; p < p1; ++p) {
+        const T norm = unit(vp + 3 * p, d);
+        const int n = sh_basis<T>(int(degree), d[0], d[1], d[2], b, db);
+        T g_raw[3];
+        for (int ch = 0; ch < 3; ++ch) {
+          T raw = T(0);
+          for (int k = 0; k < n; ++k) raw += b[k] * s[(p * K + k) * 3 + ch];
+          g_raw[ch] = raw + T(0.5) >= T(0) ? g[3 * p + ch] : T(0);  // clamp_min passes at equality
+        }
+        T g_d[3] = {0, 0, 0};
+        for (int k = 0; k < n; ++k) {
+          const T* sk = s + (p * K + k) * 3;
+          T* gsk = gs + (p * K + k) * 3;
+          for (int ch = 0; ch < 3; ++ch) gsk[ch] = b[k] * g_raw[ch];
+          const T g_b = sk[0] * g_raw[0] + sk[1] * g_raw[1] + sk[2] * g_raw[2];
+          for (int r = 0; r < 3; ++r) g_d[r] += g_b * db[k][r];
+        }
+        // d̂ = v/|v|: ∂/∂v = (g − d̂ (d̂·g)) / |v|
+        const T dot = d[0] * g_d[0] + d[1] * g_d[1] + d[2] * g_d[2];
+        for (int r = 0; r < 3; ++r) gv[3 * p + r] = (g_d[r] - d[r] * dot) / norm;
+      }
+    });
+  });
+  return {g_sh, g_v};
+}
+
+// --- neural primitives: ellipsoid frame and MLP phases ----------------------------------------
+
+// R(q̂) of a unit quaternion (w, x, y, z), row-major (primitives.py: quat_to_rotmat)
+template <typename T>
+void rotmat(const T* q, T* R) {
+  const T w = q[0], x = q[1], y = q[2], z = q[3];
+  R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y), R[7] = 2 * (y * z + w * x), R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// ∂L/∂q̂ from ∂L/∂R
+template <typename T>
+void rotmat_backward(const T* q, const T* g, T* gq) {
+  const T w = q[0], x = q[1], y = q[2], z = q[3];
+  gq[0] = 2 * (-z * g[1] + y * g[2] + z * g[3] - x * g[5] - y * g[6] + x * g[7]);
+  gq[1] = 2 * (y * g[1] + z * g[2] + y * g[3] - 2 * x * g[4] - w * g[5] + z * g[6] + w * g[7] - 2 * x * g[8]);
+  gq[2] = 2 * (-2 * y * g[0] + x * g[1] + w * g[2] + x * g[3] + z * g[5] - w * g[6] + z * g[7] - 2 * y * g[8]);
+  gq[3] = 2 * (-2 * z * g[0] - w * g[1] + x * g[2] + w * g[3] - 2 * z * g[4] + y * g[5] + x * g[6] + y * g[7]);
+}
+
+template <typename T>
+struct NeuralFrame {  // what the forward computes for one primitive, and the backward needs again
+  T qn[4], qnorm, R[9], inv_s[3], smax, rel[3], M[9];
+};
+
+template <typename T>
+void neural_frame(const T* means, const T* log_scales, const T* quats, const T* campos, int64_t p, NeuralFrame<T>& f) {
+  const T* q = quats + 4 * p;
+  f.qnorm = std::max(std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), T(1e-12));
+  for (int i = 0; i < 4; ++i) f.qn[i] = q[i] / f.qnorm;
+  rotmat(f.qn, f.R);
+  const T* ls = log_scales + 3 * p;
+  for (int i = 0; i < 3; ++i) f.inv_s[i] = std::exp(-ls[i]);
+  f.smax = std::exp(std::max({ls[0], ls[1], ls[2]}));
+  for (int i = 0; i < 3; ++i) f.rel[i] = campos[i] - means[3 * p + i];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) f.M[3 * i + j] = f.R[3 * j + i] * f.inv_s[i];  // M = S⁻¹Rᵀ
+}
+
+// Outputs m_cam (P,3,3), o_ell (P,3), w_cam (P,N,3), c (P,N), inv_smax (P,).
+std::vector<at::Tensor> neural_prep_forward(const at::Tensor& means, const at::Tensor& log_scales,
+                                            const at::Tensor& quats, const at::Tensor& w1, const at::Tensor& b1,
+                                            const at::Tensor& campos, const at::Tensor& cam_rot, double omega0) {
+  check_params({means, log_scales, quats, w1, b1, campos, cam_rot});
+  const int64_t P = means.size(0), N = b1.size(1);
+  TORCH_CHECK(means.sizes() == at::IntArrayRef({P, 3}) && log_scales.sizes() == at::IntArrayRef({P, 3}) &&
+                  quats.sizes() == at::IntArrayRef({P, 4}) && w1.sizes() == at::IntArrayRef({P, N, 3}) &&
+                  b1.sizes() == at::IntArrayRef({P, N}) && campos.numel() == 3 && cam_rot.numel() == 9,
+              "neural_prep: bad shapes");
+  at::Tensor m_cam = at::empty({P, 3, 3}, means.options()), o_ell = at::empty({P, 3}, means.options());
+  at::Tensor w_cam = at::empty({P, N, 3}, means.options()), c = at::empty({P, N}, means.options());
+  at::Tensor inv_smax = at::empty({P}, means.options());
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "neural_prep_forward", [&] {
+    using T = scalar_t;
+    const T *mu = means.data_ptr<T>(), *ls = log_scales.data_ptr<T>(), *qs = quats.data_ptr<T>();
+    const T *W1 = w1.data_ptr<T>(), *B1 = b1.data_ptr<T>(), *o = campos.data_ptr<T>(), *Rc = cam_rot.data_ptr<T>();
+    T *mc = m_cam.data_ptr<T>(), *oe = o_ell.data_ptr<T>(), *wc = w_cam.data_ptr<T>(), *cc = c.data_ptr<T>();
+    T* is = inv_smax.data_ptr<T>();
+    const T om = T(omega0);
+    at::parallel_for(0, P, 256, [&](int64_t p0, int64_t p1) {
+      NeuralFrame<T> f;
+      for (int64_t p = p0; p < p1; ++p) {
+        neural_frame(mu, ls, qs, o, p, f);
+        for (int i = 0; i < 3; ++i) {
+          for (int j = 0; j < 3; ++j)
+            mc[9 * p + 3 * i + j] = f.M[3 * i] * Rc[j] + f.M[3 * i + 1] * Rc[3 + j] + f.M[3 * i + 2] * Rc[6 + j];
+          oe[3 * p + i] = f.M[3 * i] * f.rel[0] + f.M[3 * i + 1] * f.rel[1] + f.M[3 * i + 2] * f.rel[2];
+        }
+        const T u0[3] = {f.rel[0] / f.smax, f.rel[1] / f.smax, f.rel[2] / f.smax};
+        for (int64_t k = 0; k < N; ++k) {
+          const T* wk = W1 + (p * N + k) * 3;
+          const T w[3] = {om * wk[0], om * wk[1], om * wk[2]};
+          for (int j = 0; j < 3; ++j) wc[(p * N + k) * 3 + j] = w[0] * Rc[j] + w[1] * Rc[3 + j] + w[2] * Rc[6 + j];
+          cc[p * N + k] = (w[0] * u0[0] + w[1] * u0[1] + w[2] * u0[2]) + om * B1[p * N + k];
+        }
+        is[p] = T(1) / f.smax;
+      }
+    });
+  });
+  return {m_cam, o_ell, w_cam, c, inv_smax};
+}
+
+// Gradients for (means, log_scales, quats, w1, b1) from those of (m_cam, o_ell, w_cam, c, inv_smax).
+std::vector<at::Tensor> neural_prep_backward(const at::Tensor& g_m_cam, const at::Tensor& g_o_ell,
+                                             const at::Tensor& g_w_cam, const at::Tensor& g_c,
+                                             const at::Tensor& g_inv_smax, const at::Tensor& means,
+                                             const at::Tensor& log_scales, const at::Tensor& quats,
+                                             const at::Tensor& w1, const at::Tensor& b1, const at::Tensor& campos,
+                                             const at::Tensor& cam_rot, double omega0) {
+  check_params({g_m_cam, g_o_ell, g_w_cam, g_c, g_inv_smax, means, log_scales, quats, w1, b1, campos, cam_rot});
+  const int64_t P = means.size(0), N = b1.size(1);
+  at::Tensor g_means = at::empty_like(means), g_ls = at::empty_like(log_scales), g_q = at::empty_like(quats);
+  at::Tensor g_w1 = at::empty_like(w1), g_b1 = at::empty_like(b1);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "neural_prep_backward", [&] {
+    using T = scalar_t;
+    const T *mu = means.data_ptr<T>(), *ls = log_scales.data_ptr<T>(), *qs = quats.data_ptr<T>();
+    const T *W1 = w1.data_ptr<T>(), *o = campos.data_ptr<T>(), *Rc = cam_rot.data_ptr<T>();
+    const T *gmc = g_m_cam.data_ptr<T>(), *goe = g_o_ell.data_ptr<T>(), *gwc = g_w_cam.data_ptr<T>();
+    const T *gc = g_c.data_ptr<T>(), *gis = g_inv_smax.data_ptr<T>();
+    T *gmu = g_means.data_ptr<T>(), *gls = g_ls.data_ptr<T>(), *gq = g_q.data_ptr<T>();
+    T *gw1 = g_w1.data_ptr<T>(), *gb1 = g_b1.data_ptr<T>();
+    const T om = T(omega0);
+    at::parallel_for(0, P, 256, [&](int64_t p0, int64_t p1) {
+      NeuralFrame<T> f;
+      for (int64_t p = p0; p < p1; ++p) {
+        neural_frame(mu, ls, qs, o, p, f);
+        const T* ge = goe + 3 * p;
+        // m_cam = M R_cam, o' = M rel
+        T gM[9], g_rel[3] = {0, 0, 0};
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) {
+            const T* gm = gmc + 9 * p + 3 * i;
+            gM[3 * i + j] = gm[0] * Rc[3 * j] + gm[1] * Rc[3 * j + 1] + gm[2] * Rc[3 * j + 2] + ge[i] * f.rel[j];
+            g_rel[j] += f.M[3 * i + j] * ge[i];
+          }
+        // w_cam_k = ω0 W1_k R_cam, c_k = ω0 W1_k·rel/smax + ω0 b1_k
+        T g_smax = -gis[p] / (f.smax * f.smax);
+        for (int64_t k = 0; k < N; ++k) {
+          const T* wk = W1 + (p * N + k) * 3;
+          const T* gw = gwc + (p * N + k) * 3;
+          const T gck = gc[p * N + k];
+          T wr = T(0);
+          for (int j = 0; j < 3; ++j) {
+            const T g_w = gw[0] * Rc[3 * j] + gw[1] * Rc[3 * j + 1] + gw[2] * Rc[3 * j + 2] + gck * f.rel[j] / f.smax;
+            gw1[(p * N + k) * 3 + j] = om * g_w;
+            g_rel[j] += gck * om * wk[j] / f.smax;
+            wr += om * wk[j] * f.rel[j];
+          }
+          g_smax -= gck * wr / (f.smax * f.smax);
+          gb1[p * N + k] = om * gck;
+        }
+        // M[i][j] = R[j][i] / s_i; s_i = exp(ℓ_i), smax = exp(max ℓ) (amax splits a tie evenly)
+        T gR[9];
+        const T* l = ls + 3 * p;
+        const T lmax = std::max({l[0], l[1], l[2]});
+        const int ties = int(l[0] == lmax) + int(l[1] == lmax) + int(l[2] == lmax);
+        for (int i = 0; i < 3; ++i) {
+          T g_inv = T(0);
+          for (int j = 0; j < 3; ++j) {
+            gR[3 * j + i] = gM[3 * i + j] * f.inv_s[i];
+            g_inv += gM[3 * i + j] * f.R[3 * j + i];
+          }
+          gls[3 * p + i] = -g_inv * f.inv_s[i] + (l[i] == lmax ? g_smax * f.smax / T(ties) : T(0));
+        }
+        // R(q̂), q̂ = q/|q|
+        T gqn[4];
+        rotmat_backward(f.qn, gR, gqn);
+        const T dot = gqn[0] * f.qn[0] + gqn[1] * f.qn[1] + gqn[2] * f.qn[2] + gqn[3] * f.qn[3];
+        for (int i = 0; i < 4; ++i) gq[4 * p + i] = (gqn[i] - f.qn[i] * dot) / f.qnorm;
+        for (int j = 0; j < 3; ++j) gmu[3 * p + j] = -g_rel[j];  // rel = o − μ
+      }
+    });
+  });
+  return {g_means, g_ls, g_q, g_w1, g_b1};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_FRAGMENT(radfield, m) {
+  m.def("sh_color_forward", &sh_color_forward);
+  m.def("sh_color_backward", &sh_color_backward);
+  m.def("neural_prep_forward", &neural_prep_forward);
+  m.def("neural_prep_backward", &neural_prep_backward);
+}

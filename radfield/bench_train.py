@@ -1,0 +1,152 @@
+"""`radfield bench-train`: milliseconds per training step, split into its parts.
+
+The step is core/trainer.py's loop body with `batch_views: 1` and the default `train` config,
+timed part by part (the parts are run in the trainer's order, on its own functions):
+
+    render forward    assemble the primitives, render(...)
+    loss              the anisotropy regulariser's backward, the photometric loss (L1 + D-SSIM)
+                      forward and backward down to the rendered image, the logged loss and PSNR
+    render backward   from ∂L/∂image to every parameter
+    optimiser         Adam step and zero_grad
+    population        the strategy's per-view gradient statistics (accumulate) and refine
+
+Population control keeps the primitive count fixed (densification starts after the run), so
+each row measures one count: `refine` then costs its checks only. A last column times the real
+`trainer.train` over the same number of steps, end to end, as a check that the parts add up.
+
+The scene is bench-render's (primitives over a sphere's surface, orbit cameras); the targets are
+renders of the same scene with its colours shifted, so the loss and its gradients are not zero.
+Absolute times depend on the machine and its load: compare ratios within one run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import torch
+
+from radfield.bench import bench_cameras, bench_scene
+from radfield.core.losses import anisotropy, photometric, psnr
+from radfield.core.rasterize import render
+from radfield.core.strategy import make_strategy
+from radfield.core import trainer
+
+PARTS = ("forward", "loss", "backward", "optimiser", "population")
+
+
+@dataclass
+class StepTiming:
+    ms: dict[str, float]   # mean ms per step of each part
+    train_ms: float        # mean ms per step of trainer.train, end to end
+    pairs: float           # evaluated pixel-primitive pairs per step
+
+    @property
+    def total_ms(self) -> float:
+        return sum(self.ms.values())
+
+
+def bench_config(steps: int) -> dict:
+    """The default `train` section with population control that never changes the count."""
+    from radfield.stages.config import load_defaults
+
+    cfg = load_defaults()["train"]
+    cfg["iterations"] = steps
+    cfg["batch_views"] = 1
+    cfg["densify"]["start"] = steps + 1          # statistics every step, no refinement
+    cfg["densify"]["stop"] = steps + 1
+    cfg["checkpoint_every"] = steps + 1
+    return cfg
+
+
+def _targets(prims, cams, device):
+    shifted = prims.map(lambda t: t.clone())
+    shifted.sh[:, 0] += 0.4
+    with torch.no_grad():
+        return torch.stack([render(shifted.to(device), cam).color.clamp(0, 1) for cam in cams]).float()
+
+
+def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: str) -> StepTiming:
+    """Time `steps` training steps (after `warmup` untimed ones), part by part, then run
+    trainer.train for as many steps, end to end."""
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    state = trainer.initial_state(prims, cfg["sh_degree"])
+    params = {n: t.to(dev).clone().requires_grad_(True) for n, t in state.params.items()}
+    optimizer = trainer.make_optimizer(params, cfg["lr"], extent=1.0)
+    strategy = make_strategy(state.kind, cfg["densify"], extent=1.0, near=0.01, max_primitives=None,
+                             initial_count=len(prims))
+    accumulators = strategy.init_state(len(prims), dev)
+    bg = torch.ones(3, device=dev)
+    totals = dict.fromkeys(PARTS, 0.0)
+    pairs = 0.0
+    degree = cfg["sh_degree"]   # the last stage of the SH schedule: the most expensive colour
+
+    for step in range(warmup + steps):
+        spent = dict.fromkeys(PARTS, 0.0)
+        view = step % len(cams)
+
+        def clock(part, start):
+            sync()
+            now = time.perf_counter()
+            spent[part] += now - start
+            return now
+
+        t = time.perf_counter()
+        (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
+        t = clock("loss", t)
+        before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
+        t = clock("population", t)
+        out = render(trainer.assemble(params, state.kind, state.omega0), cams[view], background=bg, sh_degree=degree)
+        t = clock("forward", t)
+        image = out.color.detach().requires_grad_(True)
+        loss = photometric(image, images[view], cfg["lambda_dssim"])
+        loss.backward()
+        float(loss.detach()), float(psnr(image.detach().clamp(0, 1), images[view]))
+        t = clock("loss", t)
+        out.color.backward(image.grad)
+        t = clock("backward", t)
+        grads = {n: params[n].grad - before[n] for n in strategy.grad_names}
+        strategy.accumulate(accumulators, params, grads, cams[view], step + 1)
+        t = clock("population", t)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        t = clock("optimiser", t)
+        strategy.refine(accumulators, params, optimizer, step + 1, trainer.generator(0, 1, step))
+        clock("population", t)
+        if step >= warmup:
+            for part in PARTS:
+                totals[part] += spent[part]
+            pairs += out.meta["pairs"]
+
+    start = time.perf_counter()
+    trainer.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device=dev)
+    sync()
+    train_ms = 1e3 * (time.perf_counter() - start) / steps
+    return StepTiming({p: 1e3 * v / steps for p, v in totals.items()}, train_ms, pairs / steps)
+
+
+def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neural", "gaussian"), steps: int = 5,
+                    warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None) -> dict:
+    """Print one row per (kind, count, size): ms per step of each part, their sum, trainer.train's
+    ms per step, and evaluated pairs per second of the render forward. Returns the figures."""
+    cfg = bench_config(steps)
+    echo(f"bench-train: {steps} timed steps (+{warmup} warm-up) per row, {views} orbit views, device={device}, "
+         f"threads={torch.get_num_threads()}; ms per step")
+    echo(f"  {'kind':8s} {'count':>6s} {'size':>7s} " + " ".join(f"{p:>10s}" for p in PARTS)
+         + f" {'sum':>8s} {'train()':>8s} {'Mpairs/s':>9s}")
+    results = {}
+    for kind in kinds:
+        for count in counts:
+            neural, gauss = bench_scene(count)
+            prims = neural if kind == "neural" else gauss
+            for size in sizes:
+                cams = bench_cameras(views, size, size)
+                images = _targets(prims, cams, device)
+                t = time_steps(prims, cams, images, cfg, steps, warmup, device)
+                rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
+                echo(f"  {kind:8s} {count:6d} {size:3d}x{size:<3d} " + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS)
+                     + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {rate:9.1f}")
+                results[f"{kind}/{count}/{size}"] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "pairs": t.pairs}
+                advance()
+    return results
