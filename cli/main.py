@@ -228,7 +228,7 @@ def main() -> None:
     except RadfieldError as e:
         typer.echo(f"radfield: error: {e}", err=True)
         sys.exit(1)
-    except (KeyboardInterrupt, click.Abort, typer.Abort):
+    except (KeyboardInterrupt, typer.Abort):
         typer.echo("radfield: interrupted", err=True)
         sys.exit(130)
     if isinstance(code, int) and code:  # typer.Exit(code) returns its code without standalone mode
