@@ -25,7 +25,7 @@ from radfield.core.errors import RadfieldError
 from radfield.edit.field import Field
 
 # modules whose import registers operations (one per operation family)
-OPERATION_MODULES: tuple[str, ...] = ()
+OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.boolean", "radfield.edit.compose", "radfield.edit.recolor", "radfield.edit.remesh")
 
 
 @dataclass
