@@ -46,8 +46,10 @@ def test_compose_with_itself_equals_depth_compositing(tmp_path):
     front = render(prims, cam, background=(0.0, 0.0, 0.0))
     back = render(copy, cam)
     composited = front.color + (1 - front.alpha)[..., None] * back.color
-    # up to what early termination (T < 1e-4) leaves out of the back part
-    assert torch.allclose(render(out.prims, cam).color, composited, atol=1e-4)
+    # up to early termination: a pixel stops before a splat that would take T below 1e-4 (here one
+    # pixel with T = 2e-3 before an α = 0.99 splat of the back part: a 4e-4 difference)
+    diff = (render(out.prims, cam).color - composited).abs().max(-1).values
+    assert diff.max() < 1e-3 and (diff > 1e-9).sum() <= 2
     # and the copy is the original seen from the correspondingly moved camera
     rot, s, t = torch.as_tensor(euler_matrix([10, 20, 40])), 1.2, torch.tensor([0.35, 2.0, 0.1], dtype=torch.float64)
     c2w = cam.c2w.clone()
