@@ -2,8 +2,8 @@
 
     - remesh: {select: SELECTION, edge_length: L}
 
-Conforming longest-edge bisection: while some cage edge whose midpoint lies in the selection is
-longer than L, the longest such edges (at most one per tet in a round) are split at their
+Conforming longest-edge bisection: while some edge of a tet that meets the selection is longer
+than L, the longest such edges (at most one per tet in a round) are split at their
 midpoints, and every tet around a split edge (a, b) becomes the two tets with b, resp. a, replaced
 by the midpoint m. Splitting all tets around an edge at once keeps the cage one conforming tet mesh
 (no hanging vertices, the rest of the cage untouched), each half keeps the orientation and half
@@ -21,16 +21,16 @@ import numpy as np
 
 from radfield.core.errors import RadfieldError
 from radfield.edit.field import Field
-from radfield.edit.select import number, weights
+from radfield.edit.select import number, signed_distance
 from radfield.edit.spec import check_keys, operation
 
 _EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 
 
-def bisect_region(vertices: np.ndarray, tets: np.ndarray, in_region, edge_length: float,
+def bisect_region(vertices: np.ndarray, tets: np.ndarray, signed_distance, edge_length: float,
                   max_rounds: int = 64, max_tets: int = 2_000_000) -> tuple[np.ndarray, np.ndarray, int]:
-    """Refine (module docstring) until no edge with its midpoint in the region (`in_region`: points
-    (n, 3) -> bool (n,)) is longer than edge_length. Returns vertices, tets, rounds."""
+    """Refine (module docstring) until no edge of a tet that may meet the region (`signed_distance`:
+    points (n, 3) -> (n,), negative inside) is longer than edge_length. Returns vertices, tets, rounds."""
     v, t = np.asarray(vertices, np.float64), np.asarray(tets, np.int64).copy()
     for rounds in range(max_rounds):
         pairs = np.sort(t[:, _EDGES], axis=2).reshape(-1, 2)                   # (6T, 2)
@@ -38,8 +38,15 @@ def bisect_region(vertices: np.ndarray, tets: np.ndarray, in_region, edge_length
         edge_of = edge_of.reshape(len(t), 6)
         length = np.linalg.norm(v[edges[:, 1]] - v[edges[:, 0]], axis=1)
         mid = 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])
-        cand = np.flatnonzero(length > edge_length)
-        cand = cand[in_region(mid[cand])]
+        # edges of the tets that may meet the region: the signed distance of the centroid is within
+        # the tet's reach (1-Lipschitz, so conservative; the margin shrinks with the tets)
+        corners = v[t]
+        centroid = corners.mean(1)
+        reach = np.linalg.norm(corners - centroid[:, None], axis=2).max(1)
+        meets = signed_distance(centroid) <= reach
+        cand = np.zeros(len(edges), bool)
+        cand[edge_of[meets].reshape(-1)] = True
+        cand = np.flatnonzero(cand & (length > edge_length))
         if cand.size == 0:
             return v, t, rounds
         if len(t) > max_tets:
@@ -78,20 +85,20 @@ def bisect_region(vertices: np.ndarray, tets: np.ndarray, in_region, edge_length
 @operation("remesh")
 def remesh(fld: Field, args, ctx) -> Field:
     where = ctx.where
-    check_keys(args, {"select", "edge_length", "falloff"}, where)
     if "split" in args:
         raise RadfieldError(f"{where}.split: splitting primitives is not implemented")
+    check_keys(args, {"select", "edge_length"}, where)
     if not fld.has_cage:
         raise RadfieldError(f"{where}: this field has no cage to remesh")
     if "select" not in args:
         raise RadfieldError(f"{where}.select: required (all, box, sphere or plane)")
     edge_length = number(args, "edge_length", where, positive=True)
     selection = args["select"]
-    weights(selection, np.zeros((1, 3)), 0.0, f"{where}.select")          # validate before any work
+    signed_distance(selection, np.zeros((1, 3)), f"{where}.select")       # validate before any work
     t0 = time.perf_counter()
     before = len(fld.cage_tets)
     v, t, rounds = bisect_region(fld.cage_vertices, fld.cage_tets,
-                                 lambda p: weights(selection, p, 0.0, f"{where}.select") > 0, edge_length)
+                                 lambda p: signed_distance(selection, p, f"{where}.select"), edge_length)
     out = Field(fld.prims, v, t, notes=list(fld.notes))
     out.rebind()
     note = {"operation": "remesh", "tets_before": before, "tets_after": len(t), "vertices_after": len(v),

@@ -324,7 +324,7 @@ def fit_colors(prims, idx, cameras: list[Camera], targets: list[torch.Tensor], s
         return _joined(frozen, {**fixed, "sh": s}, frozen)
 
     figures = {"psnr_before": _mean_psnr(field(sh), cameras, targets)}
-    opt = torch.optim.Adam([sh], lr=1e-2)
+    opt = torch.optim.Adam([sh], lr=LR_STAGE2["sh"])
     t0 = time.perf_counter()
     for _ in range(steps):
         k = int(torch.randint(len(cameras), (1,), generator=g))
