@@ -365,7 +365,7 @@ def boolean(fld: Field, args, ctx) -> Field:
         fitted, figures = retrain.retrain(frozen, student, pts, target, cameras, targets, steps1=steps, steps2=steps,
                                           seed=ctx.seed, log=ctx.log)
         out_prims = concat_prims(frozen, fitted.to(dtype=frozen.means.dtype))
-        note.update({k: round(v, 3) for k, v in figures.items()})
+        note.update({k: round(v, 3) if isinstance(v, float) else v for k, v in figures.items()})
     tet = np.concatenate([base.tet[kept], np.full(len(out_prims) - kept.size, -1)])
     bary = np.concatenate([base.bary[kept], np.zeros((len(out_prims) - kept.size, 4))])
     out = Field(out_prims, base.cage_vertices, base.cage_tets, tet, bary, notes=list(fld.notes))
