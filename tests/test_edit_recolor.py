@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cameras import Camera, look_at
 from radfield.core.errors import RadfieldError
 from radfield.core.primitives import random_neural
 from radfield.core.sh import C0, eval_sh
