@@ -22,7 +22,7 @@ centre, axis ends, diagonals, random points): wholly kept (bit-identical), wholl
 exact boolean field rendered by masked quadrature (retrain.py). A cut by a shape through a
 solid object also gets a cap: new thin disc primitives seeded on the part of the cut surface that
 lies inside the object (ray-occupancy test: opacity > 1/2 along at least 12 of 14 directions),
-coloured like the nearest original primitive; the teacher includes the cap, so the retrained cut
+coloured like the densest nearby original primitives; the teacher includes the cap, so the retrained cut
 face is closed, not hollow. No analytic clipping of the integration interval (that would need
 renderer kernel changes): retraining is the method.
 """
@@ -37,6 +37,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from radfield.core.errors import RadfieldError
 from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
@@ -45,6 +46,7 @@ from radfield.edit import retrain
 from radfield.edit.compose import euler_matrix, merge_fields, transform_field
 from radfield.edit.field import Field
 from radfield.edit.operand import load_operand, same_kind
+from radfield.edit.recolor import peak_density
 from radfield.edit.select import number, vector
 from radfield.edit.spec import check_keys, operation
 
@@ -223,7 +225,7 @@ def _gradient(sd, p: np.ndarray, h: float = 1e-5) -> np.ndarray:
 def cap_primitives(original: NeuralPrimitives, shape: Shape, region_lo, region_hi, spacing: float,
                    keep_outside: bool, seed: int = 0) -> NeuralPrimitives:
     """Thin opaque discs on the cut surface where it lies inside the original object, on the kept
-    side (normal into the kept region), coloured like the nearest original primitive."""
+    side (normal into the kept region), coloured like the nearest original primitives."""
     pts = surface_points(shape, region_lo, region_hi, spacing)
     empty = original.select(torch.zeros(0, dtype=torch.int64))
     if len(pts) == 0:
@@ -244,9 +246,16 @@ def cap_primitives(original: NeuralPrimitives, shape: Shape, region_lo, region_h
     means = torch.as_tensor(pts + thick * normal)
     # optical depth across the disc at normal incidence: b2 · 2·thick / radius = 3 (α ≈ 0.95)
     b2 = 3.0 * radius / (2 * thick)
-    near = np.argmin(np.linalg.norm(original.means.detach().cpu().double().numpy()[None] - pts[:, None], axis=-1), axis=1) \
-        if len(pts) * len(original) < 5e7 else _nearest(original, pts)
-    colour = sh_to_color(original.sh[near].detach().double(), torch.nn.functional.normalize(-torch.as_tensor(normal), dim=-1), 0)
+    # colour: per-channel median over the 4 densest of the 16 nearest original primitives (robust
+    # to the faint dark floaters a reconstruction keeps inside objects)
+    k = min(16, len(original))
+    _, near = cKDTree(original.means.detach().cpu().double().numpy()).query(pts, k=k)
+    near = torch.as_tensor(near.reshape(len(pts), k))
+    densest = torch.argsort(peak_density(original)[near], dim=1, descending=True)[:, :4]
+    near, k = torch.gather(near, 1, densest), densest.shape[1]
+    view = torch.nn.functional.normalize(-torch.as_tensor(normal), dim=-1)
+    colours = sh_to_color(original.sh[near.reshape(-1)].detach().double(), view.repeat_interleave(k, 0), 0)
+    colour = colours.reshape(len(pts), k, 3).median(1).values
     g = torch.Generator().manual_seed(seed)
     n, hidden = len(pts), original.hidden
     sh = torch.zeros(n, original.sh.shape[1], 3, dtype=torch.float64)
@@ -260,11 +269,6 @@ def cap_primitives(original: NeuralPrimitives, shape: Shape, region_lo, region_h
         w2=torch.zeros(n, hidden, dtype=torch.float64), b2=torch.full((n,), b2, dtype=torch.float64),
         omega0=original.omega0,
     ).to(dtype=dtype)
-
-
-def _nearest(prims, pts):
-    from scipy.spatial import cKDTree
-    return cKDTree(prims.means.detach().cpu().double().numpy()).query(pts)[1]
 
 
 # --- the operation ---------------------------------------------------------------------------
