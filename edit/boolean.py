@@ -15,6 +15,9 @@ field's density (eq. 15), E's taking precedence where both are present:
     union       E + F·(1 − B_E)    xor           E·(1 − B_F) + F·(1 − B_E)
 (union and xor need a field operand: a shape has no radiance to add).
 
+A field's boolean field is sampled once on a grid (spacing a quarter of the straddling
+primitives' median radius) over the straddling primitives for the teacher's quadrature.
+
 Each primitive is classified by its mask over its ellipsoid (an exact bounding-sphere test against
 the shape's signed distance, exact support-function test for a half-space, else 64 samples:
 centre, axis ends, diagonals, random points): wholly kept (bit-identical), wholly removed
@@ -160,6 +163,29 @@ def default_epsilon(prims) -> float:
 def field_mask(fld: Field, epsilon: float):
     """B = [D > ε] of a field, as a function of points (n, 3)."""
     return lambda points: retrain.field_density(fld.prims, points) > epsilon
+
+
+def gridded(mask, lo: np.ndarray, hi: np.ndarray, spacing: float, max_points: int = 1_000_000):
+    """`mask` sampled once on a grid over [lo, hi] and looked up at the nearest grid point (points
+    outside the grid are evaluated directly): the teacher's quadrature evaluates a field's boolean
+    field at millions of ray samples, the grid at ~10⁵–10⁶ points. Resolution: `spacing`, coarsened
+    until the grid has at most max_points."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    while np.prod(np.ceil((hi - lo) / spacing) + 1) > max_points:
+        spacing *= 1.25
+    shape = (np.ceil((hi - lo) / spacing) + 1).astype(int)
+    axes = [lo[i] + spacing * np.arange(shape[i]) for i in range(3)]
+    grid = mask(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape(shape)
+
+    def lookup(points):
+        ijk = np.rint((points - lo) / spacing).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+        out = np.empty(len(points), bool)
+        out[inside] = grid[tuple(ijk[inside].T)]
+        if (~inside).any():
+            out[~inside] = mask(points[~inside])
+        return out
+    return lookup, spacing
 
 
 # --- classification --------------------------------------------------------------------------
@@ -350,6 +376,17 @@ def boolean(fld: Field, args, ctx) -> Field:
         spacing = float(reach.median())
         caps = cap_primitives(fld.prims, shape, lo, hi, spacing, keep_outside=not keep_inside, seed=ctx.seed)
         note["seeded"] = len(caps)
+
+    if shape is None and straddle.size:
+        # field masks: sample each boolean field once on a grid over the straddling primitives
+        sp = prims.select(torch.as_tensor(straddle)).map(lambda t: t.detach().cpu().double())
+        reach = sp.scales.amax(-1)
+        lo, hi = (sp.means - reach[:, None]).amin(0).numpy(), (sp.means + reach[:, None]).amax(0).numpy()
+        t1 = time.perf_counter()
+        grids = [None if m is None else gridded(m, lo, hi, float(reach.median()) / 4) for m in masks]
+        masks = [None if g is None else g[0] for g in grids]
+        note["mask_grid_spacing"] = round(max(g[1] for g in grids if g is not None), 5)
+        note["mask_grid_seconds"] = round(time.perf_counter() - t1, 2)
 
     frozen = prims.select(torch.as_tensor(kept))
     if straddle.size == 0 and len(caps) == 0:
