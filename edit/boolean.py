@@ -165,10 +165,10 @@ def field_mask(fld: Field, epsilon: float):
     return lambda points: retrain.field_density(fld.prims, points) > epsilon
 
 
-def gridded(mask, lo: np.ndarray, hi: np.ndarray, spacing: float, max_points: int = 1_000_000):
+def gridded(mask, lo: np.ndarray, hi: np.ndarray, spacing: float, max_points: int = 300_000):
     """`mask` sampled once on a grid over [lo, hi] and looked up at the nearest grid point (points
     outside the grid are evaluated directly): the teacher's quadrature evaluates a field's boolean
-    field at millions of ray samples, the grid at ~10⁵–10⁶ points. Resolution: `spacing`, coarsened
+    field at millions of ray samples, the grid at ≤ 3·10⁵ points. Resolution: `spacing`, coarsened
     until the grid has at most max_points."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     while np.prod(np.ceil((hi - lo) / spacing) + 1) > max_points:
