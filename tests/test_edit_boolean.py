@@ -183,7 +183,7 @@ def test_mesh_inside_by_winding_number(tmp_path):
     v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) - 0.5
     faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    meshio.write(tmp_path / "cube.stl", meshio.Mesh(v, [("triangle", faces)]))
+    meshio.write(tmp_path / "cube.stl", meshio.Mesh(v, [("triangle", faces)]), binary=True)
     shape = boolean.mesh_shape(tmp_path / "cube.stl", "t")
     pts = np.array([[0, 0, 0], [0.45, 0.45, -0.45], [0.55, 0, 0], [2, 2, 2], [0, -0.6, 0]])
     assert shape.inside(pts).tolist() == [True, True, False, False, False]
