@@ -25,7 +25,8 @@ from radfield.core.errors import RadfieldError
 from radfield.edit.field import Field
 
 # modules whose import registers operations (one per operation family)
-OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.warp",)
+OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.warp", "radfield.edit.boolean", "radfield.edit.compose",
+                                     "radfield.edit.recolor", "radfield.edit.remesh")
 
 
 @dataclass
