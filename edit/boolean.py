@@ -46,7 +46,8 @@ from radfield.core.errors import RadfieldError
 from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
 from radfield.core.sh import rgb_to_sh_dc, sh_to_color
 from radfield.edit import retrain
-from radfield.edit.compose import euler_matrix, merge_fields, transform_field
+from radfield.edit.compose import merge_fields, transform_field
+from radfield.edit.warp import euler_rotation
 from radfield.edit.field import Field
 from radfield.edit.operand import load_operand, same_kind
 from radfield.edit.recolor import peak_density
@@ -101,7 +102,7 @@ def parse_shape(spec, where: str) -> Shape:
             if not (size > 0).all():
                 raise RadfieldError(f"{w}.size: must be positive on every axis, got {size.tolist()}")
             half = size / 2
-            rot = euler_matrix(vector(args, "rotate", w)) if "rotate" in args else np.eye(3)
+            rot = euler_rotation(vector(args, "rotate", w)) if "rotate" in args else np.eye(3)
 
         def sd(p):
             q = np.abs((p - centre) @ rot) - half
@@ -334,7 +335,7 @@ def boolean(fld: Field, args, ctx) -> Field:
         other = load_operand(args["model"], "model", ctx)
         same_kind(fld, other, where)
         if any(k in args for k in ("rotate", "translate", "scale")):
-            rot = euler_matrix(vector(args, "rotate", where)) if "rotate" in args else np.eye(3)
+            rot = euler_rotation(vector(args, "rotate", where)) if "rotate" in args else np.eye(3)
             other = transform_field(other, rot, vector(args, "translate", where) if "translate" in args else np.zeros(3),
                                     number(args, "scale", where, default=1.0, positive=True))
     epsilon = number(args, "epsilon", where, default=default_epsilon(other.prims if other is not None else fld.prims), positive=True)

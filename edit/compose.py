@@ -24,53 +24,12 @@ import torch
 
 from radfield.core.errors import RadfieldError
 from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
-from radfield.core.sh import eval_sh, num_sh_coeffs
+from radfield.core.sh import num_sh_coeffs, rotate_sh
 from radfield.edit.field import Field
 from radfield.edit.operand import load_operand, same_kind
 from radfield.edit.select import number, vector
 from radfield.edit.spec import check_keys, operation
-
-
-def euler_matrix(degrees) -> np.ndarray:
-    """R = Rz(rz)·Ry(ry)·Rx(rx) for angles in degrees (extrinsic X, then Y, then Z)."""
-    rx, ry, rz = np.radians(np.asarray(degrees, np.float64))
-    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
-    x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return z @ y @ x
-
-
-def _fibonacci_sphere(n: int) -> torch.Tensor:
-    i = torch.arange(n, dtype=torch.float64) + 0.5
-    z = 1 - 2 * i / n
-    phi = math.pi * (1 + 5**0.5) * i
-    r = torch.sqrt(1 - z * z)
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
-
-
-def sh_rotation(rot: np.ndarray | torch.Tensor, degree: int) -> torch.Tensor:
-    """(K, K) float64 matrix D with f'(d) = f(Rᵀd) ⇔ coeffs' = D @ coeffs, for real SH of the 3DGS
-    convention up to `degree`. Block diagonal (bands do not mix); each band's block is the exact
-    least-squares solution of Y_l(d_n) D_l = Y_l(Rᵀ d_n) on 64 well-spread directions (a band of
-    degree ≤ 3 has 7 functions, so the system is overdetermined and exact to rounding)."""
-    rot = torch.as_tensor(np.asarray(rot, np.float64))
-    k = num_sh_coeffs(degree)
-    dirs = _fibonacci_sphere(64)
-    eye = torch.eye(k, dtype=torch.float64)[None].expand(len(dirs), k, k)[..., None]   # one SH function per column
-    basis = lambda d: torch.stack([eval_sh(eye[:, :, j], d, degree)[..., 0] for j in range(k)], -1)  # (n, K)
-    y, y_rot = basis(dirs), basis(dirs @ rot)          # rows of dirs @ R are Rᵀ d
-    out = torch.zeros(k, k, dtype=torch.float64)
-    for band in range(degree + 1):
-        lo, hi = band * band, (band + 1) ** 2
-        out[lo:hi, lo:hi] = torch.linalg.lstsq(y[:, lo:hi], y_rot[:, lo:hi]).solution
-    return out
-
-
-def rotate_sh(sh: torch.Tensor, rot) -> torch.Tensor:
-    """SH coefficients (P, K, 3) of colour functions turned by the rotation R: f'(d) = f(Rᵀd)."""
-    d = sh_rotation(rot, round(sh.shape[1] ** 0.5) - 1).to(sh.dtype)
-    return torch.einsum("jk,pkc->pjc", d, sh)
+from radfield.edit.warp import euler_rotation
 
 
 def similarity(prims, rot: np.ndarray, translate: np.ndarray, scale: float):
@@ -166,7 +125,7 @@ def compose(fld: Field, args, ctx) -> Field:
     check_keys(args, {"model", "rotate", "translate", "scale"}, where)
     if "model" not in args:
         raise RadfieldError(f"{where}.model: required (the run or model file to add)")
-    rot = euler_matrix(vector(args, "rotate", where)) if "rotate" in args else np.eye(3)
+    rot = euler_rotation(vector(args, "rotate", where)) if "rotate" in args else np.eye(3)
     translate = vector(args, "translate", where) if "translate" in args else np.zeros(3)
     scale = number(args, "scale", where, default=1.0, positive=True)
     other = load_operand(args["model"], "model", ctx)

@@ -9,7 +9,9 @@ from radfield.core.errors import RadfieldError
 from radfield.core.primitives import random_gaussians, random_neural
 from radfield.core.rasterize import render
 from radfield.core.sh import eval_sh
-from radfield.edit.compose import concat_prims, euler_matrix, rotate_sh
+from radfield.core.sh import rotate_sh
+from radfield.edit.compose import concat_prims
+from radfield.edit.warp import euler_rotation
 from radfield.edit.field import Field
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
 
@@ -25,12 +27,12 @@ def compose(fld, other, tmp_path, **args):
 
 
 def test_rotate_sh_turns_the_colour_function():
-    rot = euler_matrix([30, -20, 75])
+    rot = euler_rotation([30, -20, 75])
     sh = torch.randn(5, 16, 3, dtype=torch.float64)
     d = torch.nn.functional.normalize(torch.randn(5, 3, dtype=torch.float64), dim=-1)
     # f'(d) = f(Rᵀ d)
     assert torch.allclose(eval_sh(rotate_sh(sh, rot), d, 3), eval_sh(sh, d @ torch.as_tensor(rot), 3), atol=1e-12)
-    assert np.allclose(euler_matrix([0, 0, 90]) @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(euler_rotation([0, 0, 90]) @ [1, 0, 0], [0, 1, 0])
 
 
 def test_compose_with_itself_equals_depth_compositing(tmp_path):
@@ -51,7 +53,7 @@ def test_compose_with_itself_equals_depth_compositing(tmp_path):
     diff = (render(out.prims, cam).color - composited).abs().max(-1).values
     assert diff.max() < 1e-3 and (diff > 1e-9).sum() <= 2
     # and the copy is the original seen from the correspondingly moved camera
-    rot, s, t = torch.as_tensor(euler_matrix([10, 20, 40])), 1.2, torch.tensor([0.35, 2.0, 0.1], dtype=torch.float64)
+    rot, s, t = torch.as_tensor(euler_rotation([10, 20, 40])), 1.2, torch.tensor([0.35, 2.0, 0.1], dtype=torch.float64)
     c2w = cam.c2w.clone()
     c2w[:3, :3], c2w[:3, 3] = rot @ c2w[:3, :3], s * rot @ c2w[:3, 3] + t
     moved = Camera(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=cam.width, height=cam.height, c2w=c2w)
