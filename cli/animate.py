@@ -47,6 +47,8 @@ def path_cameras(cameras, names, orbit: int, elevation: float, camera_path: Path
         cameras, path_fps = read_nerfstudio_path(camera_path)
         return cameras, [c.name for c in cameras], fps or path_fps or 30.0
     if orbit:
+        if not cameras:
+            raise RadfieldError("--orbit circles the dataset's cameras: give --dataset for a model file")
         params = orbit_from_cameras(cameras)
         cameras = make_orbit(params["target"], params["radius"], elevation, orbit, cameras[0], up=params["up"])
         return cameras, [c.name for c in cameras], fps or 30.0

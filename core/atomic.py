@@ -46,18 +46,31 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_folder(path: str | Path) -> Iterator[Path]:
-    """Yield a new temporary folder beside `path` to fill; when the block ends without error it is
-    renamed to `path` (which must not exist, or be an empty folder), otherwise removed. The folder
-    gets the umask's mode (mkdtemp's would be private)."""
+def atomic_folder(path: str | Path, merge: bool = False) -> Iterator[Path]:
+    """Yield a new temporary folder beside `path` to fill; when the block ends without error it
+    takes `path`'s place, otherwise it is removed and `path` is left as it was. The folder gets the
+    umask's mode (mkdtemp's would be private).
+
+    merge=False: `path` must not exist (or be an empty folder): the folder is renamed to it in one
+    step. merge=True: into an existing folder each entry of the new one moves by a rename,
+    replacing an entry of the same name (renders into a folder the user already has)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     tmp.mkdir()
     try:
         yield tmp
-        if path.is_dir() and not any(path.iterdir()):
-            path.rmdir()
-        os.rename(tmp, path)   # fails, rather than merging, if `path` appeared meanwhile
+        if merge and path.is_dir() and any(path.iterdir()):
+            for entry in sorted(tmp.iterdir()):
+                old = path / entry.name
+                if old.is_dir() and not old.is_symlink():
+                    shutil.rmtree(old)
+                elif entry.is_dir() and (old.exists() or old.is_symlink()):
+                    old.unlink()
+                os.replace(entry, old)
+        else:
+            if path.is_dir() and not any(path.iterdir()):
+                path.rmdir()
+            os.rename(tmp, path)   # fails, rather than merging, if `path` appeared meanwhile
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

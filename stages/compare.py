@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from radfield.core import report
-from radfield.core.atomic import atomic_write_text
+from radfield.core.atomic import atomic_folder, atomic_write_text
 from radfield.core.errors import RadfieldError
 from radfield.datasets.images import read_image, write_image
-from radfield.stages.evaluate import GRIDS, REPORT, RENDERS, eval_report, resolve_target, staging
+from radfield.stages.evaluate import GRIDS, REPORT, RENDERS, eval_report, resolve_target
 from radfield.stages.info import run_info
 
 COMPARISON = "comparison.json"
@@ -52,7 +52,7 @@ def compare(targets: Sequence[Path], out_dir: Path, *, dataset: Path | None, spl
                                 f"{targets[0]} ({len(views[0])} of {sizes[0][0]}×{sizes[0][1]}); pass --dataset")
     labels = labels_for(targets)
     rows = []
-    with staging(out_dir) as tmp:
+    with atomic_folder(out_dir, merge=True) as tmp:
         for label, target, (_, _, run_dir, _) in zip(labels, targets, resolved):
             metrics = eval_report(target, dataset, split, tmp / label, options=options, device=device, quiet=quiet)
             rows.append({"label": label, "target": str(Path(target).resolve()), "metrics": metrics,

@@ -25,7 +25,6 @@ train/curves.png and train/log.jsonl, when the run has them).
 from __future__ import annotations
 
 import json
-import secrets
 import shutil
 import time
 from pathlib import Path
@@ -33,7 +32,7 @@ from typing import Any
 
 import torch
 
-from radfield.core.atomic import atomic_write_text
+from radfield.core.atomic import atomic_folder, atomic_write_text
 from radfield.core.errors import RadfieldError
 from radfield.core import lpips as lpips_metric
 from radfield.core import report
@@ -150,7 +149,7 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
     model, scene, run_dir, config = resolve_target(target, dataset, options)
     if out_dir.exists() and not out_dir.is_dir():
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
-    with staging(out_dir) as tmp:
+    with atomic_folder(out_dir, merge=True) as tmp:
         metrics = evaluate(model, scene, split, tmp / RENDERS, near=config["render"]["near"], device=device,
                            quiet=quiet, grids=tmp / GRIDS)
         atomic_write_text(tmp / METRICS, json.dumps(metrics, indent=1) + "\n")
@@ -173,35 +172,6 @@ def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] |
             raise RadfieldError("--dataset is required to evaluate a model file")
     scene = scene_from_json(read_dataset(dataset, config["data"])[0], dataset)
     return model, scene, run_dir, config
-
-
-class staging:
-    """A temporary sibling folder whose entries replace those of `out_dir` on success (the folder
-    is created if needed); on failure it is removed and `out_dir` is left as it was."""
-
-    def __init__(self, out_dir: Path):
-        self.out_dir = Path(out_dir)
-        self.tmp = self.out_dir.parent / f".{self.out_dir.name}.tmp-{secrets.token_hex(4)}"
-
-    def __enter__(self) -> Path:
-        self.tmp.mkdir(parents=True)
-        return self.tmp
-
-    def __exit__(self, kind, *_) -> None:
-        if kind is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            return
-        if not self.out_dir.exists():
-            self.tmp.rename(self.out_dir)
-            return
-        for entry in self.tmp.iterdir():
-            old = self.out_dir / entry.name
-            if old.is_dir() and not old.is_symlink():
-                shutil.rmtree(old)
-            elif old.exists() or old.is_symlink():
-                old.unlink()
-            entry.rename(old)
-        self.tmp.rmdir()
 
 
 def _progress(quiet: bool):

@@ -9,15 +9,13 @@ so a failed render leaves no partial output.
 
 from __future__ import annotations
 
-import os
-import secrets
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from radfield.core.atomic import atomic_folder
 from radfield.core.camera_path import write_video
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model
@@ -40,6 +38,8 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
 
     camera_path(cameras, names) -> (cameras, names) replaces the split's cameras (an orbit around
     them, a camera-path file); `video`: also write the frames as an MP4 at fps() frames per second.
+    A model file with a camera path needs no dataset: camera_path then gets no cameras, and must
+    bring its own (a camera-path file) or fail with a RadfieldError (an orbit).
 
     on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
     primitives, kind and ms_per_frame (rendering only, after one untimed warm-up render, the
@@ -47,25 +47,25 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     config = load_config(Path(run_dir) / CONFIG_FILE if run_dir is not None else None, options=options or {})
     if dataset is None:
         dataset = run_dataset(run_dir) if run_dir is not None else None
-        if dataset is None:
+        if dataset is None and camera_path is None:
             raise RadfieldError("--dataset is required to render a model file (a run knows its dataset)")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
     model = load_model(model_file, device=device)
-    data = load_split(dataset, split, config["data"])
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
-    cameras, names = data.cameras, [view.image_path.stem for view in data.views]
+    cameras, names = [], []
+    if dataset is not None:
+        data = load_split(dataset, split, config["data"])
+        cameras, names = data.cameras, [view.image_path.stem for view in data.views]
     if camera_path is not None:
         cameras, names = camera_path(cameras, names)
     if on_start is not None:
         on_start(len(cameras))
     with torch.no_grad():  # warm-up, untimed: the first render loads the fused kernels
         render(model, cameras[0], background=background, near=near)
-    tmp = out_dir.with_name(f".{out_dir.name}.tmp-{secrets.token_hex(4)}")
-    tmp.mkdir(parents=True)
     seconds, frames = 0.0, []
-    try:
+    with atomic_folder(out_dir, merge=True) as tmp:
         for name, camera in zip(names, cameras):
             start = clock(device)
             with torch.no_grad():
@@ -79,18 +79,6 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
                 on_frame()
         if video is not None:
             write_video(video, frames, fps())
-        _move_into(tmp, out_dir)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     first = cameras[0]
     return {"views": len(cameras), "width": first.width, "height": first.height, "primitives": len(model),
             "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(cameras)}
-
-
-def _move_into(tmp: Path, out_dir: Path) -> None:
-    """`tmp` becomes `out_dir`; into an existing folder its files move one by one (each rename atomic)."""
-    if not out_dir.exists():
-        os.rename(tmp, out_dir)
-        return
-    for frame in sorted(tmp.iterdir()):
-        os.replace(frame, out_dir / frame.name)

@@ -225,3 +225,11 @@ def test_render_orbit_and_camera_path_with_video(cli, scene, tmp_path):
     assert len(images) == 2 and read_image(images[0]).shape[:2] == (20, 30)
     code, _, err = cli("render", run_dir, "-d", data, "-o", tmp_path / "x", "--camera-path", path, "--orbit", "3")
     assert code == 1 and "exclude each other" in err
+    # a model file with a camera path needs no dataset (the path brings its cameras); an orbit does
+    model = run_dir / "train" / "model.safetensors"
+    code, _, err = cli("render", model, "-o", tmp_path / "model_path", "--camera-path", path, "-q")
+    assert code == 0, err
+    assert [p.name for p in sorted((tmp_path / "model_path").glob("*.png"))] == [p.name for p in images]
+    assert np.array_equal(read_image(tmp_path / "model_path" / images[0].name), read_image(images[0]))
+    code, _, err = cli("render", model, "-o", tmp_path / "model_orbit", "--orbit", "3")
+    assert code == 1 and "--dataset" in err and not (tmp_path / "model_orbit").exists()
