@@ -95,7 +95,7 @@ def edit(
     from radfield.edit.field import EDIT_SPEC, save_field
     from radfield.edit.spec import EditContext, apply_operations, parse_spec, read_spec
     from radfield.stages.info import run_dataset
-    from radfield.stages.pipeline import CONFIG_FILE, RUN_MARKER, is_run_dir, read_marker
+    from radfield.stages.pipeline import CONFIG_FILE, RUN_MARKER, format_figures, is_run_dir, read_marker
 
     start = time.perf_counter()
     if output.exists():
@@ -142,3 +142,6 @@ def edit(
     split_total = figures["split"]
     typer.echo(f"edited {len(fld.prims)} -> {len(edited.prims)} {edited.prims.kind} primitives with "
                f"{len(operations)} operation(s) ({split_total} split); wrote {output}")
+    for note in edited.notes:  # what each operation did (kept, dropped, retrained, teacher PSNR, ...)
+        figures = {k: v for k, v in note.items() if k != "operation" and isinstance(v, (int, float, str, bool))}
+        typer.echo(f"  {note.get('operation', '?')}: {format_figures(figures)}")
