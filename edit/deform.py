@@ -274,6 +274,7 @@ def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAUL
     a, means, changed = primitive_maps(fld, new, gradient)
     prims = map_primitives(fld.prims, a, means, changed, preserve_opacity)
     out = replace(fld, prims=prims, cage_vertices=new, notes=list(fld.notes))
-    out.notes.append({"op": where, "gradient": gradient, "split": int(n_split), "primitives": len(prims),
+    out.notes.append({"operation": where.rsplit(".", 1)[-1], "entry": where, "gradient": gradient,
+                      "split": int(n_split), "primitives": len(prims),
                       "moved_primitives": int(changed.sum()), "moved_tets": int(moved.sum())})
     return out

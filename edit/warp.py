@@ -103,7 +103,8 @@ def transform(fld: Field, args: Mapping, ctx: EditContext) -> Field:
     if select in ("all", None) and not falloff:
         # the whole field by one affine map: exact, and the only form a cage-less field takes
         out = deform.affine_field(fld, a, o + t - a @ o, preserve_opacity=_options(args, ctx, where)["preserve_opacity"])
-        out.notes.append({"op": where, "split": 0, "primitives": len(out.prims), "moved_primitives": len(out.prims)})
+        out.notes.append({"operation": where.rsplit(".", 1)[-1], "entry": where, "split": 0,
+                          "primitives": len(out.prims), "moved_primitives": len(out.prims)})
         return out
     return _move_cage(fld, args, ctx, lambda x: o + (x - o) @ a.T + t)
 
