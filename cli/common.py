@@ -7,6 +7,9 @@ import math
 from pathlib import Path
 
 from radfield.core.errors import RadfieldError
+from radfield.core.progress import progress_bar
+
+__all__ = ["parse_background", "progress_bar", "resolve_device", "resolve_model"]
 
 
 def parse_background(text: str) -> tuple[float, float, float]:
@@ -42,10 +45,3 @@ def resolve_model(path: Path) -> Path:
     if not path.exists():
         raise RadfieldError(f"{path}: no such model file or run directory")
     return path
-
-
-def progress_bar(quiet: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                    disable=quiet, transient=True)

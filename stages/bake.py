@@ -23,6 +23,7 @@ import torch
 
 from radfield.core.bake import coverage, prune, to_fp16_and_back
 from radfield.core.errors import RadfieldError
+from radfield.core.progress import progress_bar
 from radfield.core.io import load_model, save_model
 from radfield.core.trainer import mean_psnr
 from radfield.stages.data import SCENE, Scene, load_scene
@@ -51,8 +52,6 @@ def check_config(config: dict[str, Any]) -> None:
 def bake_model(model_file: Path, scene: Scene, out: Path, *, min_weight: float, fp16: bool, split: str,
                near: float = 0.01, device: str = "cpu", quiet: bool = True) -> dict[str, Any]:
     """Bake `model_file` against `scene`'s training views into `out`; returns the figures."""
-    from radfield.cli.common import progress_bar
-
     model = load_model(model_file, device=device)
     train_cameras = scene.train_cameras
     held_out, photos = scene.cameras(split), scene.load_images(split)[0]

@@ -34,6 +34,7 @@ import torch
 
 from radfield.core.atomic import atomic_folder, atomic_write_text
 from radfield.core.errors import RadfieldError
+from radfield.core.progress import progress_bar
 from radfield.core import lpips as lpips_metric
 from radfield.core import report
 from radfield.core.io import load_model
@@ -82,7 +83,7 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
     draw = torch.no_grad()(lambda camera: render(model, camera, background=scene.background, near=near).color)
     draw(cameras[0])  # warm-up, untimed: fps is the steady rate, without one-off allocations
     per_view = []
-    with _progress(quiet) as progress:
+    with progress_bar(quiet) as progress:
         task = progress.add_task(f"evaluating {len(cameras)} {split} views", total=len(cameras))
         for k, (camera, photo) in enumerate(zip(cameras, images)):
             mask = None if masks is None else masks[k]
@@ -172,10 +173,3 @@ def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] |
             raise RadfieldError("--dataset is required to evaluate a model file")
     scene = scene_from_json(read_dataset(dataset, config["data"])[0], dataset)
     return model, scene, run_dir, config
-
-
-def _progress(quiet: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                    disable=quiet, transient=True)
