@@ -23,7 +23,7 @@ from radfield.core.errors import RadfieldError
 from radfield.stages.config import require
 from radfield.stages.data import POINTS, SCENE, load_scene
 from radfield.stages.pipeline import Context, NotApplicable, Stage
-from radfield.stages.sfm import triangulate
+from radfield.datasets.sfm import triangulate
 
 ENVELOPE = "envelope.ply"
 OVERLAY = "envelope.png"

@@ -56,7 +56,8 @@ MODEL_FILE = "model.safetensors"  # its file name inside RUN/train/ (the train s
 CHECKPOINT_FILE = "checkpoint.safetensors"  # the train stage's checkpoint inside RUN/train.work/
 SFM_STAGE = "sfm"  # the stage that poses a folder of photos
 SFM_DATASET = "colmap"  # its output: a posed COLMAP dataset folder inside RUN/sfm/
-NORMALIZATION_FILE = "normalization.json"  # inside that folder: how its frame relates to COLMAP's
+NORMALIZATION_FILE = "normalization.json"  # inside that folder (datasets/sfm.py writes it; not imported
+                                          # from there: radfield.datasets loads OpenImageIO, cv2, pycolmap)
 
 
 EDIT_STAGE = "edit"  # `radfield edit` writes an edited run's model into NEW_RUN/edit/ (radfield.edit.field)

@@ -15,7 +15,7 @@ from radfield.core.errors import RadfieldError
 from radfield.stages.config import load_defaults
 from radfield.core.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
 from radfield.datasets.colmap import read_colmap
-from radfield.stages.sfm import compare_poses, run_sfm
+from radfield.datasets.sfm import compare_poses, run_sfm
 from radfield.core.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
 
 
@@ -337,3 +337,10 @@ def test_sample_in_cage_is_volume_weighted(torus_cage):
     # the largest tets get proportionally more samples
     big = volumes > np.median(volumes)
     assert np.isin(index, np.flatnonzero(big)).mean() == pytest.approx(volumes[big].sum() / volumes.sum(), abs=0.01)
+
+
+def test_run_layout_names_the_normalization_file_sfm_writes():
+    from radfield.datasets import sfm
+    from radfield.stages import info
+
+    assert info.NORMALIZATION_FILE == sfm.NORMALIZATION_FILE
