@@ -9,6 +9,8 @@ depth is measured in units of the primitive's size, so opacities are unchanged t
 coefficients turn with the object (f'(d) = f(Rᵀd), band by band). Cages merge as a disjoint union
 (the other's vertices mapped, its tets and bindings offset), so the result stays editable.
 
+A field edited with preserve_opacity carries a per-primitive `rest_metric`; joined with a field
+that has none, the other's primitives get the identity metric (their optical depth unchanged).
 Mismatched fields: SH degree → the lower one is padded with zero bands; hidden width → the
 narrower MLP is padded with zero units (W2 = 0 adds nothing); ω0 → the other's W1 and b1 are
 rescaled by ω0_other / ω0 (only ω0·W1 and ω0·b1 enter the density); Gaussians with neural
@@ -82,10 +84,21 @@ def concat_prims(a, b, where: str = "compose"):
             b.w1, b.b1, b.omega0 = b.w1 * ratio, b.b1 * ratio, a.omega0
         hidden = max(a.hidden, b.hidden)
         a, b = pad_hidden(a, hidden), pad_hidden(b, hidden)
+        a, b = with_rest_metric(a, b.rest_metric is not None), with_rest_metric(b, a.rest_metric is not None)
     b = b.to(dtype=a.means.dtype)
     out = a.map(lambda x: x)
     for name, tensor in a.tensors().items():
         setattr(out, name, torch.cat([tensor, getattr(b, name)], 0))
+    return out
+
+
+def with_rest_metric(prims: NeuralPrimitives, needed: bool) -> NeuralPrimitives:
+    """prims with a `rest_metric` (identity G = I for each primitive: unchanged optical depth) when
+    `needed` and it has none, so that it joins a field edited with preserve_opacity."""
+    if not needed or prims.rest_metric is not None:
+        return prims
+    out = prims.map(lambda x: x)
+    out.rest_metric = prims.means.new_tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]).expand(len(prims), 6).clone()
     return out
 
 

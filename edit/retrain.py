@@ -278,9 +278,14 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     density_target (Q,): the teacher's density of the retrained part. Returns the fitted student
     and figures (PSNR vs the teacher renders before and after, seconds per stage)."""
     g = torch.Generator().manual_seed(seed)
-    params = {n: t.detach().clone().float().requires_grad_(True) for n, t in student.tensors().items()}
+    # the trained parameters; per-primitive data that is not a parameter (rest_metric, written by a
+    # preserve_opacity deformation) passes through unchanged, as the frozen primitives' does
+    params = {n: t.detach().clone().float().requires_grad_(True) for n, t in student.tensors().items() if n in LR_STAGE2}
+    extras = {n: t.detach().clone().float() for n, t in student.tensors().items() if n not in LR_STAGE2}
     frozen = frozen.to(dtype=torch.float32)
-    figures = {"psnr_before": _mean_psnr(_joined(frozen, params, frozen), cameras, targets)}
+    if set(extras) != set(frozen.tensors()) - set(LR_STAGE2):
+        raise ValueError("retrain: the frozen and the trained primitives hold different per-primitive data")
+    figures = {"psnr_before": _mean_psnr(_joined(frozen, {**params, **extras}, frozen), cameras, targets)}
 
     # stage 1: MLP to the teacher's density at sampled points (eq. 12, first line)
     t0 = time.perf_counter()
@@ -300,8 +305,9 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
         loss.backward()
         opt.step()
     figures["stage1_seconds"] = time.perf_counter() - t0
-    figures["psnr_after_stage1"] = _mean_psnr(_joined(frozen, params, frozen), cameras, targets)
-    after1 = NeuralPrimitives(**{n: t.detach().clone().to(student.means.dtype) for n, t in params.items()}, omega0=student.omega0)
+    figures["psnr_after_stage1"] = _mean_psnr(_joined(frozen, {**params, **extras}, frozen), cameras, targets)
+    after1 = NeuralPrimitives(**{n: t.detach().clone().to(student.means.dtype) for n, t in {**params, **extras}.items()},
+                              omega0=student.omega0)
 
     # stage 2: every parameter of the student to teacher renders (eq. 12, second line)
     t0 = time.perf_counter()
@@ -313,7 +319,7 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
         for group, lr in zip(opt.param_groups, base_lr):     # exponential decay to a tenth
             group["lr"] = lr * 0.1 ** (step / max(steps2 - 1, 1))
         k = int(torch.randint(len(cameras), (1,), generator=g))
-        img = render_image(_joined(frozen, params, frozen), cameras[k])
+        img = render_image(_joined(frozen, {**params, **extras}, frozen), cameras[k])
         loss = (img - targets32[k]).abs().mean()
         opt.zero_grad()
         loss.backward()
@@ -321,7 +327,8 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
         if step % 50 == 0:
             log(f"retrain stage 2: step {step}/{steps2}, L1 {float(loss.detach()):.4f}")
     figures["stage2_seconds"] = time.perf_counter() - t0
-    fitted = NeuralPrimitives(**{n: t.detach().to(student.means.dtype) for n, t in params.items()}, omega0=student.omega0)
+    fitted = NeuralPrimitives(**{n: t.detach().to(student.means.dtype) for n, t in {**params, **extras}.items()},
+                              omega0=student.omega0)
     figures["psnr_after_stage2"] = _mean_psnr(_joined(frozen, fitted.tensors(), frozen), cameras, targets)
     # never leave the field further from the teacher (on these views) than an earlier stage did
     candidates = {"before": (figures["psnr_before"], student), "stage1": (figures["psnr_after_stage1"], after1),

@@ -210,3 +210,23 @@ def test_bad_boolean_entries_are_one_line(tmp_path, op, message):
     for name, tensor in copy.tensors().items():
         assert torch.equal(getattr(prims, name), tensor)      # nothing changed
     assert list(tmp_path.iterdir()) == []                    # nothing written
+
+
+def test_retraining_keeps_the_rest_metric_of_a_preserve_opacity_edit():
+    # a field deformed with preserve_opacity carries rest_metric (P, 6): a boolean cut that
+    # retrains the straddling primitives must keep it (frozen per-primitive data, not a parameter)
+    prims = blob((0, 0, 0), 20, 0.3, 0.12, seed=11)
+    g = torch.Generator().manual_seed(3)
+    prims.rest_metric = torch.tensor([1.0, 1.0, 1.0, 0, 0, 0]) + 0.2 * torch.rand(len(prims), 6, generator=g)
+    out = run(Field(prims), {"boolean": {"op": "difference", "shape": {"sphere": {"center": [0.3, 0, 0], "radius": 0.3}},
+                                         "steps": 5, "views": 2, "size": 16}})
+    note = out.notes[-1]
+    assert note["retrained"] > 0 and note["kept"] > 0
+    assert out.prims.rest_metric is not None and out.prims.rest_metric.shape == (len(out.prims), 6)
+    classes = boolean.classify(prims, lambda p: np.linalg.norm(p - [0.3, 0, 0], axis=1) > 0.3,
+                               boolean.parse_shape({"sphere": {"center": [0.3, 0, 0], "radius": 0.3}}, "t"), False)
+    kept, straddle = np.flatnonzero(classes == 1), np.flatnonzero(classes == -1)
+    expected = torch.cat([prims.rest_metric[kept], prims.rest_metric[straddle]])
+    assert torch.equal(out.prims.rest_metric[:len(expected)], expected)
+    seeded = out.prims.rest_metric[len(expected):]                     # cap discs: the identity metric
+    assert torch.equal(seeded, torch.tensor([1.0, 1.0, 1.0, 0, 0, 0]).expand_as(seeded))
