@@ -20,7 +20,8 @@ from radfield.core.errors import RadfieldError
 EDIT_STAGE = "edit"  # = radfield.edit.field.EDIT_STAGE (not imported here: keeps `radfield --help` fast)
 
 SOURCE_CAGE = ("tetra", "cage.npz")             # the tetra stage's cage of a reconstructed run
-SOURCE_BINDING = ("train", "model_binding.npz")  # the train stage's binding of its model
+SOURCE_BINDINGS = (("bind", "model_binding.npz"),   # the bind stage's binding of the trained model
+                   ("train", "model_binding.npz"))  # where runs made before the bind stage have it
 
 
 def run_files(run: Path) -> tuple[Path, Path | None, Path | None]:
@@ -33,8 +34,9 @@ def run_files(run: Path) -> tuple[Path, Path | None, Path | None]:
     if model.parent.name == EDIT_STAGE:
         cage, binding = run / EDIT_STAGE / "cage.npz", run / EDIT_STAGE / "model_binding.npz"
     else:
-        cage, binding = run.joinpath(*SOURCE_CAGE), run.joinpath(*SOURCE_BINDING)
-    return model, cage if cage.is_file() else None, binding if binding.is_file() else None
+        cage = run.joinpath(*SOURCE_CAGE)
+        binding = next((run.joinpath(*b) for b in SOURCE_BINDINGS if run.joinpath(*b).is_file()), None)
+    return model, cage if cage.is_file() else None, binding if binding is not None and binding.is_file() else None
 
 
 def load_source(path: Path, cage: Path | None = None):

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from radfield.core.errors import RadfieldError
-from radfield.stages import bake, data, envelope, evaluate, init, sfm, tetra
+from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra
 from radfield.stages.data import SCENE
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Context, Stage
@@ -27,6 +27,7 @@ def stages() -> list[Stage]:
         tetra.STAGE,
         init.STAGE,
         _stage("train") or Stage("train", _train_missing, inputs=(SCENE, init.INIT_MODEL), outputs=(MODEL_FILE,)),
+        bind.STAGE,
         bake.STAGE,
         evaluate.STAGE,
     ]

@@ -2,7 +2,7 @@
 
 Inputs: scene.json (data stage) and init.safetensors (init stage). Outputs in RUN/train/:
 model.safetensors, the trained model in the dataset's own world frame (radfield.core.io format);
-model_binding.npz; log.jsonl, one JSON record per step (radfield.core.trainlog: step, loss,
+log.jsonl, one JSON record per step (radfield.core.trainlog: step, loss,
 train PSNR, primitives, seconds, population control, and test_psnr, the held-out views' PSNR
 every `train.eval_every` steps and at the last, for information only); curves.png, the log
 drawn; final_state.safetensors, the full training state at the last step (a checkpoint).
@@ -32,7 +32,6 @@ from typing import Any
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from radfield.core.cage import CAGE_NPZ, write_binding
 from radfield.core.io import load_model, save_model
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint, train
@@ -42,7 +41,6 @@ from radfield.stages.info import CHECKPOINT_FILE, MODEL_FILE
 from radfield.stages.init import INIT_MODEL
 from radfield.stages.pipeline import Context, Stage
 
-MODEL_BINDING = "model_binding.npz"  # per trained primitive: its cage tet and barycentric coordinates
 LOG = "log.jsonl"
 CURVES = "curves.png"
 FINAL_STATE = "final_state.safetensors"
@@ -88,8 +86,6 @@ def run(ctx: Context) -> dict[str, Any]:
     model = to_world(trained, norm)
     save_model(ctx.outputs[MODEL_FILE], model)
     save_checkpoint(ctx.outputs[FINAL_STATE], state, key)
-    # the editor moves primitives with the cage: bind the trained centres, as init bound its own
-    write_binding(ctx.outputs[MODEL_BINDING], model.means.detach().cpu().numpy(), ctx.inputs[CAGE_NPZ])
     shutil.copyfile(ctx.work / LOG, ctx.outputs[LOG])
     plot_curves(read_log(ctx.outputs[LOG]), ctx.outputs[CURVES], title=f"{ctx.run_dir.name}: {model.kind} primitives")
     held = [r["test_psnr"] for r in read_log(ctx.outputs[LOG]) if r.get("test_psnr") is not None]
@@ -104,8 +100,8 @@ def run(ctx: Context) -> dict[str, Any]:
     }
 
 
-STAGE = Stage("train", run, config_keys=("train", "render", "data", "seed"), inputs=(SCENE, INIT_MODEL, CAGE_NPZ),
-              outputs=(MODEL_FILE, MODEL_BINDING, LOG, CURVES, FINAL_STATE), version=3)
+STAGE = Stage("train", run, config_keys=("train", "render", "data", "seed"), inputs=(SCENE, INIT_MODEL),
+              outputs=(MODEL_FILE, LOG, CURVES, FINAL_STATE), version=3)
 
 
 def _starting_point(ctx: Context, key: dict):

@@ -34,7 +34,8 @@ def scene(tmp_path_factory):
     save_model(run / "train" / "model.safetensors", prims)
     v, t = box_cage([-0.8, -0.8, -0.8], [0.8, 0.8, 0.8], 2)
     write_cage(run / "tetra", v, t)
-    write_binding(run / "train" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
+    (run / "bind").mkdir()
+    write_binding(run / "bind" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
     (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
     (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
     return root, run, data, v, t

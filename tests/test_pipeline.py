@@ -370,7 +370,7 @@ def test_info_refuses_other_folders(tmp_path: Path) -> None:
 
 def test_defaults_hold_every_section() -> None:
     config = load_config()
-    assert config["stages"] == ["sfm", "data", "envelope", "tetra", "init", "train", "bake", "eval"]
+    assert config["stages"] == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
     assert {"seed", "device", "data", "sfm", "envelope", "tetra", "init", "train", "render", "bake", "eval"} <= set(config)
     assert config["train"]["max_primitives"] is None
     assert config["train"]["densify"]["grad_threshold"] == 1e-3  # exponent notation reads as a float

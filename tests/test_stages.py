@@ -293,7 +293,7 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
     info = json.loads(out)
     assert code == 0 and set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages"}
     assert info["pending_checkpoint"] is None
-    assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "bake", "eval"]
+    assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())
     assert info["stages"]["data"]["images"] == 8 and info["stages"]["sfm"]["applicable"] is False
     assert {"done", "seconds", "psnr", "ssim", "fps"} <= set(info["stages"]["eval"])
@@ -304,6 +304,25 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
     assert code == 0 and "PSNR" in out and report["psnr"] == pytest.approx(metrics["psnr"], abs=1e-4)
     code, _, err = cli("eval", run_dir / "train" / MODEL_FILE, "-o", tmp_path / "r2")
     assert code == 1 and "--dataset" in err and not (tmp_path / "r2").exists()
+
+
+def test_a_changed_tetra_key_rebinds_and_does_not_retrain(scene_dir, tmp_path):
+    # the cage is an input of bind (and init's binding), not of train: a new cage re-binds the
+    # trained model in RUN/bind/ and leaves the (expensive) train stage cached
+    run_dir, sets = tmp_path / "run", ("train.iterations=2", "train.eval_every=0")
+    first = run_pipeline(stages(), run_dir, config(*sets), input_path=scene_dir, until_stage="bind", quiet=True)
+    assert first["tetra"] == first["train"] == first["bind"] == "ran"
+    model = (run_dir / "train" / MODEL_FILE).read_bytes()
+    cage = (run_dir / "tetra" / "cage.npz").read_bytes()
+    again = run_pipeline(stages(), run_dir, config(*sets, "tetra.edge_length_fac=0.2"), input_path=scene_dir,
+                         until_stage="bind", quiet=True)
+    assert again["tetra"] == "ran" and again["train"] == "cached" and again["bind"] == "ran"
+    assert (run_dir / "tetra" / "cage.npz").read_bytes() != cage          # the cage did change
+    assert (run_dir / "train" / MODEL_FILE).read_bytes() == model
+    with np.load(run_dir / "bind" / "model_binding.npz") as binding:
+        tets = len(np.load(run_dir / "tetra" / "cage.npz")["tets"])
+        assert len(binding["tet"]) == len(load_model(run_dir / "train" / MODEL_FILE)) and binding["tet"].max() < tets
+    assert not (run_dir / "train" / "model_binding.npz").exists()
 
 
 def test_demo_scene_command(tmp_path, cli):
@@ -334,7 +353,7 @@ def test_reconstruct_caches_and_reruns_only_what_changed(scene_dir, tmp_path, cl
 
     code, out, err = cli(*args, "--set", "train.iterations=41")
     outcomes = dict(part.split(" ", 1) for part in out.splitlines()[0].removeprefix("stages: ").split(", "))
-    assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "bake", "eval"]
+    assert code == 0 and [name for name, outcome in outcomes.items() if outcome == "ran"] == ["train", "bind", "bake", "eval"]
     info = json.loads(cli("info", run_dir, "--json")[1])
     assert math.isfinite(info["stages"]["eval"]["psnr"])
     # one more step continues the finished run; its log has every step once
