@@ -23,7 +23,7 @@ def load_content(target: Path, device: str = "cpu"):
     from radfield.core.cage import read_cage
     from radfield.core.export import Content
     from radfield.core.io import load_model
-    from radfield.stages.data import load_scene
+    from radfield.datasets.scene import load_scene
     from radfield.core.envelope import read_envelope
 
     model = load_model(resolve_model(target), device=resolve_device(device))

@@ -26,7 +26,7 @@ from radfield.core.errors import RadfieldError
 from radfield.core.progress import progress_bar
 from radfield.core.io import load_model, save_model
 from radfield.core.trainer import mean_psnr
-from radfield.stages.data import SCENE, Scene, load_scene
+from radfield.datasets.scene import SCENE, Scene, load_scene
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Context, Stage
 

@@ -21,7 +21,7 @@ from radfield.core.envelope import (MIN_POINTS, build_envelope, choose_source, o
                                     write_envelope)
 from radfield.core.errors import RadfieldError
 from radfield.stages.config import require
-from radfield.stages.data import POINTS, SCENE, load_scene
+from radfield.datasets.scene import POINTS, SCENE, load_scene
 from radfield.stages.pipeline import Context, NotApplicable, Stage
 from radfield.datasets.sfm import triangulate
 

@@ -42,7 +42,7 @@ from radfield.core.metrics import psnr, ssim
 from radfield.core.rasterize import render
 from radfield.datasets.images import write_image
 from radfield.stages.config import load_config
-from radfield.stages.data import SCENE, Scene, load_scene, read_dataset, scene_from_json
+from radfield.datasets.scene import SCENE, Scene, load_scene, read_dataset, scene_from_json
 from radfield.stages.info import MODEL_FILE, MODEL_STAGE, model_path, run_dataset
 from radfield.stages.pipeline import CONFIG_FILE, Context, Stage, is_run_dir
 

@@ -41,7 +41,7 @@ from radfield.core.io import save_model
 from radfield.core.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
 from radfield.core.sh import num_sh_coeffs, rgb_to_sh_dc
 from radfield.stages.config import require
-from radfield.stages.data import POINTS, SCENE, Scene, load_scene
+from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.stages.pipeline import Context, Stage
 from radfield.core.cage import CAGE_NPZ, write_binding
 from radfield.core.envelope import inside_envelope, read_envelope, sample_in_envelope

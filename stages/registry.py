@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from radfield.core.errors import RadfieldError
+from radfield.datasets.scene import SCENE, read_dataset
 from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra
-from radfield.stages.data import SCENE
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Context, Stage
 
@@ -40,7 +40,7 @@ def train_available() -> bool:
 def check(config: dict[str, Any], input_path: Path) -> None:
     """Everything about the config and the dataset a user can get wrong, checked before the run
     directory is touched (the data stage checks the dataset again, when it runs)."""
-    scene, points = data.read_dataset(input_path, config["data"])
+    scene, points = read_dataset(input_path, config["data"])
     for module in (sfm, envelope, tetra, bake):
         module.check_config(config)
     init.check_config(config, points, posed=scene["posed"])

@@ -23,7 +23,7 @@ from radfield.core.rasterize import render
 from radfield.core.timing import clock
 from radfield.datasets.images import write_image
 from radfield.stages.config import load_config
-from radfield.stages.data import load_split
+from radfield.datasets.scene import load_split
 from radfield.stages.info import run_dataset
 from radfield.stages.pipeline import CONFIG_FILE
 

@@ -13,7 +13,7 @@ from radfield.core.io import load_model
 from radfield.core.rasterize import render
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import generate_scene
-from radfield.stages.data import load_scene
+from radfield.datasets.scene import load_scene
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
 

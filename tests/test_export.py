@@ -23,7 +23,7 @@ from radfield.core.rasterize import render
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets.transforms import read_nerfstudio
 from radfield.stages.config import load_config
-from radfield.stages.data import load_scene
+from radfield.datasets.scene import load_scene
 from radfield.stages.pipeline import run_pipeline
 from radfield.stages.registry import stages
 

@@ -15,7 +15,7 @@ import pytest
 from radfield.core.io import load_model
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.synthetic import generate_scene
-from radfield.stages import data
+from radfield.datasets import scene as data
 from radfield.stages.config import load_config
 from radfield.core.envelope import read_envelope, signed_distance
 from radfield.stages.evaluate import eval_report

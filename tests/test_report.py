@@ -15,7 +15,8 @@ from radfield.core.io import save_model
 from radfield.core.report import GAP, LABEL_HEIGHT, error_map
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import generate_scene
-from radfield.stages import data, init
+from radfield.datasets import scene as data
+from radfield.stages import init
 from radfield.stages.config import load_config
 
 CI = os.environ.get("CI", "").lower() == "true"

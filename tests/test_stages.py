@@ -20,7 +20,8 @@ from radfield.core.trainer import load_checkpoint, save_checkpoint
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.synthetic import generate_scene
-from radfield.stages import data, init
+from radfield.datasets import scene as data
+from radfield.stages import init
 from radfield.stages.config import load_config
 from radfield.stages.evaluate import evaluate
 from radfield.stages.info import MODEL_FILE

@@ -31,7 +31,7 @@ from radfield.core.trainlog import read_log
 from radfield.datasets.images import write_image
 from radfield.stages import train as train_stage
 from radfield.stages.config import load_defaults, section
-from radfield.stages.data import Normalization, load_scene
+from radfield.datasets.scene import Normalization, load_scene
 from radfield.stages.info import MODEL_FILE
 from radfield.stages.pipeline import Context
 
