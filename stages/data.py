@@ -12,11 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from radfield.datasets.scene import FORMAT_VERSION, POINTS, SCENE, read_dataset
+# Normalization, Scene and load_scene are re-exported for the stages that import them from here
+from radfield.datasets.scene import FORMAT_VERSION, POINTS, SCENE, Normalization, Scene, load_scene, read_dataset
 from radfield.stages.info import SFM_DATASET
 from radfield.stages.pipeline import INPUT, Context, Stage
 
-__all__ = ["POINTS", "SCENE", "STAGE", "run"]
+__all__ = ["POINTS", "SCENE", "STAGE", "Normalization", "Scene", "load_scene", "run"]
 
 
 def run(ctx: Context) -> dict[str, Any]:

@@ -36,7 +36,7 @@ from radfield.core.io import load_model, save_model
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint, train
 from radfield.core.trainlog import TrainLog, plot_curves, read_log
-from radfield.datasets.scene import SCENE, Normalization, load_scene
+from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.info import CHECKPOINT_FILE, MODEL_FILE
 from radfield.stages.init import INIT_MODEL
 from radfield.stages.pipeline import Context, Stage
