@@ -24,7 +24,8 @@ centre, axis ends, diagonals, random points): wholly kept (bit-identical), wholl
 (dropped), or straddling. Straddling primitives are retrained locally against the teacher — the
 exact boolean field rendered by masked quadrature (retrain.py). A cut by a shape through a
 solid object also gets a cap: new thin disc primitives seeded on the part of the cut surface that
-lies inside the object (ray-occupancy test: opacity > 1/2 along at least 12 of 14 directions),
+lies inside the object (the cut surface: an analytic shape's zero level set, a mesh operand's
+triangles, a field operand's ε-level set of D marched on a grid; difference and intersection) (ray-occupancy test: opacity > 1/2 along at least 12 of 14 directions),
 coloured like the densest nearby original primitives; the teacher includes the cap, so the retrained cut
 face is closed, not hollow. No analytic clipping of the integration interval (that would need
 renderer kernel changes): retraining is the method.
@@ -65,6 +66,7 @@ class Shape:
 
     def __init__(self, kind: str, sd, exact_extent=None):
         self.kind, self.sd, self.exact_extent = kind, sd, exact_extent
+        self.mesh = None   # (vertices, triangles) of a mesh operand
 
     def inside(self, points: np.ndarray) -> np.ndarray:
         return self.sd(points) <= 0
@@ -154,6 +156,7 @@ def mesh_shape(path, where: str) -> Shape:
         return out
     shape = Shape("mesh", None)
     shape.inside = inside
+    shape.mesh = (v, f)
     return shape
 
 
@@ -227,9 +230,23 @@ def _sphere_directions(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
 
 
-def surface_points(shape: Shape, lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
-    """Points about `spacing` apart on the shape's surface inside the box [lo, hi]: a grid of the
-    box projected onto the zero level set of the signed distance (Newton steps along its gradient)."""
+def _thin(points: np.ndarray, normals: np.ndarray, spacing: float):
+    """One point (and its normal) per cell of side `spacing`."""
+    if len(points) == 0:
+        return points, normals
+    _, first = np.unique(np.floor(points / spacing).astype(np.int64), axis=0, return_index=True)
+    first = np.sort(first)
+    return points[first], normals[first]
+
+
+def _in_box(points: np.ndarray, lo, hi) -> np.ndarray:
+    return np.all((points >= lo) & (points <= hi), axis=1)
+
+
+def surface_points(shape: Shape, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points about `spacing` apart on an analytic shape's surface inside the box [lo, hi] and the
+    outward normals there: a grid of the box projected onto the zero level set of the signed
+    distance (Newton steps along its gradient)."""
     axes = [np.arange(a, b + spacing, spacing) for a, b in zip(lo, hi)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     grid = grid[np.abs(shape.sd(grid)) < spacing]
@@ -237,11 +254,74 @@ def surface_points(shape: Shape, lo: np.ndarray, hi: np.ndarray, spacing: float)
         g = _gradient(shape.sd, grid)
         grid = grid - shape.sd(grid)[:, None] * g
     grid = grid[np.abs(shape.sd(grid)) < 1e-3 * spacing]
-    if len(grid) == 0:
-        return grid
-    # thin to one point per cell of the spacing
-    _, first = np.unique(np.floor(grid / spacing).astype(np.int64), axis=0, return_index=True)
-    return grid[np.sort(first)]
+    return _thin(grid, _gradient(shape.sd, grid), spacing)
+
+
+def mesh_surface_points(shape: Shape, lo: np.ndarray, hi: np.ndarray, spacing: float, seed: int = 0):
+    """Points about `spacing` apart on a mesh operand's triangles inside the box [lo, hi], and the
+    outward normals there: area-weighted samples of the triangles that meet the box (about
+    2·area/spacing² per triangle), thinned to one per cell; a triangle normal is flipped where a
+    step along it enters the mesh (winding number), so a mesh whose triangles face inwards works too."""
+    v, f = shape.mesh
+    tri = v[f]                                                        # (F, 3, 3)
+    meets = np.all((tri.max(1) >= lo) & (tri.min(1) <= hi), axis=1)
+    tri = tri[meets]
+    empty = np.zeros((0, 3))
+    if len(tri) == 0:
+        return empty, empty
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    keep = area > 0
+    tri, cross, area = tri[keep], cross[keep], area[keep]
+    count = np.ceil(2 * area / spacing**2).astype(np.int64)
+    owner = np.repeat(np.arange(len(tri)), count)
+    rng = np.random.default_rng(seed)
+    r1, r2 = np.sqrt(rng.random(len(owner))), rng.random(len(owner))   # uniform on a triangle
+    points = ((1 - r1)[:, None] * tri[owner, 0] + (r1 * (1 - r2))[:, None] * tri[owner, 1]
+              + (r1 * r2)[:, None] * tri[owner, 2])
+    normals = cross[owner] / (2 * area[owner, None])
+    inside = _in_box(points, lo, hi)
+    points, normals = _thin(points[inside], normals[inside], spacing)
+    if len(points):
+        flip = shape.inside(points + 0.1 * spacing * normals)
+        normals[flip] = -normals[flip]
+    return points, normals
+
+
+def level_set_points(fld: Field, epsilon: float, lo: np.ndarray, hi: np.ndarray, spacing: float,
+                     max_points: int = 120_000):
+    """Points about `spacing` apart on a field operand's boundary D = ε inside [lo, hi] and the
+    outward normals −∇D/|∇D| there: D sampled on a grid (spacing/2, coarsened to at most max_points
+    nodes), each grid edge whose ends lie on both sides of ε gives the linearly interpolated
+    crossing, the normal from the grid's central-difference gradient at its nearer end."""
+    h = spacing / 2
+    while np.prod(np.ceil((hi - lo) / h) + 1) > max_points:
+        h *= 1.25
+    shape = (np.ceil((hi - lo) / h) + 1).astype(int)
+    axes = [lo[i] + h * np.arange(shape[i]) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    d = retrain.field_density(fld.prims, grid.reshape(-1, 3)).reshape(shape)
+    grad = np.stack(np.gradient(d, h), -1)
+    points, normals = [], []
+    for axis in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[axis], b[axis] = slice(0, -1), slice(1, None)
+        d0, d1 = d[tuple(a)], d[tuple(b)]
+        cross = (d0 > epsilon) != (d1 > epsilon)
+        if not cross.any():
+            continue
+        t = (epsilon - d0[cross]) / (d1[cross] - d0[cross])
+        p0, p1 = grid[tuple(a)][cross], grid[tuple(b)][cross]
+        g = np.where((t < 0.5)[:, None], grad[tuple(a)][cross], grad[tuple(b)][cross])
+        points.append(p0 + t[:, None] * (p1 - p0))
+        normals.append(-g)
+    if not points:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    points, normals = np.concatenate(points), np.concatenate(normals)
+    ok = np.linalg.norm(normals, axis=1) > 0
+    normals = normals[ok] / np.linalg.norm(normals[ok], axis=1, keepdims=True)
+    return _thin(points[ok], normals, spacing)
 
 
 def _gradient(sd, p: np.ndarray, h: float = 1e-5) -> np.ndarray:
@@ -249,20 +329,20 @@ def _gradient(sd, p: np.ndarray, h: float = 1e-5) -> np.ndarray:
     return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
 
 
-def cap_primitives(original: NeuralPrimitives, shape: Shape, region_lo, region_hi, spacing: float,
-                   keep_outside: bool, seed: int = 0) -> NeuralPrimitives:
-    """Thin opaque discs on the cut surface where it lies inside the original object, on the kept
-    side (normal into the kept region), coloured like the nearest original primitives."""
-    pts = surface_points(shape, region_lo, region_hi, spacing)
+def cap_primitives(original: NeuralPrimitives, pts: np.ndarray, normal: np.ndarray, spacing: float,
+                   seed: int = 0) -> NeuralPrimitives:
+    """Thin opaque discs at the cut-surface points `pts` (n, 3) that lie inside the original object,
+    facing `normal` (n, 3), the unit normals into the kept region, coloured like the nearest
+    original primitives."""
     empty = original.select(torch.zeros(0, dtype=torch.int64))
     if len(pts) == 0:
         return empty
     dirs = _sphere_directions(14)
     occ = retrain.opacity_from(original, np.repeat(pts, 14, 0), np.tile(dirs, (len(pts), 1))).reshape(len(pts), 14)
-    pts = pts[(occ > 0.5).sum(1) >= 12]
+    solid = (occ > 0.5).sum(1) >= 12
+    pts, normal = pts[solid], normal[solid]
     if len(pts) == 0:
         return empty
-    normal = _gradient(shape.sd, pts) * (1.0 if keep_outside else -1.0)   # into the kept region
     radius, thick = 0.8 * spacing, 0.25 * spacing
     # rotation taking z to the normal
     z = torch.as_tensor(normal)
@@ -369,13 +449,21 @@ def boolean(fld: Field, args, ctx) -> Field:
             "dropped": int((classes == 0).sum()), "retrained": int(straddle.size), "seeded": 0}
 
     caps = prims.select(torch.zeros(0, dtype=torch.int64))
-    if shape is not None and shape.sd is not None and cap and straddle.size:
+    if cap and straddle.size and op in ("difference", "intersection"):
+        # the cut face: the operand's boundary where it lies inside E (union and xor add F's own surface)
         sp = prims.select(torch.as_tensor(straddle))
         reach = sp.scales.detach().amax(-1)
         lo = (sp.means.detach() - reach[:, None]).amin(0).double().numpy()
         hi = (sp.means.detach() + reach[:, None]).amax(0).double().numpy()
         spacing = float(reach.median())
-        caps = cap_primitives(fld.prims, shape, lo, hi, spacing, keep_outside=not keep_inside, seed=ctx.seed)
+        if shape is not None and shape.sd is not None:
+            pts, outward = surface_points(shape, lo, hi, spacing)
+        elif shape is not None:
+            pts, outward = mesh_surface_points(shape, lo, hi, spacing, ctx.seed)
+        else:
+            pts, outward = level_set_points(other, epsilon, lo, hi, spacing)
+        inward = op == "intersection"                                  # the kept side is the operand's inside
+        caps = cap_primitives(fld.prims, pts, -outward if inward else outward, spacing, seed=ctx.seed)
         note["seeded"] = len(caps)
 
     if shape is None and straddle.size:

@@ -10,7 +10,7 @@ import torch
 from radfield.core.cameras import Camera, look_at, pixel_rays
 from radfield.core.errors import RadfieldError
 from radfield.core.losses import psnr
-from radfield.core.primitives import NeuralPrimitives, random_neural
+from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, random_neural
 from radfield.core.rasterize import render
 from radfield.core.sh import sh_to_color
 from radfield.edit import boolean, retrain
@@ -132,7 +132,8 @@ def test_field_boolean_of_overlapping_blobs_against_reference(tmp_path, op):
     b.sh = b.sh + torch.tensor([0.8, -0.8, 0.0])     # a different colour
     (tmp_path / "b.safetensors").write_bytes(b"")
     fa, fb = Field(a), Field(b)
-    out = run(fa, {"boolean": {"op": op, "model": "b.safetensors", "steps": 60, "views": 8, "size": 32}},
+    # cap: false: the reference is the pure boolean field (eq. 14-15); a cap adds a cut face it lacks
+    out = run(fa, {"boolean": {"op": op, "model": "b.safetensors", "steps": 60, "views": 8, "size": 32, "cap": False}},
               base_dir=tmp_path, load_operand=lambda path: fb)
     note = out.notes[-1]
     assert note["retrained"] > 0
@@ -155,26 +156,86 @@ def test_field_boolean_of_overlapping_blobs_against_reference(tmp_path, op):
         assert p_untouched < p_got - 3 if op == "intersection" else p_got > p_untouched - 1.0
 
 
-def test_cut_through_a_solid_gets_a_closed_cap():
-    # a solid ball of primitives (interior filled) cut by a half-space: the cut face is covered
+def solid_shell():
+    """A ball of primitives: a shell of radius 0.45 whose inside every ray from its centre region meets."""
     g = torch.Generator().manual_seed(8)
     dirs = torch.nn.functional.normalize(torch.randn(150, 3, generator=g), dim=-1)
     shell = random_neural(150, sh_degree=0, scale=0.12, b2=6.0, seed=8)
     shell.means = 0.45 * dirs
     shell.w2 = shell.w2 * 0
-    fld = Field(shell)
-    out = run(fld, {"boolean": {"op": "difference", "shape": {"halfspace": {"point": [0, 0, 0], "normal": [0, -1, 0]}},
-                                "steps": 30, "views": 6, "size": 32}})
+    return shell
+
+
+def assert_closed_cut_face(out, shell):
+    """Looking into the cut from the removed side (-y): a hollow shell shows its far side (y ≈ +0.45,
+    depth ≈ 3.2-3.4 where covered); with the cap the cut face at y = 0 (depth ≈ 3) covers the centre."""
     note = out.notes[-1]
     assert note["seeded"] > 5 and note["dropped"] > 10
-    # looking into the cut from the removed side (-y): a hollow shell shows its far side (y ≈ +0.45,
-    # depth ≈ 3.2-3.4 where covered); with the cap the cut face at y = 0 (depth ≈ 3) covers the centre of the view
     cam = camera(32, eye=(0.0, -3.0, 0.0))
     capped, hollow = render(out.prims, cam), render(shell.select(shell.means[:, 1] > 0.1), cam)
     centre = (slice(12, 20), slice(12, 20))
     assert capped.alpha[centre].min() > 0.9
     covered = hollow.alpha[centre] > 0.5
     assert capped.depth[centre].mean() < 3.1 and hollow.depth[centre][covered].mean() > 3.15
+    # without the cap the same cut is hollow: rays through the cut face reach the far side
+    return capped
+
+
+def test_cut_through_a_solid_gets_a_closed_cap():
+    shell = solid_shell()
+    out = run(Field(shell), {"boolean": {"op": "difference", "shape": {"halfspace": {"point": [0, 0, 0], "normal": [0, -1, 0]}},
+                                         "steps": 30, "views": 6, "size": 32}})
+    assert_closed_cut_face(out, shell)
+
+
+def box_mesh(path, lo, hi, reversed_=False):
+    import meshio
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * (hi - lo) + lo
+    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    if reversed_:                                  # inward-facing triangles: the cap must not care
+        faces = faces[:, ::-1]
+    meshio.write(path, meshio.Mesh(v, [("triangle", faces)]), binary=True)
+    return path
+
+
+def test_cut_by_a_mesh_gets_a_closed_cap(tmp_path):
+    # the same cut as the half-space's, by a closed mesh (a box over y < 0, its triangles facing inwards)
+    shell = solid_shell()
+    box_mesh(tmp_path / "cutter.stl", [-1, -1, -1], [1, 0, 1], reversed_=True)
+    out = run(Field(shell), {"boolean": {"op": "difference", "mesh": "cutter.stl", "steps": 30, "views": 6, "size": 32}},
+              base_dir=tmp_path)
+    assert_closed_cut_face(out, shell)
+    # the seeded discs lie on the mesh's cut face y = 0, facing the kept side (+y)
+    seeded = out.prims.select(torch.arange(len(out.prims) - out.notes[-1]["seeded"], len(out.prims)))
+    assert seeded.means[:, 1].abs().max() < 0.05
+    normal = quat_to_rotmat(seeded.quats)[:, :, 2]          # the disc's thin axis
+    assert (normal[:, 1].abs() > 0.9).all()
+    nocap = run(Field(shell), {"boolean": {"op": "difference", "mesh": "cutter.stl", "steps": 30, "views": 6, "size": 32,
+                                           "cap": False}}, base_dir=tmp_path)
+    hole = render(nocap.prims, camera(32, eye=(0.0, -3.0, 0.0)))
+    assert hole.depth[12:20, 12:20][hole.alpha[12:20, 12:20] > 0.5].mean() > 3.15   # hollow without it
+
+
+def test_cut_by_a_field_gets_a_closed_cap(tmp_path):
+    # the operand is another field: constant-density balls of radius 0.1 on a grid filling y < -0.1,
+    # so B_F = [D > ε] is a slab whose boundary (its ε-level set) runs near y = 0
+    shell = solid_shell()
+    xs = np.arange(-0.8, 0.81, 0.1)
+    ys = -np.arange(0.1, 0.81, 0.1)
+    centres = np.stack(np.meshgrid(xs, ys, xs, indexing="ij"), -1).reshape(-1, 3)
+    slab = random_neural(len(centres), sh_degree=0, scale=0.1, b2=6.0, seed=5)
+    slab.means = torch.as_tensor(centres, dtype=slab.means.dtype)
+    slab.log_scales = torch.full_like(slab.log_scales, math.log(0.1))
+    slab.w2 = slab.w2 * 0
+    (tmp_path / "slab.safetensors").write_bytes(b"")
+    out = run(Field(shell), {"boolean": {"op": "difference", "model": "slab.safetensors", "steps": 30, "views": 6, "size": 32}},
+              load_operand=lambda path: Field(slab), base_dir=tmp_path)
+    assert_closed_cut_face(out, shell)
+    seeded = out.prims.select(torch.arange(len(out.prims) - out.notes[-1]["seeded"], len(out.prims)))
+    assert seeded.means[:, 1].abs().max() < 0.12                     # on the slab's boundary
 
 
 def test_mesh_inside_by_winding_number(tmp_path):
