@@ -7,10 +7,11 @@ import torch
 from radfield.core.cage import tet_volumes
 from radfield.core.cameras import Camera, look_at
 from radfield.core.errors import RadfieldError
+from radfield.core.losses import psnr
 from radfield.core.primitives import random_neural
 from radfield.core.rasterize import render
 from radfield.edit.field import Field
-from radfield.edit.remesh import _EDGES
+from radfield.edit.remesh import _EDGES, oversized
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
 
 
@@ -79,7 +80,8 @@ def _boundary_area(v, t):
     ({"select": "all"}, "operations[0].remesh.edge_length:"),
     ({"edge_length": 0.1}, "operations[0].remesh.select: required"),
     ({"select": {"ball": 1}, "edge_length": 0.1}, "operations[0].remesh.select: unknown selection"),
-    ({"select": "all", "edge_length": 0.1, "split": True}, "operations[0].remesh.split:"),
+    ({"select": "all", "edge_length": 0.1, "split": "yes"}, "operations[0].remesh.split:"),
+    ({"select": "all", "edge_length": 0.1, "steps": 5}, "operations[0].remesh: steps, views and size"),
 ])
 def test_bad_remesh_entries_are_one_line(args, message):
     v, t = cube_cage()
@@ -90,3 +92,30 @@ def test_bad_remesh_entries_are_one_line(args, message):
     assert len(fld.cage_tets) == 6
     with pytest.raises(RadfieldError, match=r"^operations\[0\]\.remesh: this field has no cage"):
         apply_operations(Field(random_neural(3, seed=2)), parse_spec({"operations": [{"remesh": {"select": "all", "edge_length": 1}}]}), EditContext())
+
+
+def test_remesh_with_split_halves_large_primitives_and_retrains_them_against_the_original():
+    v, t = cube_cage()
+    prims = random_neural(24, sh_degree=0, extent=0.7, scale=0.18, b2=2.0, seed=5)
+    fld = Field(prims, v, t)
+    fld.rebind()
+    region = {"sphere": {"center": [0.4, 0.4, 0.4], "radius": 0.6}}
+    spec = {"remesh": {"select": region, "edge_length": 0.3, "split": True, "steps": 40, "views": 6, "size": 32}}
+    out = apply_operations(fld, parse_spec({"operations": [spec]}), EditContext())
+    note = out.notes[-1]
+    assert note["split"] > 0 and note["retrained"] >= 2 and len(out.prims) == len(prims) + note["split"]
+    # no primitive is larger than the new tet holding its centre any more, unless 3 rounds did not suffice
+    old = {tuple(r) for r in np.sort(t, axis=1).tolist()}
+    new_tets = np.flatnonzero([tuple(r) not in old for r in np.sort(out.cage_tets, axis=1).tolist()])
+    assert len(oversized(out, new_tets)) < note["split"]
+    # the primitives that were not split stay bit-identical (they come first)
+    unsplit = len(out.prims) - note["retrained"]
+    for i in range(unsplit):
+        j = torch.nonzero((prims.means == out.prims.means[i]).all(1)).squeeze(1)
+        assert len(j) == 1 and all(torch.equal(getattr(out.prims, n)[i], t[j[0]]) for n, t in prims.tensors().items())
+    assert unsplit > 0
+    # the split field is close to the original, and retraining does not make it worse
+    assert note["psnr_after"] >= note["psnr_split"] and note["psnr_after"] > 25.0
+    cam = Camera(fx=40.0, fy=40.0, cx=16, cy=16, width=32, height=32, c2w=look_at((0.5, -3, 0.8), (0, 0, 0)))
+
+    assert float(psnr(render(out.prims, cam).color.clamp(0, 1), render(prims, cam).color.clamp(0, 1))) > 25.0
