@@ -15,6 +15,7 @@ from radfield.cli import animate as animate_cli
 from radfield.cli import edit as edit_cli
 from radfield.cli import evaluate as evaluate_cli
 from radfield.cli import export as export_cli, view as view_cli
+from radfield.cli import bench_dist as bench_dist_cli
 from radfield.cli import bench_train as bench_train_cli
 from radfield.cli import distributed as distributed_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
@@ -179,6 +180,7 @@ def bench_render(
 
 
 app.command("bench-train")(bench_train_cli.bench_train)
+app.command("bench-dist")(bench_dist_cli.bench_dist)
 
 
 @app.command("demo-scene")

@@ -95,7 +95,7 @@ def test_nproc_equals_single_process(scene, single, tmp_path):
                                                       "radfield-run.json", "sfm", "tetra", "train"]
 
 
-def test_torchrun_equals_single_process(scene, single, tmp_path):
+def test_torchrun_equals_single_process(scene, single, tmp_path, capsys):
     run = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
                            "-m", "radfield", *reconstruct_args(scene, run), "--quiet"],
@@ -103,8 +103,8 @@ def test_torchrun_equals_single_process(scene, single, tmp_path):
     assert done.returncode == 0, done.stderr
     assert_same_training(run, single)
     # cached for a single process too: the number of ranks is not part of the train stage's key
-    again = radfield(*reconstruct_args(scene, run), "--quiet")
-    assert again.returncode == 0 and "train cached" in again.stdout, again.stdout + again.stderr
+    assert in_process(*reconstruct_args(scene, run), "--quiet") == 0
+    assert "train cached" in capsys.readouterr().out
 
 
 def test_batch_views_below_ranks_is_one_line(scene, tmp_path, capsys):
@@ -129,7 +129,7 @@ def _rank_pid(launcher: int, local_rank: int) -> int | None:
     return None
 
 
-def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path):
+def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path, capsys):
     run, iterations = tmp_path / "run", 150
     job = subprocess.Popen([sys.executable, "-m", "radfield", *reconstruct_args(scene, run, iterations), "--quiet",
                             "--nproc", "2"], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -155,9 +155,9 @@ def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path):
     assert 10 <= step < iterations
 
     # a single process picks the run up from the 2-rank checkpoint and finishes it
-    again = radfield(*reconstruct_args(scene, run, iterations))
-    assert again.returncode == 0, again.stderr
-    assert f"train: resuming from the checkpoint at step {step}" in again.stderr
+    capsys.readouterr()
+    assert in_process(*reconstruct_args(scene, run, iterations)) == 0
+    assert f"train: resuming from the checkpoint at step {step}" in capsys.readouterr().err
     assert load_checkpoint(run / "train" / "final_state.safetensors").step == iterations
     assert [r["step"] for r in _log(run / "train" / "log.jsonl")] == list(range(1, iterations + 1))
 
