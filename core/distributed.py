@@ -157,7 +157,7 @@ class StepSync:
     def __init__(self, world: World | None, reductions: dict[str, str]):
         self.world = world or World()
         self.rank, self.size = self.world.rank, self.world.size
-        self.reductions = reductions  # accumulator name -> "sum" | "max"
+        self.reductions = reductions  # accumulator name -> "sum" (the only kind the strategies have)
         self.pending: dict[str, torch.Tensor] = {}
 
     def share(self, views: Sequence[int]) -> Sequence[int]:
@@ -166,49 +166,39 @@ class StepSync:
 
     def gather_into(self, accumulators: dict[str, torch.Tensor], active: bool) -> dict[str, torch.Tensor]:
         """Where the strategy accumulates this step: the running accumulators themselves with one
-        rank; otherwise fresh zeros, this step's increments, added in after the reduce (zero is
-        the identity of both sum and max: the accumulated signals are non-negative)."""
+        rank; otherwise fresh zeros, this step's increments, added in after the reduce."""
         if self.size == 1 or not active:
             self.pending = {}
             return accumulators
-        unknown = set(accumulators) - set(self.reductions)
-        if unknown:
-            raise ValueError(f"accumulators {sorted(unknown)} declare no reduction (strategy REDUCTIONS)")
+        unsummed = [name for name in accumulators if self.reductions.get(name) != "sum"]
+        if unsummed:  # a running maximum would need a second, MAX, all-reduce of its increments
+            raise ValueError(f"accumulators {unsummed} are not declared sums (strategy REDUCTIONS)")
         self.pending = {name: torch.zeros_like(t) for name, t in accumulators.items()}
         return self.pending
 
     def reduce(self, params: dict[str, torch.Tensor], accumulators: dict[str, torch.Tensor],
                loss_sum: float, psnr_sum: float, step: int) -> tuple[float, float]:
         """All-reduce the step's gradients, accumulator increments and loss/PSNR sums (one flat
-        SUM buffer; a MAX one only for max accumulators); returns the batch's loss and PSNR sums."""
+        SUM buffer); returns the batch's loss and PSNR sums."""
         if self.size == 1:
             return loss_sum, psnr_sum
         first = next(iter(params.values()))
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
-        sums = [n for n in self.pending if self.reductions[n] == "sum"]
-        maxes = [n for n in self.pending if self.reductions[n] == "max"]
+        sums = list(self.pending)
         parts = grads + [self.pending[n].to(first.dtype) for n in sums]
         parts.append(torch.tensor([loss_sum, psnr_sum], dtype=first.dtype, device=first.device))
         flat = torch.cat([t.reshape(-1) for t in parts])
-        buffers = [(flat, dist.ReduceOp.SUM)]
-        if maxes:
-            buffers.append((torch.cat([self.pending[n].reshape(-1) for n in maxes]), dist.ReduceOp.MAX))
         clock = time.perf_counter()
         with _collective(self.world, "the gradient all-reduce", step):
-            for buffer, op in buffers:
-                dist.all_reduce(buffer, op=op, group=self.world.group)
+            dist.all_reduce(flat, op=dist.ReduceOp.SUM, group=self.world.group)
         self.world.stats["reduce_seconds"] += time.perf_counter() - clock
-        self.world.stats["reduce_bytes"] += sum(b.numel() * b.element_size() for b, _ in buffers)
+        self.world.stats["reduce_bytes"] += flat.numel() * flat.element_size()
         self.world.stats["steps"] += 1
         chunks = iter(torch.split(flat, [t.numel() for t in parts]))
         for p, grad in zip(params.values(), chunks):
             p.grad = grad.view_as(p).clone()
         for name in sums:
             accumulators[name] += next(chunks).view_as(accumulators[name]).to(accumulators[name].dtype)
-        if maxes:
-            rest = iter(torch.split(buffers[1][0], [self.pending[n].numel() for n in maxes]))
-            for name in maxes:
-                torch.maximum(accumulators[name], next(rest).view_as(accumulators[name]), out=accumulators[name])
         loss_sum, psnr_sum = next(chunks).tolist()
         return loss_sum, psnr_sum
 

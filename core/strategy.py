@@ -73,7 +73,7 @@ class _Strategy:
 
     grad_names: tuple[str, ...] = ()  # parameters whose gradients `accumulate` reads
     # how each accumulator combines over data-parallel ranks (radfield.core.distributed): sums
-    # and counts add; a running maximum would be "max"
+    # and counts add (a running maximum, as gsplat's max radii, would need a MAX all-reduce)
     REDUCTIONS = {"grad": "sum", "count": "sum"}
     split_uniform = False             # children inside the ellipsoid (neural) or ~N(0, s²) (3DGS)
 

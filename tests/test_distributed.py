@@ -130,7 +130,7 @@ def _rank_pid(launcher: int, local_rank: int) -> int | None:
 
 
 def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path, capsys):
-    run, iterations = tmp_path / "run", 150
+    run, iterations = tmp_path / "run", 80
     job = subprocess.Popen([sys.executable, "-m", "radfield", *reconstruct_args(scene, run, iterations), "--quiet",
                             "--nproc", "2"], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log, checkpoint = run / "train.work" / "log.jsonl", run / "train.work" / "checkpoint.safetensors"
