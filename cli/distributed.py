@@ -118,15 +118,22 @@ def failure_line(failures: dict, run_dir: Path) -> str:
     signal is the root cause; else the message of the lowest rank that reported one."""
     ranked = sorted(failures.items())
     killed = [(rank, f) for rank, f in ranked if f.exitcode < 0]
-    # SIGTERM is what the agent sends the survivors when it tears the job down: a cause only if alone
-    for rank, failure in [k for k in killed if k[1].exitcode != -signal.SIGTERM] or killed[:1]:
-        return (f"rank {rank} (pid {failure.pid}) was killed by {failure.signal_name()}; the run directory "
-                f"{run_dir} keeps its last checkpoint: run the same `radfield reconstruct` again to resume")
+    # SIGTERM is what the agent sends the survivors when it tears the job down: the last resort
+    for rank, failure in [k for k in killed if k[1].exitcode != -signal.SIGTERM]:
+        return _killed(rank, failure, run_dir)
     for rank, failure in ranked:
-        if failure.error_file_data.get("message") and isinstance(failure.message, str):
-            return failure.message
+        message = failure.message.get("message") if isinstance(failure.message, dict) else None
+        if isinstance(message, str) and message.startswith("radfield: error: "):
+            return message.removeprefix("radfield: error: ")
+    if killed:
+        return _killed(*killed[0], run_dir)
     rank, failure = ranked[0]
     return f"rank {rank} (pid {failure.pid}) exited with status {failure.exitcode}"
+
+
+def _killed(rank: int, failure, run_dir: Path) -> str:
+    return (f"rank {rank} (pid {failure.pid}) was killed by {failure.signal_name()}; the run directory "
+            f"{run_dir} keeps its last checkpoint: run the same `radfield reconstruct` again to resume")
 
 
 @contextlib.contextmanager
@@ -142,7 +149,9 @@ def _reported() -> Iterator[None]:
         path = os.environ.get("TORCHELASTIC_ERROR_FILE")
         if path:
             with contextlib.suppress(OSError):
-                Path(path).write_text(json.dumps({"message": message, "timestamp": int(time.time())}))
+                # torchelastic's own layout (errors/error_handler.py), so torchrun's summary shows it
+                Path(path).write_text(json.dumps({"message": {"message": f"radfield: error: {message}", "extraInfo": {
+                    "py_callstack": f"radfield: error: {message}", "timestamp": str(int(time.time()))}}}))
         if not os.environ.get(_LAUNCHED_HERE):
             typer.echo(f"radfield: error: {message}", err=True)
         sys.exit(1)

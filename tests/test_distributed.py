@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from radfield.cli import distributed as distributed_cli
 from radfield.cli.main import main
 from radfield.core.distributed import compare_checksums
 from radfield.core.trainer import load_checkpoint
@@ -169,3 +170,23 @@ def test_diverged_ranks_are_named():
     rows[2][4] += 1e-12
     with pytest.raises(Exception, match=r"diverged at step 100: .* of rank 2 differ from rank 0's \(in w1\)"):
         compare_checksums(rows, ["means", "w1"], 100)
+
+
+def test_failure_line_prefers_the_root_cause(tmp_path, monkeypatch, capsys):
+    from torch.distributed.elastic.multiprocessing.errors import ProcessFailure
+
+    # a rank's RadfieldError goes into torchelastic's error file; under --nproc it prints nothing
+    error_file = tmp_path / "error.json"
+    monkeypatch.setenv("TORCHELASTIC_ERROR_FILE", str(error_file))
+    monkeypatch.setenv("RADFIELD_LAUNCHER", "1")
+    with pytest.raises(SystemExit) as exit_:
+        with distributed_cli._reported():
+            raise distributed_cli.RadfieldError("train: rank 0: the gradient all-reduce at step 7 failed")
+    assert exit_.value.code == 1 and capsys.readouterr().err == ""
+    reported = ProcessFailure(0, 100, 1, str(error_file))
+    terminated = ProcessFailure(1, 101, -signal.SIGTERM, "<N/A>")
+    killed = ProcessFailure(2, 102, -signal.SIGKILL, "<N/A>")
+    line = distributed_cli.failure_line
+    assert line({0: reported, 1: terminated}, tmp_path) == "train: rank 0: the gradient all-reduce at step 7 failed"
+    assert line({0: reported, 1: terminated, 2: killed}, tmp_path).startswith("rank 2 (pid 102) was killed by SIGKILL")
+    assert line({1: terminated}, tmp_path).startswith("rank 1 (pid 101) was killed by SIGTERM")
