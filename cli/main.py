@@ -15,7 +15,9 @@ from radfield.cli import animate as animate_cli
 from radfield.cli import edit as edit_cli
 from radfield.cli import evaluate as evaluate_cli
 from radfield.cli import export as export_cli, view as view_cli
+from radfield.cli import bench_dist as bench_dist_cli
 from radfield.cli import bench_train as bench_train_cli
+from radfield.cli import distributed as distributed_cli
 from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
 from radfield.core.errors import RadfieldError
 
@@ -59,6 +61,7 @@ def reconstruct(
     until_stage: Annotated[Optional[str], typer.Option("--until", metavar="STAGE", help="Stop after this stage.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output (for CI); the summary is still printed.")] = False,
     no_cage: Annotated[bool, typer.Option("--no-cage", help="Build no envelope and no editing cage (init and train run as for a dataset without geometry). (config key envelope.source=none)")] = False,
+    nproc: Annotated[int, typer.Option("--nproc", min=1, help="Train data-parallel on this many local ranks, started here through torch's launcher (train.batch_views is split across them; README 'Distributed training'). Under torchrun leave it out.")] = 1,
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
@@ -70,6 +73,8 @@ def reconstruct(
     from radfield.stages.info import run_info
     from radfield.stages.pipeline import run_pipeline
 
+    if distributed_cli.follower():  # torchrun's ranks >= 1 only train, with what rank 0 sends them
+        return distributed_cli.follow()
     flags = {"train.primitive": primitive, "train.max_primitives": max_primitives, "train.iterations": iterations,
              "data.downscale": downscale, "seed": seed, "device": device,
              "data.background": list(parse_background(background)) if background is not None else None,
@@ -77,9 +82,12 @@ def reconstruct(
     cfg = load_config(config, sets or [], {key: value for key, value in flags.items() if value is not None})
     resolve_device(cfg["device"])
     registry.check(cfg, input_path)
-    status = run_pipeline(registry.stages(), output, cfg, input_path=input_path, force=force or [],
-                          from_stage=from_stage, until_stage=until_stage, quiet=quiet,
-                          log=lambda line: typer.echo(line, err=True))
+    if nproc > 1 and not distributed_cli.distributed.launched():
+        return distributed_cli.launch(nproc, cfg, output)
+    with distributed_cli.leading(cfg):  # rank 0 of torchrun's ranks (nothing for a single process)
+        status = run_pipeline(registry.stages(), output, cfg, input_path=input_path, force=force or [],
+                              from_stage=from_stage, until_stage=until_stage, quiet=quiet,
+                              log=lambda line: typer.echo(line, err=True))
     typer.echo("stages: " + ", ".join(f"{name} {outcome}" for name, outcome in status.items()))
     info = run_info(output)
     evaluation = info["stages"].get("eval", {})
@@ -172,6 +180,7 @@ def bench_render(
 
 
 app.command("bench-train")(bench_train_cli.bench_train)
+app.command("bench-dist")(bench_dist_cli.bench_dist)
 
 
 @app.command("demo-scene")

@@ -72,6 +72,9 @@ class _Strategy:
     """What both strategies share: accumulators, visibility, budgeted growth, row surgery."""
 
     grad_names: tuple[str, ...] = ()  # parameters whose gradients `accumulate` reads
+    # how each accumulator combines over data-parallel ranks (radfield.core.distributed): sums
+    # and counts add (a running maximum, as gsplat's max radii, would need a MAX all-reduce)
+    REDUCTIONS = {"grad": "sum", "count": "sum"}
     split_uniform = False             # children inside the ellipsoid (neural) or ~N(0, s²) (3DGS)
 
     def __init__(self, schedule: Schedule, *, extent: float, near: float, grad_threshold: float,
@@ -90,11 +93,15 @@ class _Strategy:
         """grad: summed per-view gradient signal; count: views in which the primitive was visible."""
         return {"grad": torch.zeros(num, device=device), "count": torch.zeros(num, device=device)}
 
+    def gathering(self, step: int) -> bool:
+        """Whether `accumulate` adds anything during optimiser step `step` (counted from 1)."""
+        return self.enabled and self.schedule.accumulating(step)
+
     @torch.no_grad()
     def accumulate(self, state: dict, params: Params, grads: Params, camera: Camera, step: int) -> None:
         """Add one view's gradient signal (grads: that view's gradients of `grad_names`) during
         optimiser step `step` (counted from 1)."""
-        if not (self.enabled and self.schedule.accumulating(step)):
+        if not self.gathering(step):
             return
         visible = in_frustum(params["means"], self._radius(params), camera, self.near)
         state["grad"] += torch.where(visible, self._signal(params, grads, camera), 0.0)

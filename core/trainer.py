@@ -40,6 +40,7 @@ from safetensors.torch import save_file
 
 from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
+from radfield.core.distributed import StepSync, World
 from radfield.core.errors import RadfieldError
 from radfield.core.losses import anisotropy, photometric, psnr
 from radfield.core.primitives import Gaussians, NeuralPrimitives
@@ -86,7 +87,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
           masks: torch.Tensor | None = None,
           on_step: Callable[[int, dict], None] | None = None,
           held_out: Callable[[NeuralPrimitives | Gaussians], float] | None = None,
-          checkpoint: Callable[[TrainState], None] | None = None) -> TrainState:
+          checkpoint: Callable[[TrainState], None] | None = None, world: World | None = None) -> TrainState:
     """Optimise `prims` against the views for cfg["iterations"] steps; returns the final state
     (`.primitives()` is the trained model).
 
@@ -100,6 +101,9 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     and what population control did (and test_psnr on the steps held_out was measured).
     held_out(primitives): measured every cfg["eval_every"] steps (0: never) and at the last step.
     checkpoint(state): every cfg["checkpoint_every"] steps before the last.
+    world: the ranks of a data-parallel training (radfield.core.distributed; None: this process
+    alone). Each rank then renders its share of the step's views and the gradients are summed
+    over the ranks before the Adam step, so every rank holds the same model (radfield.core.dataparallel).
     """
     if len(train_cameras) != len(train_images) or not len(train_cameras):
         raise ValueError(f"training needs one image per camera, got {len(train_cameras)} cameras "
@@ -121,14 +125,17 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     bg = torch.as_tensor(background, dtype=torch.float32, device=device)
     iterations, batch = cfg["iterations"], cfg["batch_views"]
     means_lr = cfg["lr"]["means"] * extent
+    sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
+    sync.check(params, state.step, first=True)
 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
         degree = min(cfg["sh_degree"], step // cfg["sh_increase_every"])
-        if cfg["lambda_aniso"] > 0:
+        if cfg["lambda_aniso"] > 0 and sync.rank == 0:  # counted once over the ranks
             (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
         loss_sum = psnr_sum = 0.0
-        for view in views_for_step(seed, step, batch, len(train_cameras)):
+        gathered = sync.gather_into(accumulators, strategy.gathering(step + 1))
+        for view in sync.share(views_for_step(seed, step, batch, len(train_cameras))):
             before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
             out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=bg, near=near,
                          sh_degree=degree, max_pairs=max_pairs)
@@ -137,12 +144,14 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             (loss / batch).backward()
             # this view's own gradients (unscaled), what the densification statistics measure
             grads = {n: (params[n].grad - before[n]) * batch for n in strategy.grad_names}
-            strategy.accumulate(accumulators, params, grads, train_cameras[view], step + 1)
+            strategy.accumulate(gathered, params, grads, train_cameras[view], step + 1)
             loss_sum += float(loss.detach())
             psnr_sum += float(psnr(out.color.detach().clamp(0, 1), images[view], mask))
+        loss_sum, psnr_sum = sync.reduce(params, accumulators, loss_sum, psnr_sum, step + 1)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
+        sync.check(params, step + 1)
         info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
         every = cfg["eval_every"]
         if held_out is not None and ((every and (step + 1) % every == 0) or step + 1 == iterations):
@@ -237,10 +246,7 @@ def save_checkpoint(path: str | Path, state: TrainState, note: dict | None = Non
     strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind,
     omega0, note} (`note`: the caller's own JSON, e.g. what the state is valid for)."""
     path = Path(path)
-    tensors = {f"param.{n}": t for n, t in state.params.items()}
-    tensors.update({f"adam.{n}.{k}": t for n, m in state.moments.items() for k, t in m.items()})
-    tensors.update({f"strategy.{n}": t for n, t in state.strategy.items()})
-    tensors = {k: t.detach().cpu().contiguous() for k, t in tensors.items()}
+    tensors = {k: t.detach().cpu().contiguous() for k, t in state_tensors(state).items()}
     # one metadata key: safetensors writes several in a random order, and equal states should
     # give equal bytes
     header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
@@ -271,6 +277,19 @@ def load_checkpoint(path: str | Path) -> TrainState:
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except (OSError, ValueError, KeyError, SafetensorError) as error:
         raise RadfieldError(f"{path}: unreadable checkpoint ({error}); remove it to start over") from None
+    return state_from_tensors(header, tensors)
+
+
+def state_tensors(state: TrainState) -> dict[str, torch.Tensor]:
+    """The tensors of a TrainState by checkpoint name: param.NAME, adam.NAME.KEY, strategy.NAME."""
+    tensors = {f"param.{n}": t for n, t in state.params.items()}
+    tensors.update({f"adam.{n}.{k}": t for n, m in state.moments.items() for k, t in m.items()})
+    tensors.update({f"strategy.{n}": t for n, t in state.strategy.items()})
+    return tensors
+
+
+def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainState:
+    """Inverse of state_tensors; header holds step, kind and omega0."""
     params, moments, strategy = {}, {}, {}
     for key, t in tensors.items():
         section, _, rest = key.partition(".")

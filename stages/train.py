@@ -17,6 +17,9 @@ Every `train.checkpoint_every` steps the full training state goes to RUN/train.w
 was killed resumes from there and ends exactly where an uninterrupted run would have. Raising
 `train.iterations` (and nothing else) on a finished run continues from final_state.safetensors
 instead of starting over (radfield.core.trainer explains the learning-rate schedule then).
+
+Under torchrun (or `radfield reconstruct --nproc N`) this stage runs on rank 0 and the training
+itself on every rank (radfield.core.dataparallel); the outputs are rank 0's, written as above.
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from radfield.core.io import load_model, save_model
 from radfield.core.primitives import Gaussians, NeuralPrimitives
-from radfield.core.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint, train
+from radfield.core.dataparallel import train_on_ranks
+from radfield.core.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint
 from radfield.core.trainlog import TrainLog, plot_curves, read_log
 from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.info import CHECKPOINT_FILE, MODEL_FILE
@@ -74,10 +78,10 @@ def run(ctx: Context) -> dict[str, Any]:
             progress.update(step, info)
             log.write({"step": step, **info, "seconds": round(base + time.perf_counter() - clock, 3)})
 
-        state = train(prims, cameras, images, cfg, background=scene.background, extent=scene.extent * norm.scale,
-                      seed=ctx.seed, device=ctx.device, near=near, start_state=start, masks=masks,
-                      on_step=on_step, held_out=held_out,
-                      checkpoint=lambda snapshot: save_checkpoint(ctx.work / CHECKPOINT, snapshot, key))
+        state = train_on_ranks(prims, cameras, images, cfg, background=scene.background,
+                               extent=scene.extent * norm.scale, seed=ctx.seed, device=ctx.device, near=near, start_state=start, masks=masks,
+                               on_step=on_step, held_out=held_out,
+                               checkpoint=lambda snapshot: save_checkpoint(ctx.work / CHECKPOINT, snapshot, key))
     steps_run = state.step - first_step
     seconds = time.perf_counter() - clock
 
