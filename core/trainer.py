@@ -23,6 +23,10 @@ Randomness (view order, split children) is drawn from generators seeded by (seed
 run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
 moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
 run bit for bit on the CPU. Checkpoints are safetensors files with a JSON header, never pickles.
+
+Data parallel (`world`, radfield.core.distributed.StepSync): each rank renders its share of the
+step's views, one all-reduce sums the gradients and the strategy's per-step increments, and every
+rank applies the same step; with one rank the hooks are the identity.
 """
 
 from __future__ import annotations

@@ -3,11 +3,13 @@
 A tiny generated scene (8 views of 32x32, 200 primitives, densification inside the window so the
 count changes): a 2-rank training equals a single-process training with the same total
 batch_views, through `--nproc 2` and through `torchrun -m radfield`; a rank killed with SIGKILL
-ends the job with one error line, and `radfield reconstruct` then resumes the run.
+ends the job with one error line, and `radfield reconstruct` then resumes the run; continuing a
+finished run to more steps under torchrun equals continuing it in a single process.
 """
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -59,20 +61,21 @@ def scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def single(scene, tmp_path_factory):
-    """The single-process reference: (final state, log records)."""
+    """The single-process reference run directory."""
     run = tmp_path_factory.mktemp("single") / "run"
     assert in_process(*reconstruct_args(scene, run), "--quiet") == 0
-    return load_checkpoint(run / "train" / "final_state.safetensors"), _log(run / "train" / "log.jsonl")
+    return run
 
 
 def _log(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
-def assert_same_training(run: Path, single) -> None:
+def assert_same_training(run: Path, reference: Path, iterations: int = ITERATIONS) -> None:
     state, log = load_checkpoint(run / "train" / "final_state.safetensors"), _log(run / "train" / "log.jsonl")
-    ref_state, ref_log = single
-    assert state.step == ref_state.step == ITERATIONS
+    ref_state = load_checkpoint(reference / "train" / "final_state.safetensors")
+    ref_log = _log(reference / "train" / "log.jsonl")
+    assert state.step == ref_state.step == iterations
     counts = [r["primitives"] for r in ref_log]
     assert counts[0] == 200 and counts[-1] != 200  # densification changed the population ...
     assert [r["primitives"] for r in log] == counts  # ... identically on both
@@ -96,15 +99,22 @@ def test_nproc_equals_single_process(scene, single, tmp_path):
                                                       "radfield-run.json", "sfm", "tetra", "train"]
 
 
-def test_torchrun_equals_single_process(scene, single, tmp_path, capsys):
-    run = tmp_path / "run"
+def test_torchrun_continues_like_a_single_process(scene, single, tmp_path, capsys):
+    """Continuing the finished single-process run to more steps: under torchrun rank 0 reads the
+    final state and sends it to rank 1 (the path a resumed checkpoint takes too)."""
+    alone, ranks, iterations = tmp_path / "alone", tmp_path / "ranks", ITERATIONS + 10
+    shutil.copytree(single, alone)
+    shutil.copytree(single, ranks)
+    assert in_process(*reconstruct_args(scene, alone, iterations), "--quiet") == 0
     done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-                           "-m", "radfield", *reconstruct_args(scene, run), "--quiet"],
+                           "-m", "radfield", *reconstruct_args(scene, ranks, iterations)],
                           env=ENV, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert_same_training(run, single)
+    assert f"train: continuing the finished run from step {ITERATIONS}" in done.stderr
+    assert_same_training(ranks, alone, iterations)
     # cached for a single process too: the number of ranks is not part of the train stage's key
-    assert in_process(*reconstruct_args(scene, run), "--quiet") == 0
+    capsys.readouterr()
+    assert in_process(*reconstruct_args(scene, ranks, iterations), "--quiet") == 0
     assert "train cached" in capsys.readouterr().out
 
 
