@@ -270,3 +270,17 @@ def test_animate_from_a_spec_file(cli, scene, tmp_path):
         assert not (tmp_path / "bad_out").exists()
     code, _, err = cli("animate", run_dir, "--spec", spec, "--cages", frames_dir, "-o", tmp_path / "c")
     assert code == 1 and "exactly one of --cages, --simulate and --spec" in err
+
+
+def test_edit_prints_the_psnr_of_a_remesh_split(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    spec = _spec(tmp_path / "split.yaml", [{"remesh": {"select": {"sphere": {"center": [0, 0, 0], "radius": 0.5}},
+                                                       "edge_length": 0.3, "split": True, "steps": 10, "views": 3, "size": 24}}])
+    code, stdout, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "split_run", "-q")
+    assert code == 0, err
+    line = next(line for line in stdout.splitlines() if line.strip().startswith("remesh:"))
+    assert "psnr_split" in line and "psnr_after" in line
+    note = json.loads((tmp_path / "split_run" / "edit" / "manifest.json").read_text())["notes"][-1]
+    assert note["split"] > 0 and note["psnr_after"] >= note["psnr_split"]
+    code, stdout, err = cli("info", tmp_path / "split_run")
+    assert code == 0, err
