@@ -273,7 +273,8 @@ def mesh_surface_points(shape: Shape, lo: np.ndarray, hi: np.ndarray, spacing: f
     area = 0.5 * np.linalg.norm(cross, axis=1)
     keep = area > 0
     tri, cross, area = tri[keep], cross[keep], area[keep]
-    count = np.ceil(2 * area / spacing**2).astype(np.int64)
+    count = 2 * area / spacing**2
+    count = np.ceil(count * min(1.0, 1e6 / max(count.sum(), 1.0))).astype(np.int64)   # at most ~10⁶ samples
     owner = np.repeat(np.arange(len(tri)), count)
     rng = np.random.default_rng(seed)
     r1, r2 = np.sqrt(rng.random(len(owner))), rng.random(len(owner))   # uniform on a triangle
