@@ -77,6 +77,7 @@ def animate(
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create: frame_NNNN.png, animation.mp4, animation.json.")],
     cages: Annotated[Optional[str], typer.Option(help="Cage poses: a folder of .vtk/.vtu/.msh/.npz frames or a glob pattern (same topology as the run's cage, world frame).")] = None,
     simulate: Annotated[Optional[Path], typer.Option(help="Instead of --cages: a YAML file with a 'simulate:' mapping (built-in soft-body simulation, README 'Animation').")] = None,
+    spec: Annotated[Optional[Path], typer.Option("--spec", "-s", help="Instead of --cages/--simulate: a YAML animation spec, 'animate: {cages: PATTERN, camera: ..., fps: ...}' and/or 'simulate: {...}'; its keys replace the options of the same name (README 'Animation').")] = None,
     dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose camera to use (default: the run's).")] = None,
     split: Annotated[str, typer.Option(help="Split of the dataset camera.")] = "test",
     camera: Annotated[int, typer.Option(help="Index of the dataset camera in the split.")] = 0,
@@ -94,7 +95,9 @@ def animate(
     or Blender, or the built-in one) frame by frame to PNGs and an MP4.
 
     Every frame deforms the run's field exactly from its rest cage to the frame's cage (as
-    `radfield edit` with a deform operation), then renders it from one dataset camera or an orbit."""
+    `radfield edit` with a deform operation), then renders it from one dataset camera or an orbit.
+    --spec FILE holds the same as a file: 'animate: {cages: PATTERN, camera: 0, fps: 30, ...}' or
+    'simulate: {...}' (with an optional 'animate:' of render settings)."""
     import numpy as np
     import torch
 
@@ -113,8 +116,18 @@ def animate(
     from radfield.stages.info import run_dataset
     from radfield.stages.pipeline import CONFIG_FILE, is_run_dir
 
-    if (cages is None) == (simulate is None):
-        raise RadfieldError("give exactly one of --cages and --simulate")
+    if sum(x is not None for x in (cages, simulate, spec)) != 1:
+        raise RadfieldError("give exactly one of --cages, --simulate and --spec")
+    sim_params = None
+    if spec is not None:
+        from radfield.edit.animation import read_animation
+
+        anim = read_animation(spec)
+        cages, sim_params = anim["cages"], anim["simulate"]
+        camera, split, orbit = anim.get("camera", camera), anim.get("split", split), anim.get("orbit", orbit)
+        elevation, fps, downscale = anim.get("elevation", elevation), anim.get("fps", fps), anim.get("downscale", downscale)
+        background, gradient = anim.get("background", background), anim.get("gradient", gradient)
+        split_threshold = anim.get("split_threshold", split_threshold)
     if output.exists() and (not output.is_dir() or any(output.iterdir())):
         raise RadfieldError(f"{output}: already exists and is not an empty folder")
     if not is_run_dir(run):
@@ -133,10 +146,10 @@ def animate(
         raise RadfieldError(f"--camera {camera}: the {split} split has {len(data.cameras)} cameras")
 
     sim_cages = None
-    if simulate is not None:
+    if simulate is not None or sim_params is not None:
         from radfield.edit.simulate import read_simulation, simulate_cage
 
-        params = read_simulation(simulate)
+        params = sim_params if sim_params is not None else read_simulation(simulate)
         sim_cages, sim_figures = simulate_cage(fld.cage_vertices, fld.cage_tets, params,
                                                log=None if quiet else (lambda m: typer.echo(m, err=True)))
         poses = sim_cages

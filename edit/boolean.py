@@ -22,10 +22,11 @@ Each primitive is classified by its mask over its ellipsoid (an exact bounding-s
 the shape's signed distance, exact support-function test for a half-space, else 64 samples:
 centre, axis ends, diagonals, random points): wholly kept (bit-identical), wholly removed
 (dropped), or straddling. Straddling primitives are retrained locally against the teacher — the
-exact boolean field rendered by masked quadrature (retrain.py). A cut by a shape through a
-solid object also gets a cap: new thin disc primitives seeded on the part of the cut surface that
-lies inside the object (the cut surface: an analytic shape's zero level set, a mesh operand's
-triangles, a field operand's ε-level set of D marched on a grid; difference and intersection) (ray-occupancy test: opacity > 1/2 along at least 12 of 14 directions),
+exact boolean field rendered by masked quadrature (retrain.py). A cut (difference or
+intersection) through a solid object also gets a cap: new thin disc primitives seeded on the part
+of the cut surface that lies inside the object (ray-occupancy test: opacity > 1/2 along at least
+12 of 14 directions); the cut surface is sampled for every operand kind — an analytic shape's zero
+level set, a mesh's triangles, a field's ε-level set of D marched on a grid —, the discs are
 coloured like the densest nearby original primitives; the teacher includes the cap, so the retrained cut
 face is closed, not hollow. No analytic clipping of the integration interval (that would need
 renderer kernel changes): retraining is the method.
@@ -273,7 +274,8 @@ def mesh_surface_points(shape: Shape, lo: np.ndarray, hi: np.ndarray, spacing: f
     area = 0.5 * np.linalg.norm(cross, axis=1)
     keep = area > 0
     tri, cross, area = tri[keep], cross[keep], area[keep]
-    count = np.ceil(2 * area / spacing**2).astype(np.int64)
+    count = 2 * area / spacing**2
+    count = np.ceil(count * min(1.0, 1e6 / max(count.sum(), 1.0))).astype(np.int64)   # at most ~10⁶ samples
     owner = np.repeat(np.arange(len(tri)), count)
     rng = np.random.default_rng(seed)
     r1, r2 = np.sqrt(rng.random(len(owner))), rng.random(len(owner))   # uniform on a triangle

@@ -2,6 +2,8 @@
 
     - recolor: {select: SELECTION, multiply: [r, g, b] | set: [r, g, b] | hue: degrees, falloff: f}
     - transfer: {select: SELECTION, from: OTHER_RUN_OR_MODEL, steps: 200, views: 24, size: 48}
+    - transfer: {select: SELECTION, images: POSED_DATASET, split: train, steps: 200, views: 24, size: 64,
+                 background: [1, 1, 1]}
 
 A primitive's colour along d is c(d) = Σ_k Y_k(d) coeffs_k + 0.5 (3DGS convention). Selections
 act on primitive centres (select.py's all/box/sphere/plane with falloff), plus
@@ -16,7 +18,11 @@ falloff of weight w the new coefficients are (1 − w)·old + w·new. Unselected
 - set rgb: DC' = (rgb − 0.5)/Y_0; the higher bands are scaled per channel by rgb / DC colour
   (DC colour floored at 0.02, ratio capped at 4), keeping the view-dependent part proportional.
 - transfer: the SH of the selected primitives only (geometry frozen) is fitted to renders of the
-  reference field (`from`, in the same world frame) from views around the selection.
+  reference field (`from`, in the same world frame) from views around the selection, or to a set
+  of posed photos (`images`: a NeRF-synthetic folder, a nerfstudio transforms.json or its folder,
+  a COLMAP dataset; cameras in the dataset's world frame, which is the model's): `views` of the
+  split's images, evenly spaced, downscaled by an integer factor so the longer side is at most
+  `size` px, composited on `background` (RGBA), which the renders use too.
 """
 
 from __future__ import annotations
@@ -113,29 +119,65 @@ def recolor(fld: Field, args, ctx) -> Field:
     return out
 
 
+def dataset_targets(path, split: str, views: int, size: int, background, where: str):
+    """(cameras, images (H, W, 3) float32) of `views` evenly spaced images of a posed dataset split,
+    downscaled so that the longer side is at most `size` px."""
+    from radfield.datasets.readers import load_dataset
+
+    data = load_dataset(path, split, 1, background)
+    if not data.posed:
+        raise RadfieldError(f"{where}.images: {path} has no camera poses (give a posed dataset; photos need `radfield reconstruct` first)")
+    first = data.views[0].camera
+    downscale = max(1, math.ceil(max(first.width, first.height) / size))
+    data = load_dataset(path, split, downscale, background)
+    pick = np.unique(np.linspace(0, len(data) - 1, min(views, len(data))).round().astype(int))
+    cameras = data.cameras
+    return [cameras[i] for i in pick], [data.load_image(int(i))[0] for i in pick]
+
+
 @operation("transfer")
 def transfer(fld: Field, args, ctx) -> Field:
-    """Appearance transfer (§6.2): fit the SH of the selected primitives to renders of another field."""
+    """Appearance transfer (§6.2): fit the SH of the selected primitives to renders of another field
+    or to posed images."""
     from radfield.edit import retrain
 
     where = ctx.where
-    check_keys(args, {"select", "falloff", "from", "steps", "views", "size"}, where)
+    check_keys(args, {"select", "falloff", "from", "images", "split", "background", "steps", "views", "size"}, where)
     selection, falloff = _selection(args, where)
-    if "from" not in args:
-        raise RadfieldError(f"{where}.from: required (the reference run or model file)")
+    sources = [k for k in ("from", "images") if k in args]
+    if len(sources) != 1:
+        raise RadfieldError(f"{where}.from: required (the reference run or model file), or images: a posed dataset "
+                            f"(give exactly one, got {sources or 'none'})")
+    if "from" in args and any(k in args for k in ("split", "background")):
+        raise RadfieldError(f"{where}: split and background go with images:, not from:")
     steps = int(number(args, "steps", where, default=200, positive=True))
     views = int(number(args, "views", where, default=24, positive=True))
-    size = int(number(args, "size", where, default=48, positive=True))
-    reference = load_operand(args["from"], "from", ctx)
+    size = int(number(args, "size", where, default=48 if "from" in args else 64, positive=True))
     w = primitive_weights(fld.prims, selection, falloff, f"{where}.select")
     idx = np.flatnonzero(w > 0)
     if idx.size == 0:
         raise RadfieldError(f"{where}.select: selects no primitive")
-    cameras = retrain.orbit_around(fld.prims, idx, views, size)
-    with torch.no_grad():
-        targets = [retrain.render_image(reference.prims, cam) for cam in cameras]
-    prims, figures = retrain.fit_colors(fld.prims, idx, cameras, targets, steps, ctx.seed)
+    if "from" in args:
+        reference = load_operand(args["from"], "from", ctx)
+        background = retrain.BACKGROUND
+        cameras = retrain.orbit_around(fld.prims, idx, views, size)
+        with torch.no_grad():
+            targets = [retrain.render_image(reference.prims, cam) for cam in cameras]
+    else:
+        split = args.get("split", "train")
+        background = tuple(vector(args, "background", where)) if "background" in args else retrain.BACKGROUND
+        if not all(0.0 <= c <= 1.0 for c in background):
+            raise RadfieldError(f"{where}.background: expected numbers in [0, 1], got {list(background)}")
+        path = ctx.path(args["images"], "images")
+        try:
+            cameras, targets = dataset_targets(path, split, views, size, background, where)
+        except RadfieldError as error:
+            message = str(error)
+            raise RadfieldError(message if message.startswith(where) else f"{where}.images: {message}") from None
+    prims, figures = retrain.fit_colors(fld.prims, idx, cameras, targets, steps, ctx.seed, background)
     out = fld.with_prims(prims, fld.tet.copy(), fld.bary.copy())
-    out.notes.append({"operation": "transfer", "selected": int(idx.size), **figures})
-    ctx.log(f"transfer: {idx.size} primitives, PSNR vs reference {figures['psnr_before']:.2f} -> {figures['psnr_after']:.2f} dB")
+    out.notes.append({"operation": "transfer", "selected": int(idx.size), "source": sources[0], "views": len(cameras),
+                      **figures})
+    what = "reference" if "from" in args else f"{len(cameras)} images"
+    ctx.log(f"transfer: {idx.size} primitives, PSNR vs {what} {figures['psnr_before']:.2f} -> {figures['psnr_after']:.2f} dB")
     return out

@@ -266,9 +266,10 @@ def _joined(frozen, trainable: dict, base):
     return out
 
 
-def _mean_psnr(prims, cameras, targets) -> float:
+def _mean_psnr(prims, cameras, targets, background=BACKGROUND) -> float:
     with torch.no_grad():
-        return float(np.mean([float(psnr(render_image(prims, c).double().clamp(0, 1), t.clamp(0, 1))) for c, t in zip(cameras, targets)]))
+        return float(np.mean([float(psnr(render_image(prims, c, background).double().clamp(0, 1), t.double().clamp(0, 1)))
+                              for c, t in zip(cameras, targets)]))
 
 
 def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points: torch.Tensor,
@@ -338,9 +339,11 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     return candidates[best][1], figures
 
 
-def fit_colors(prims, idx, cameras: list[Camera], targets: list[torch.Tensor], steps: int, seed: int = 0):
-    """Appearance transfer: fit only the SH of primitives idx to target images (geometry frozen).
-    Returns the primitives with the new SH (others bit-identical) and PSNR figures."""
+def fit_colors(prims, idx, cameras: list[Camera], targets: list[torch.Tensor], steps: int, seed: int = 0,
+               background=BACKGROUND):
+    """Appearance transfer: fit only the SH of primitives idx to target images (H, W, 3) seen by
+    `cameras` over `background` (geometry frozen; L1, Adam, one random view a step). Returns the
+    primitives with the new SH (others bit-identical) and PSNR figures."""
     g = torch.Generator().manual_seed(seed)
     idx = torch.as_tensor(np.asarray(idx, np.int64))
     sh = prims.sh[idx].detach().clone().float().requires_grad_(True)
@@ -353,17 +356,18 @@ def fit_colors(prims, idx, cameras: list[Camera], targets: list[torch.Tensor], s
     def field(s):
         return _joined(frozen, {**fixed, "sh": s}, frozen)
 
-    figures = {"psnr_before": _mean_psnr(field(sh), cameras, targets)}
+    figures = {"psnr_before": _mean_psnr(field(sh), cameras, targets, background)}
     opt = torch.optim.Adam([sh], lr=LR_STAGE2["sh"])
     t0 = time.perf_counter()
+    targets32 = [t.float() for t in targets]
     for _ in range(steps):
         k = int(torch.randint(len(cameras), (1,), generator=g))
-        loss = (render_image(field(sh), cameras[k]) - targets[k].float()).abs().mean()
+        loss = (render_image(field(sh), cameras[k], background) - targets32[k]).abs().mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     figures["seconds"] = time.perf_counter() - t0
-    figures["psnr_after"] = _mean_psnr(field(sh), cameras, targets)
+    figures["psnr_after"] = _mean_psnr(field(sh), cameras, targets, background)
     out = prims.map(lambda x: x.clone())
     out.sh[idx] = sh.detach().to(out.sh.dtype)
     return out, figures

@@ -234,3 +234,53 @@ def test_render_orbit_and_camera_path_with_video(cli, scene, tmp_path):
     assert np.array_equal(read_image(tmp_path / "model_path" / images[0].name), read_image(images[0]))
     code, _, err = cli("render", model, "-o", tmp_path / "model_orbit", "--orbit", "3")
     assert code == 1 and "--dataset" in err and not (tmp_path / "model_orbit").exists()
+
+
+def test_animate_from_a_spec_file(cli, scene, tmp_path):
+    root, run_dir, data, v, t = scene
+    frames_dir = tmp_path / "spec_dir" / "frames"
+    for i, dz in enumerate((0.0, 0.05, 0.1)):
+        write_cage(frames_dir / f"f_{i}", v + np.array([0.0, 0.0, dz]) * (v[:, 2:3] + 0.8), t)
+    spec = tmp_path / "spec_dir" / "anim.yaml"
+    spec.write_text("animate: {cages: frames, camera: 1, fps: 12, split_threshold: 0}\n")   # relative to the spec
+    code, _, err = cli("animate", run_dir, "--spec", spec, "-o", tmp_path / "a", "-q")
+    assert code == 0, err
+    code, _, err = cli("animate", run_dir, "--cages", frames_dir, "--camera", "1", "--fps", "12", "--split-threshold", "0",
+                       "-o", tmp_path / "b", "-q")
+    assert code == 0, err
+    for i in range(3):                                  # the spec says what the options say
+        assert np.array_equal(read_image(tmp_path / "a" / f"frame_{i:04d}.png"), read_image(tmp_path / "b" / f"frame_{i:04d}.png"))
+    assert json.loads((tmp_path / "a" / "animation.json").read_text())["fps"] == 12
+    # a simulation with render settings
+    sim = tmp_path / "sim.yaml"
+    sim.write_text("simulate: {ground: -0.8, frames: 3, fps: 10, substeps: 5}\nanimate: {orbit: true, elevation: 30}\n")
+    code, _, err = cli("animate", run_dir, "--spec", sim, "-o", tmp_path / "s", "-q")
+    assert code == 0, err
+    summary = json.loads((tmp_path / "s" / "animation.json").read_text())
+    assert summary["frames"] == 3 and summary["fps"] == 10 and "simulation" in summary
+    # mistakes: one line, nothing written
+    for text, message in (("animate: {cages: frames}\nsimulate: {}\n", "exactly one pose source"),
+                          ("animate: {cages: frames, fps: -1}\n", "animate.fps"),
+                          ("animate: {cages: frames, zoom: 2}\n", "unknown arguments"),
+                          ("animate: {cages: frames, camera: 99}\n", "--camera 99")):
+        bad = tmp_path / "spec_dir" / "bad.yaml"
+        bad.write_text(text)
+        code, _, err = cli("animate", run_dir, "--spec", bad, "-o", tmp_path / "bad_out")
+        assert code == 1 and message in err and err.count("\n") == 1, err
+        assert not (tmp_path / "bad_out").exists()
+    code, _, err = cli("animate", run_dir, "--spec", spec, "--cages", frames_dir, "-o", tmp_path / "c")
+    assert code == 1 and "exactly one of --cages, --simulate and --spec" in err
+
+
+def test_edit_prints_the_psnr_of_a_remesh_split(cli, scene, tmp_path):
+    root, run, data, v, t = scene
+    spec = _spec(tmp_path / "split.yaml", [{"remesh": {"select": {"sphere": {"center": [0, 0, 0], "radius": 0.5}},
+                                                       "edge_length": 0.3, "split": True, "steps": 10, "views": 3, "size": 24}}])
+    code, stdout, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "split_run", "-q")
+    assert code == 0, err
+    line = next(line for line in stdout.splitlines() if line.strip().startswith("remesh:"))
+    assert "psnr_split" in line and "psnr_after" in line
+    note = json.loads((tmp_path / "split_run" / "edit" / "manifest.json").read_text())["notes"][-1]
+    assert note["split"] > 0 and note["psnr_after"] >= note["psnr_split"]
+    code, stdout, err = cli("info", tmp_path / "split_run")
+    assert code == 0, err

@@ -79,3 +79,68 @@ def test_bad_recolor_entries_are_one_line(tmp_path, op, message):
         run(Field(prims), op, base_dir=tmp_path)
     assert str(info.value).startswith(message) and "\n" not in str(info.value)
     assert torch.equal(prims.sh, sh) and list(tmp_path.iterdir()) == []
+
+
+def write_posed_images(root, prims, cams, background=(1.0, 1.0, 1.0)):
+    """A NeRF-synthetic dataset (transforms_train.json, OpenGL poses) of renders of `prims`."""
+    import json
+    import math
+
+    from radfield.core.cameras import opencv_to_opengl
+    from radfield.core.rasterize import render
+    from radfield.datasets.images import write_image
+
+    (root / "train").mkdir(parents=True)
+    frames = []
+    for k, cam in enumerate(cams):
+        with torch.no_grad():
+            write_image(root / "train" / f"r_{k}.png", render(prims, cam, background=background).color.clamp(0, 1).numpy())
+        frames.append({"file_path": f"./train/r_{k}", "transform_matrix": opencv_to_opengl(cam.c2w).tolist()})
+    angle = 2 * math.atan(cams[0].width / (2 * cams[0].fx))
+    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+    return root
+
+
+def test_transfer_from_posed_images(tmp_path):
+    from radfield.core.cameras import Camera, look_at
+    from radfield.core.sh import C0
+
+    # two blobs; the photos show the right one recoloured (the paper's snowman: one region takes
+    # the appearance of the photos, geometry frozen)
+    prims = random_neural(24, sh_degree=0, extent=0.25, scale=0.15, b2=3.0, seed=6)
+    prims.means[12:, 0] += 0.5
+    prims.means[:12, 0] -= 0.5
+    right = {"box": {"min": [0.0, -2, -2], "max": [2, 2, 2]}}
+    photo = run(Field(prims), {"recolor": {"select": right, "set": [0.9, 0.2, 0.1]}}).prims
+    cams = []
+    for k in range(8):
+        a = 2 * np.pi * k / 8
+        eye = (3 * np.cos(a), 3 * np.sin(a), 0.8)
+        cams.append(Camera(fx=40.0, fy=40.0, cx=24.0, cy=24.0, width=48, height=48, c2w=look_at(eye, (0, 0, 0))))
+    write_posed_images(tmp_path / "photos", photo, cams)
+    out = run(Field(prims), {"transfer": {"select": right, "images": "photos", "steps": 60, "views": 6, "size": 24}},
+              base_dir=tmp_path)
+    note = out.notes[-1]
+    assert note["source"] == "images" and note["views"] == 6 and note["selected"] == 12
+    assert note["psnr_after"] > note["psnr_before"] + 3
+    # the selected primitives' colours moved toward the photos' colour
+    colour = lambda p: p.sh[12:, 0] * C0 + 0.5
+    target = torch.tensor([0.9, 0.2, 0.1])
+    assert (colour(out.prims) - target).norm(dim=-1).mean() < 0.5 * (colour(prims) - target).norm(dim=-1).mean()
+    # unselected primitives and every geometry tensor bit-identical
+    assert torch.equal(out.prims.sh[:12], prims.sh[:12])
+    for name, tensor in prims.tensors().items():
+        if name != "sh":
+            assert torch.equal(getattr(out.prims, name), tensor)
+
+
+def test_transfer_from_images_errors(tmp_path):
+    prims = random_neural(4, seed=4)
+    (tmp_path / "photos").mkdir()
+    for op, message in (({"select": "all", "images": "missing"}, "operations[0].transfer.images:"),
+                        ({"select": "all", "images": "photos"}, "operations[0].transfer.images:"),
+                        ({"select": "all", "images": "photos", "from": "x"}, "operations[0].transfer.from: required"),
+                        ({"select": "all", "from": "x", "split": "test"}, "operations[0].transfer: split and background")):
+        with pytest.raises(RadfieldError) as info:
+            run(Field(prims), {"transfer": op}, base_dir=tmp_path)
+        assert str(info.value).startswith(message) and "\n" not in str(info.value), str(info.value)

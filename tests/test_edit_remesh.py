@@ -39,15 +39,21 @@ def faces(t):
     return counts
 
 
-def test_remesh_refines_the_region_conformingly_and_renders_identically():
+def remeshed(prims, centre, **args):
+    """The field of prims in the cube cage, remeshed in a sphere of radius 0.6 around centre to edge 0.3."""
     v, t = cube_cage()
-    prims = random_neural(30, sh_degree=1, extent=0.8, scale=0.1, b2=2.0, seed=1)
     fld = Field(prims, v, t)
     fld.rebind()
-    region = {"sphere": {"center": [0.5, 0.5, 0.5], "radius": 0.6}}
-    out = apply_operations(fld, parse_spec({"operations": [{"remesh": {"select": region, "edge_length": 0.3}}]}), EditContext())
+    region = {"sphere": {"center": centre, "radius": 0.6}}
+    out = apply_operations(fld, parse_spec({"operations": [{"remesh": {"select": region, "edge_length": 0.3, **args}}]}),
+                           EditContext())
+    return out, out.notes[-1], v, t
+
+
+def test_remesh_refines_the_region_conformingly_and_renders_identically():
+    prims = random_neural(30, sh_degree=1, extent=0.8, scale=0.1, b2=2.0, seed=1)
+    out, note, v, t = remeshed(prims, [0.5, 0.5, 0.5])
     nv, nt = out.cage_vertices, out.cage_tets
-    note = out.notes[-1]
     assert note["tets_before"] == 6 and note["tets_after"] == len(nt) > 100
     vol = tet_volumes(nv, nt)
     assert (vol > 0).all() and np.isclose(vol.sum(), 8.0)               # same solid, all positive
@@ -95,14 +101,8 @@ def test_bad_remesh_entries_are_one_line(args, message):
 
 
 def test_remesh_with_split_halves_large_primitives_and_retrains_them_against_the_original():
-    v, t = cube_cage()
     prims = random_neural(24, sh_degree=0, extent=0.7, scale=0.18, b2=2.0, seed=5)
-    fld = Field(prims, v, t)
-    fld.rebind()
-    region = {"sphere": {"center": [0.4, 0.4, 0.4], "radius": 0.6}}
-    spec = {"remesh": {"select": region, "edge_length": 0.3, "split": True, "steps": 40, "views": 6, "size": 32}}
-    out = apply_operations(fld, parse_spec({"operations": [spec]}), EditContext())
-    note = out.notes[-1]
+    out, note, v, t = remeshed(prims, [0.4, 0.4, 0.4], split=True, steps=40, views=6, size=32)
     assert note["split"] > 0 and note["retrained"] >= 2 and len(out.prims) == len(prims) + note["split"]
     # no primitive is larger than the new tet holding its centre any more, unless 3 rounds did not suffice
     old = {tuple(r) for r in np.sort(t, axis=1).tolist()}
