@@ -3,6 +3,7 @@
     neural_view(bounds, intrinsics, H, W, t_min, colors, depth, *neural params) -> sums, T, counters
     gaussian_view(bounds, H, W, t_min, colors, depth, mean2d, conic, opacity)   -> sums, T, counters
     sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
+    ssim_map(x, y, taps, pad, c1, c2), anisotropy(log_scales)      the loss (core/losses.py)
     neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
     available(device=None, dtype=None) -> bool, build_error() -> str | None
 
@@ -28,7 +29,8 @@ from pathlib import Path
 import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp"]
+_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
+            _CSRC / "loss_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
@@ -256,3 +258,45 @@ def neural_prep(prims, campos, cam_rot) -> tuple:
     (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from rasterize._density_weights."""
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
                              prims.omega0)
+
+
+# --- the loss (core/csrc/loss_kernels.cpp) -------------------------------------------------------
+
+class _SSIMMap(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, y, taps, pad, c1, c2):
+        x, y, taps = x.contiguous(), y.contiguous(), taps.contiguous()
+        ssim, moments = _ops().ssim_map_forward(x, y, taps, pad, c1, c2)
+        ctx.constants = (pad, c1, c2)
+        ctx.save_for_backward(x, y, taps, moments)
+        return ssim
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        x, y, taps, moments = ctx.saved_tensors
+        return _ops().ssim_map_backward(grad.contiguous(), x, y, taps, moments, *ctx.constants), None, None, None, None, None
+
+
+class _Anisotropy(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, log_scales):
+        log_scales = log_scales.contiguous()
+        ctx.save_for_backward(log_scales)
+        return _ops().anisotropy_forward(log_scales)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        return _ops().anisotropy_backward(grad.contiguous(), *ctx.saved_tensors)
+
+
+def ssim_map(x, y, taps, pad: int, c1: float, c2: float) -> torch.Tensor:
+    """The SSIM map (B, Ho, Wo, C) of images x, y (B, H, W, C) with the separable window `taps`
+    (11,) and zero padding `pad` (0 or 5), differentiable w.r.t. x only; see losses.ssim."""
+    return _SSIMMap.apply(x, y, taps, int(pad), float(c1), float(c2))
+
+
+def anisotropy(log_scales) -> torch.Tensor:
+    """losses.anisotropy (mean std(s / min(s))) in one fused op."""
+    return _Anisotropy.apply(log_scales)
