@@ -7,6 +7,9 @@
 //   sh_color:    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|, v = μ − o   (core/sh.py)
 //   neural_prep: M = S⁻¹Rᵀ, m_cam = M R_cam, o' = M (o − μ), w_cam = ω0 W1 R_cam,
 //                c_k = ω0 (W1_k·(o − μ)/max(s) + b1_k), 1/max(s)           (rasterize._neural_view)
+//   neural_bounds, gaussian_bounds: (no gradient) the pixel bounds of every primitive and the
+//                visible ones front to back, stable by centre depth   (rasterize._neural_bounds,
+//                rasterize._gaussian_bounds, and the depth sort of rasterize.render)
 //
 // Threads: OpenMP over primitives (each primitive's gradient is its own).
 
@@ -302,6 +305,141 @@ std::vector<at::Tensor> neural_prep_backward(const at::Tensor& g_m_cam, const at
   return {g_means, g_ls, g_q, g_w1, g_b1};
 }
 
+// --- pixel bounds and depth order (no gradient) ---------------------------------------------
+
+// Integer pixel box (x0, y0, x1, y1) of the centres inside [lo_u, hi_u] × [lo_v, hi_v] as
+// rasterize._conic_box: first/last centres j + 0.5 inside, NaN → −1, clamped to ±(max(W, H) + 1).
+template <typename T>
+void pixel_box(T u0, T v0, T u1, T v1, int64_t width, int64_t height, int64_t* box) {
+  const T big = T(std::max(width, height) + 1);
+  const T raw[4] = {std::ceil(u0 - T(0.5)), std::ceil(v0 - T(0.5)), std::floor(u1 - T(0.5)), std::floor(v1 - T(0.5))};
+  for (int i = 0; i < 4; ++i) box[i] = int64_t(std::isnan(raw[i]) ? T(-1) : std::min(std::max(raw[i], -big), big));
+}
+
+// Clip a box to the image (rasterize._clip_bounds); false when nothing is left.
+inline bool clip_box(int64_t* b, int64_t width, int64_t height) {
+  b[0] = std::max<int64_t>(b[0], 0), b[1] = std::max<int64_t>(b[1], 0);
+  b[2] = std::min<int64_t>(b[2], width - 1), b[3] = std::min<int64_t>(b[3], height - 1);
+  return b[2] >= b[0] && b[3] >= b[1];
+}
+
+// The visible primitives' indices sorted by depth, ties in index order (torch.argsort(stable=True)).
+template <typename T>
+at::Tensor depth_order(const std::vector<uint8_t>& visible, const T* depth, const at::TensorOptions& options) {
+  std::vector<int64_t> ids;
+  for (int64_t p = 0; p < int64_t(visible.size()); ++p)
+    if (visible[p]) ids.push_back(p);
+  std::stable_sort(ids.begin(), ids.end(), [&](int64_t a, int64_t b) { return depth[a] < depth[b]; });
+  at::Tensor order = at::empty({int64_t(ids.size())}, options.dtype(at::kLong));
+  std::copy(ids.begin(), ids.end(), order.data_ptr<int64_t>());
+  return order;
+}
+
+// Neural primitives: bounds of the projected bounding ellipsoid from its dual conic
+// C* = K (μμᵀ − Σ) Kᵀ (camera frame, Σ = R S² Rᵀ); the whole image for one straddling the near
+// plane; visible when some of it lies beyond the near plane and its box meets the image.
+// Returns bounds (P, 4) int64 and order (V,) int64.
+std::vector<at::Tensor> neural_bounds(const at::Tensor& means_cam, const at::Tensor& log_scales, const at::Tensor& quats,
+                                      const at::Tensor& w2c_rot, const at::Tensor& intrinsics, int64_t width,
+                                      int64_t height, double near) {
+  check_params({means_cam, log_scales, quats, w2c_rot, intrinsics});
+  const int64_t P = means_cam.size(0);
+  TORCH_CHECK(means_cam.sizes() == at::IntArrayRef({P, 3}) && log_scales.sizes() == at::IntArrayRef({P, 3}) &&
+                  quats.sizes() == at::IntArrayRef({P, 4}) && w2c_rot.numel() == 9 && intrinsics.numel() >= 4,
+              "neural_bounds: bad shapes");
+  at::Tensor bounds = at::empty({P, 4}, means_cam.options().dtype(at::kLong));
+  std::vector<uint8_t> visible(P);
+  at::Tensor order;
+  AT_DISPATCH_FLOATING_TYPES(means_cam.scalar_type(), "neural_bounds", [&] {
+    using T = scalar_t;
+    const T *mc = means_cam.data_ptr<T>(), *ls = log_scales.data_ptr<T>(), *qs = quats.data_ptr<T>();
+    const T *W = w2c_rot.data_ptr<T>(), *k = intrinsics.data_ptr<T>();
+    const T fx = k[0], fy = k[1], cx = k[2], cy = k[3];
+    int64_t* bp = bounds.data_ptr<int64_t>();
+    at::parallel_for(0, P, 1024, [&](int64_t p0, int64_t p1) {
+      for (int64_t p = p0; p < p1; ++p) {
+        const T* q = qs + 4 * p;
+        const T qn = std::max(std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), T(1e-12));
+        const T unit[4] = {q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn};
+        T R[9], rs[9], S[9];
+        rotmat(unit, R);
+        for (int i = 0; i < 3; ++i)  // rs = (W2C R) diag(s)
+          for (int j = 0; j < 3; ++j) rs[3 * i + j] = (W[3 * i] * R[j] + W[3 * i + 1] * R[3 + j] + W[3 * i + 2] * R[6 + j]) * std::exp(ls[3 * p + j]);
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) S[3 * i + j] = rs[3 * i] * rs[3 * j] + rs[3 * i + 1] * rs[3 * j + 1] + rs[3 * i + 2] * rs[3 * j + 2];
+        const T* m = mc + 3 * p;
+        const T z_ext = std::sqrt(S[8]), z = m[2];
+        const bool in_front = z - z_ext > T(near);
+        bool vis = z + z_ext > T(near);
+        int64_t* b = bp + 4 * p;
+        if (in_front) {
+          T A[9], D[9];  // A = μμᵀ − Σ, D = K A Kᵀ
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) A[3 * i + j] = m[i] * m[j] - S[3 * i + j];
+          const T K[9] = {fx, 0, cx, 0, fy, cy, 0, 0, 1};
+          T KA[9];
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) KA[3 * i + j] = K[3 * i] * A[j] + K[3 * i + 1] * A[3 + j] + K[3 * i + 2] * A[6 + j];
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) D[3 * i + j] = KA[3 * i] * K[3 * j] + KA[3 * i + 1] * K[3 * j + 1] + KA[3 * i + 2] * K[3 * j + 2];
+          // tangent lines u = const: C*_00 − 2u C*_02 + u² C*_22 = 0 (likewise v)
+          T lo[2], hi[2];
+          for (int i = 0; i < 2; ++i) {
+            const T cii = D[4 * i], ci2 = D[3 * i + 2], c22 = D[8];
+            const T root = std::sqrt(std::max(ci2 * ci2 - cii * c22, T(0)));
+            const T a = (ci2 + root) / c22, c = (ci2 - root) / c22;
+            lo[i] = std::isnan(a) || std::isnan(c) ? a + c : std::min(a, c);
+            hi[i] = std::isnan(a) || std::isnan(c) ? a + c : std::max(a, c);
+          }
+          pixel_box(lo[0], lo[1], hi[0], hi[1], width, height, b);
+        } else {
+          b[0] = 0, b[1] = 0, b[2] = width - 1, b[3] = height - 1;
+        }
+        visible[p] = vis && clip_box(b, width, height);
+      }
+    });
+    std::vector<T> z(P);
+    for (int64_t p = 0; p < P; ++p) z[p] = mc[3 * p + 2];
+    order = depth_order(visible, z.data(), means_cam.options());
+  });
+  return {bounds, order};
+}
+
+// Gaussians: the 3σ box of the EWA splat (the largest eigenvalue of its 2D covariance (a, b, c),
+// blur included), visible when in front of the near plane with det > 0 and its box meets the
+// image; the same float operations in the same order as rasterize._gaussian_view.
+std::vector<at::Tensor> gaussian_bounds(const at::Tensor& mean2d, const at::Tensor& cov, const at::Tensor& depth,
+                                        int64_t width, int64_t height, double near) {
+  check_params({mean2d, cov, depth});
+  const int64_t P = mean2d.size(0);
+  TORCH_CHECK(mean2d.sizes() == at::IntArrayRef({P, 2}) && cov.sizes() == at::IntArrayRef({P, 3}) &&
+                  depth.sizes() == at::IntArrayRef({P}),
+              "gaussian_bounds: mean2d (P, 2), cov (P, 3), depth (P,)");
+  at::Tensor bounds = at::empty({P, 4}, mean2d.options().dtype(at::kLong));
+  std::vector<uint8_t> visible(P);
+  at::Tensor order;
+  AT_DISPATCH_FLOATING_TYPES(mean2d.scalar_type(), "gaussian_bounds", [&] {
+    using T = scalar_t;
+    const T *m = mean2d.data_ptr<T>(), *cv = cov.data_ptr<T>(), *z = depth.data_ptr<T>();
+    int64_t* bp = bounds.data_ptr<int64_t>();
+    at::parallel_for(0, P, 1024, [&](int64_t p0, int64_t p1) {
+      for (int64_t p = p0; p < p1; ++p) {
+        const T a = cv[3 * p], b = cv[3 * p + 1], c = cv[3 * p + 2];
+        const T det = a * c - b * b;
+        const T d = a - c;
+        const T lam_max = T(0.5) * (a + c) + std::sqrt(std::max(T(0.25) * (d * d) + b * b, T(0)));
+        const T radius = std::ceil(T(3) * std::sqrt(lam_max));
+        const T u = m[2 * p], v = m[2 * p + 1];
+        int64_t* box = bp + 4 * p;
+        pixel_box(u - radius, v - radius, u + radius, v + radius, width, height, box);
+        visible[p] = z[p] > T(near) && det > T(0) && clip_box(box, width, height);
+      }
+    });
+    order = depth_order(visible, z, mean2d.options());
+  });
+  return {bounds, order};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(radfield, m) {
@@ -309,4 +447,6 @@ TORCH_LIBRARY_FRAGMENT(radfield, m) {
   m.def("sh_color_backward", &sh_color_backward);
   m.def("neural_prep_forward", &neural_prep_forward);
   m.def("neural_prep_backward", &neural_prep_backward);
+  m.def("neural_bounds", &neural_bounds);
+  m.def("gaussian_bounds", &gaussian_bounds);
 }
