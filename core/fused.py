@@ -3,6 +3,7 @@
     neural_view(bounds, order, intrinsics, H, W, t_min, colors, depth, *neural params) -> sums, T, counters
     gaussian_view(bounds, order, H, W, t_min, colors, depth, mean2d, conic, opacity)   -> sums, T, counters
     neural_bounds(...), gaussian_bounds(...) -> (bounds, order)   pixel bounds and depth order
+    gaussian_prep(means_cam, log_scales, quats, ...) -> mean2d, conic, cov   EWA projection
     sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
     ssim_map(x, y, taps, pad, c1, c2), anisotropy(log_scales)      the loss (core/losses.py)
     neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
@@ -318,3 +319,29 @@ def ssim_map(x, y, taps, pad: int, c1: float, c2: float) -> torch.Tensor:
 def anisotropy(log_scales) -> torch.Tensor:
     """losses.anisotropy (mean std(s / min(s))) in one fused op."""
     return _Anisotropy.apply(log_scales)
+
+
+class _GaussianPrep(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near):
+        args = [t.contiguous() for t in (means_cam, log_scales, quats, w2c_rot.detach(), intrinsics.detach())]
+        ctx.constants = (int(width), int(height), float(near))
+        ctx.save_for_backward(*args)
+        mean2d, conic, cov = _ops().gaussian_prep_forward(*args, *ctx.constants)
+        ctx.mark_non_differentiable(cov)
+        return mean2d, conic, cov
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_mean2d, g_conic, _):
+        args = ctx.saved_tensors
+        grads = [torch.zeros_like(args[0][:, :k]) if g is None else g.contiguous() for g, k in ((g_mean2d, 2), (g_conic, 3))]
+        out = _ops().gaussian_prep_backward(*grads, *args, *ctx.constants)
+        return (*out, None, None, None, None, None)
+
+
+def gaussian_prep(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
+    """The EWA projection of rasterize._gaussian_view in one fused op: (mean2d (P, 2), conic (P, 3),
+    cov (P, 3) = the 2D covariance's (a, b, c) with the blur, not differentiable), from the
+    camera-space means (P, 3); differentiable w.r.t. means_cam, log_scales and quats."""
+    return _GaussianPrep.apply(means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near)

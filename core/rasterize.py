@@ -81,10 +81,13 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
             bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
             view = _neural_view(prims, campos, c2w[:3, :3])
     elif isinstance(prims, Gaussians):
-        view, cov = _gaussian_view(prims, camera, w2c, means_cam, near)
-        if use_fused:
-            bounds, ids = fused.gaussian_bounds(view[0], torch.stack(cov, -1), depth, width, height, near)
+        if use_fused:   # EWA projection, bounds and depth order in C++ (prepare_kernels.cpp)
+            mean2d, conic, cov = fused.gaussian_prep(means_cam, prims.log_scales, prims.quats, w2c[:3, :3], intrinsics,
+                                                     width, height, near)
+            view = (mean2d, conic, torch.sigmoid(prims.opacities))
+            bounds, ids = fused.gaussian_bounds(mean2d, cov, depth, width, height, near)
         else:
+            view, cov = _gaussian_view(prims, camera, w2c, means_cam, near)
             bounds, visible = _gaussian_bounds(view[0], *cov, depth, camera, near)
     else:
         raise TypeError(f"cannot render {type(prims).__name__}")

@@ -479,3 +479,45 @@ def test_bounds_and_depth_order_match_torch_twins(dtype):
             assert torch.equal(box, box_twin)     # the same float operations in the same order
         else:   # the dual conic's products round differently from bmm's: a box edge may move by a pixel
             assert (box - box_twin).abs().max() <= 1 and (box != box_twin).any(-1).float().mean() < 0.05
+
+
+def test_gaussian_prep_matches_torch_twin_and_finite_differences():
+    """The EWA projection (mean2d, conic, cov) against rasterize._gaussian_view, values and
+    gradients, with splats off screen (the Jacobian's clamped point) and behind the near plane."""
+    from radfield.core.rasterize import _gaussian_view
+
+    near = 0.05
+    prims = random_gaussians(60, extent=3.0, scale=0.3, seed=5, dtype=torch.float64)
+    prims.means[0] = torch.tensor([0.6, -6.0, 1.0], dtype=torch.float64)     # behind the camera
+    prims.means[1] = torch.tensor([0.3, -2.99, 0.5], dtype=torch.float64)    # in front, before the near plane
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
+    w2c = torch.linalg.inv(cam.c2w.to(torch.float64))
+    intrinsics = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, near], dtype=torch.float64)
+    g = torch.Generator().manual_seed(2)
+    weights = [torch.randn(60, k, generator=g, dtype=torch.float64) for k in (2, 3, 3)]
+
+    def run(fast):
+        means, log_scales, quats = (t.clone().requires_grad_(True) for t in (prims.means, prims.log_scales, prims.quats))
+        means_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+        if fast:
+            mean2d, conic, cov = fused.gaussian_prep(means_cam, log_scales, quats, w2c[:3, :3], intrinsics, W, H, near)
+        else:
+            p = prims.map(lambda t: t)
+            p.means, p.log_scales, p.quats = means, log_scales, quats
+            (mean2d, conic, _), abc = _gaussian_view(p, cam, w2c, means_cam, near)
+            cov = torch.stack(abc, -1)
+        out = [mean2d, conic, cov]
+        loss = (weights[0] * mean2d).sum() + (weights[1] * conic).sum()
+        return [t.detach() for t in out], torch.autograd.grad(loss, (means, log_scales, quats)), means_cam.detach()
+
+    fast, fast_grads, means_cam = run(True)
+    slow, slow_grads, _ = run(False)
+    x_over_z = means_cam[:, 0] / means_cam[:, 2]
+    assert (means_cam[:, 2] < near).any() and ((x_over_z > 0.8) & (means_cam[:, 2] > near)).any()   # clamped Jacobians
+    for f, s in zip(fast, slow):
+        torch.testing.assert_close(f, s, rtol=1e-10, atol=1e-12)
+    for name, f, s in zip(("means", "log_scales", "quats"), fast_grads, slow_grads):
+        torch.testing.assert_close(f, s, rtol=1e-9, atol=1e-11, msg=lambda m: f"d/d{name}: {m}")
+    keep = [t[:6].clone().requires_grad_(True) for t in (means_cam, prims.log_scales, prims.quats)]
+    assert torch.autograd.gradcheck(
+        lambda m, l, q: fused.gaussian_prep(m, l, q, w2c[:3, :3], intrinsics, W, H, near)[:2], keep, eps=1e-6, atol=1e-6)
