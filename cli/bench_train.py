@@ -27,6 +27,7 @@ def bench_train(
     steps: Annotated[int, typer.Option(help="Timed training steps per row (after 2 warm-up steps).")] = 5,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    baseline: Annotated[bool, typer.Option("--baseline", help="Also time every row on the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
     """Benchmark (not a test): ms per training step of the default recipe, split into render
     forward, loss, render backward, optimiser and population control, for each primitive kind,
@@ -43,4 +44,4 @@ def bench_train(
     with progress_bar(quiet) as progress:
         task = progress.add_task("bench-train", total=len(counts) * len(view_sizes) * len(kind_list))
         run_bench_train(counts, view_sizes, kind_list, steps, device=dev, echo=typer.echo,
-                        advance=lambda: progress.advance(task))
+                        advance=lambda: progress.advance(task), baseline=baseline)

@@ -169,6 +169,7 @@ def bench_render(
     repeats: Annotated[int, typer.Option(help="Timed passes over the cameras.")] = 2,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     profile: Annotated[bool, typer.Option(help="Also print the torch profiler's top costs.")] = False,
+    baseline: Annotated[bool, typer.Option("--baseline", help="Also time the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
     """Benchmark (not a test): forward and forward+backward time of neural primitives and 3D
     Gaussians on the same cameras and budgets; prints ms/frame, pairs/s and the time ratio."""
@@ -176,7 +177,8 @@ def bench_render(
 
     if min(primitives, width, height, views, repeats) < 1:
         raise RadfieldError("--primitives, --width, --height, --views and --repeats must be positive")
-    run_bench(primitives, width, height, views, repeats, str(resolve_device(device)), profile, echo=typer.echo)
+    run_bench(primitives, width, height, views, repeats, str(resolve_device(device)), profile, echo=typer.echo,
+              baseline=baseline)
 
 
 app.command("bench-train")(bench_train_cli.bench_train)

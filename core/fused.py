@@ -1,8 +1,11 @@
 """Fused CPU kernels (a C++/OpenMP torch extension, core/csrc/) for the rasteriser.
 
-    neural_view(bounds, intrinsics, H, W, t_min, colors, depth, *neural params) -> sums, T, counters
-    gaussian_view(bounds, H, W, t_min, colors, depth, mean2d, conic, opacity)   -> sums, T, counters
+    neural_view(bounds, order, intrinsics, H, W, t_min, colors, depth, *neural params) -> sums, T, counters
+    gaussian_view(bounds, order, H, W, t_min, colors, depth, mean2d, conic, opacity)   -> sums, T, counters
+    neural_bounds(...), gaussian_bounds(...) -> (bounds, order)   pixel bounds and depth order
+    gaussian_prep(means_cam, log_scales, quats, ...) -> mean2d, conic, cov   EWA projection
     sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
+    ssim_map(x, y, taps, pad, c1, c2), anisotropy(log_scales)      the loss (core/losses.py)
     neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
     available(device=None, dtype=None) -> bool, build_error() -> str | None
 
@@ -28,7 +31,8 @@ from pathlib import Path
 import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp"]
+_SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
+            _CSRC / "loss_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
@@ -170,12 +174,12 @@ class _View(torch.autograd.Function):
     differentiable w.r.t. colors, depth and the kind's per-primitive tensors."""
 
     @staticmethod
-    def forward(ctx, kind, bounds, intrinsics, height, width, t_min, colors, depth, *params):
+    def forward(ctx, kind, bounds, order, intrinsics, height, width, t_min, colors, depth, *params):
         inputs = [t.contiguous() for t in (colors, depth, *params)]
         bounds = bounds.contiguous()
         lead = (bounds, intrinsics.contiguous()) if kind == "neural" else (bounds,)
         acc_color, acc_depth, trans, trans64, last, offsets, entries, counters = getattr(_ops(), f"{kind}_view_forward")(
-            *lead, *inputs, height, width, t_min)
+            bounds, order.contiguous(), *lead[1:], *inputs, height, width, t_min)
         ctx.kind, ctx.lead = kind, lead
         ctx.save_for_backward(*inputs, trans64, last, offsets, entries)
         ctx.mark_non_differentiable(counters)
@@ -189,21 +193,38 @@ class _View(torch.autograd.Function):
         grads = [torch.zeros(s, dtype=dtype) if g is None else g.contiguous()
                  for g, s in zip((g_color, g_depth, g_trans), (last.shape + (3,), last.shape, last.shape))]
         out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, *ctx.lead, *inputs, trans64, last, offsets, entries)
-        return None, None, None, None, None, None, *out
+        return None, None, None, None, None, None, None, *out
 
 
-def neural_view(bounds, intrinsics, height, width, t_min, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax):
-    """Front-to-back compositing of depth-sorted neural primitives over a whole view in one fused
-    kernel: returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
-    composited pairs, terminated pixels)). bounds (P, 4) int64 inclusive pixel boxes inside the
-    image; the per-primitive tensors as rasterize._neural_view returns them."""
-    return _View.apply("neural", bounds, intrinsics, height, width, t_min, colors, depth,
+def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, m_cam, o_ell, w_cam, c, w2, b2,
+                inv_smax):
+    """Front-to-back compositing of neural primitives over a whole view in one fused kernel:
+    returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
+    composited pairs, terminated pixels)). order (V,) int64: the primitives to draw, front to
+    back; bounds (P, 4) int64 inclusive pixel boxes, inside the image for those in `order`; the
+    per-primitive tensors (P, ...) as rasterize._neural_view returns them (gradients are zero for
+    the primitives not in `order`)."""
+    return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, colors, depth,
                        m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
 
 
-def gaussian_view(bounds, height, width, t_min, colors, depth, mean2d, conic, opacity):
+def gaussian_view(bounds, order, height, width, t_min, colors, depth, mean2d, conic, opacity):
     """As neural_view, for EWA splats (mean2d (P, 2), conic (P, 3), opacity (P,))."""
-    return _View.apply("gaussian", bounds, None, height, width, t_min, colors, depth, mean2d, conic, opacity)
+    return _View.apply("gaussian", bounds, order, None, height, width, t_min, colors, depth, mean2d, conic, opacity)
+
+
+def neural_bounds(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
+    """rasterize._neural_bounds and the depth sort in one op (no gradient): (bounds (P, 4) int64,
+    order (V,) int64, the visible primitives by camera-space depth means_cam[:, 2], stable)."""
+    args = [t.detach().contiguous() for t in (means_cam, log_scales, quats, w2c_rot, intrinsics)]
+    return tuple(_ops().neural_bounds(*args, width, height, float(near)))
+
+
+def gaussian_bounds(mean2d, cov, depth, width: int, height: int, near: float):
+    """rasterize._gaussian_bounds and the depth sort in one op (no gradient), from the splats'
+    2D means (P, 2), covariances (a, b, c) (P, 3) and depths (P,): (bounds, order) as neural_bounds."""
+    args = [t.detach().contiguous() for t in (mean2d, cov, depth)]
+    return tuple(_ops().gaussian_bounds(*args, width, height, float(near)))
 
 
 # --- per-view preparation (core/csrc/prepare_kernels.cpp) ---------------------------------------
@@ -256,3 +277,71 @@ def neural_prep(prims, campos, cam_rot) -> tuple:
     (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from rasterize._density_weights."""
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
                              prims.omega0)
+
+
+# --- the loss (core/csrc/loss_kernels.cpp) -------------------------------------------------------
+
+class _SSIMMap(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, y, taps, pad, c1, c2):
+        x, y, taps = x.contiguous(), y.contiguous(), taps.contiguous()
+        ssim, moments = _ops().ssim_map_forward(x, y, taps, pad, c1, c2)
+        ctx.constants = (pad, c1, c2)
+        ctx.save_for_backward(x, y, taps, moments)
+        return ssim
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        x, y, taps, moments = ctx.saved_tensors
+        return _ops().ssim_map_backward(grad.contiguous(), x, y, taps, moments, *ctx.constants), None, None, None, None, None
+
+
+class _Anisotropy(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, log_scales):
+        log_scales = log_scales.contiguous()
+        ctx.save_for_backward(log_scales)
+        return _ops().anisotropy_forward(log_scales)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        return _ops().anisotropy_backward(grad.contiguous(), *ctx.saved_tensors)
+
+
+def ssim_map(x, y, taps, pad: int, c1: float, c2: float) -> torch.Tensor:
+    """The SSIM map (B, Ho, Wo, C) of images x, y (B, H, W, C) with the separable window `taps`
+    (11,) and zero padding `pad` (0 or 5), differentiable w.r.t. x only; see losses.ssim."""
+    return _SSIMMap.apply(x, y, taps, int(pad), float(c1), float(c2))
+
+
+def anisotropy(log_scales) -> torch.Tensor:
+    """losses.anisotropy (mean std(s / min(s))) in one fused op."""
+    return _Anisotropy.apply(log_scales)
+
+
+class _GaussianPrep(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near):
+        args = [t.contiguous() for t in (means_cam, log_scales, quats, w2c_rot.detach(), intrinsics.detach())]
+        ctx.constants = (int(width), int(height), float(near))
+        ctx.save_for_backward(*args)
+        mean2d, conic, cov = _ops().gaussian_prep_forward(*args, *ctx.constants)
+        ctx.mark_non_differentiable(cov)
+        return mean2d, conic, cov
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_mean2d, g_conic, _):
+        args = ctx.saved_tensors
+        grads = [torch.zeros_like(args[0][:, :k]) if g is None else g.contiguous() for g, k in ((g_mean2d, 2), (g_conic, 3))]
+        out = _ops().gaussian_prep_backward(*grads, *args, *ctx.constants)
+        return (*out, None, None, None, None, None)
+
+
+def gaussian_prep(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
+    """The EWA projection of rasterize._gaussian_view in one fused op: (mean2d (P, 2), conic (P, 3),
+    cov (P, 3) = the 2D covariance's (a, b, c) with the blur, not differentiable), from the
+    camera-space means (P, 3); differentiable w.r.t. means_cam, log_scales and quats."""
+    return _GaussianPrep.apply(means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near)

@@ -16,6 +16,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from radfield.core import fused
+
 SSIM_WINDOW = 11    # taps of the Gaussian window (standard SSIM, Wang et al. 2004)
 SSIM_SIGMA = 1.5
 SSIM_C1 = 0.01**2   # (K1 · data range)², data range 1
@@ -53,11 +55,30 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid", mask: tor
         raise ValueError(f"padding must be 'valid' or 'same', not {padding!r}")
     if mask is not None:
         img = torch.where(mask[..., None], img, ref)
-    channels = img.shape[-1]
-    x = img.reshape(-1, *img.shape[-3:]).movedim(-1, 1)   # (B, C, H, W)
-    y = ref.reshape(-1, *ref.shape[-3:]).movedim(-1, 1)
-    window = _gaussian_window(img.dtype, img.device)
     pad = SSIM_WINDOW // 2 if padding == "same" else 0
+    x = img.reshape(-1, *img.shape[-3:])   # (B, H, W, C)
+    y = ref.reshape(-1, *ref.shape[-3:])
+    window = _gaussian_window(img.dtype, img.device)
+    if fused.available(img.device, img.dtype) and ref.dtype == img.dtype and not ref.requires_grad:
+        ssim_map = fused.ssim_map(x, y, window, pad, SSIM_C1, SSIM_C2)   # core/csrc/loss_kernels.cpp
+    else:
+        ssim_map = _ssim_map(x, y, window, pad)
+    if mask is None:
+        return ssim_map.mean()
+    m = mask.reshape(-1, 1, *mask.shape[-2:]).to(img.dtype)   # (B, 1, H, W)
+    if padding == "valid":  # windows lying on valid pixels only: a box count of 11 × 11
+        box = torch.ones(1, 1, SSIM_WINDOW, SSIM_WINDOW, dtype=img.dtype, device=img.device)
+        m = (F.conv2d(m, box) > SSIM_WINDOW**2 - 0.5).to(img.dtype)
+    weight = m.movedim(1, -1).expand_as(ssim_map)
+    if not bool(weight.sum() > 0):
+        raise ValueError("SSIM: no 11×11 window lies on valid pixels")
+    return (ssim_map * weight).sum() / weight.sum()
+
+
+def _ssim_map(x: torch.Tensor, y: torch.Tensor, window: torch.Tensor, pad: int) -> torch.Tensor:
+    """The readable torch twin of the fused SSIM map: images (B, H, W, C) -> map (B, Ho, Wo, C)."""
+    channels = x.shape[-1]
+    x, y = x.movedim(-1, 1), y.movedim(-1, 1)   # (B, C, H, W)
 
     def blur(z):  # separable Gaussian filter, one channel at a time (groups = C)
         z = F.conv2d(z, window.view(1, 1, 1, -1).expand(channels, 1, 1, -1), padding=(0, pad), groups=channels)
@@ -69,16 +90,7 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid", mask: tor
     cov_xy = blur(x * y) - mu_x * mu_y
     ssim_map = ((2 * mu_x * mu_y + SSIM_C1) * (2 * cov_xy + SSIM_C2)) / (
         (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (var_x + var_y + SSIM_C2))
-    if mask is None:
-        return ssim_map.mean()
-    m = mask.reshape(-1, 1, *mask.shape[-2:]).to(img.dtype)   # (B, 1, H, W)
-    if padding == "valid":  # windows lying on valid pixels only: a box count of 11 × 11
-        box = torch.ones(1, 1, SSIM_WINDOW, SSIM_WINDOW, dtype=img.dtype, device=img.device)
-        m = (F.conv2d(m, box) > SSIM_WINDOW**2 - 0.5).to(img.dtype)
-    weight = m.expand_as(ssim_map)
-    if not bool(weight.sum() > 0):
-        raise ValueError("SSIM: no 11×11 window lies on valid pixels")
-    return (ssim_map * weight).sum() / weight.sum()
+    return ssim_map.movedim(1, -1)
 
 
 def dssim(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -96,6 +108,13 @@ def anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
     """Splat the Net's geometry regulariser (§3.3, §5.3): the standard deviation of each
     primitive's scales relative to its smallest, std(s / min(s)), averaged over primitives
     (Bessel-corrected std, as the authors' code). log_scales (P, 3)."""
+    if fused.available(log_scales.device, log_scales.dtype):
+        return fused.anisotropy(log_scales)   # core/csrc/loss_kernels.cpp
+    return _anisotropy(log_scales)
+
+
+def _anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
+    """The readable torch twin of the fused anisotropy op."""
     scales = torch.exp(log_scales)
     ratio = scales / scales.amin(-1, keepdim=True)
     return ratio.std(-1).mean()

@@ -70,37 +70,48 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     else:
         colors = sh_to_color(prims.sh, torch.nn.functional.normalize(prims.means - campos, dim=-1), degree)
 
+    intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)
     if isinstance(prims, NeuralPrimitives):
-        bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
-        if use_fused:
+        if use_fused:   # bounds and depth order in C++ too (prepare_kernels.cpp: neural_bounds)
+            bounds, ids = fused.neural_bounds(means_cam, prims.log_scales, prims.quats, w2c[:3, :3], intrinsics,
+                                              width, height, near)
             m_cam, o_ell, w_cam, c, inv_smax = fused.neural_prep(prims, campos, c2w[:3, :3])
             view = (m_cam, o_ell, w_cam, c, *_density_weights(prims, campos - prims.means), inv_smax)
         else:
+            bounds, visible = _neural_bounds(prims, camera, w2c, means_cam, near)
             view = _neural_view(prims, campos, c2w[:3, :3])
     elif isinstance(prims, Gaussians):
-        view, bounds, visible = _gaussian_view(prims, camera, w2c, means_cam, near)
+        if use_fused:   # EWA projection, bounds and depth order in C++ (prepare_kernels.cpp)
+            mean2d, conic, cov = fused.gaussian_prep(means_cam, prims.log_scales, prims.quats, w2c[:3, :3], intrinsics,
+                                                     width, height, near)
+            view = (mean2d, conic, torch.sigmoid(prims.opacities))
+            bounds, ids = fused.gaussian_bounds(mean2d, cov, depth, width, height, near)
+        else:
+            view, cov = _gaussian_view(prims, camera, w2c, means_cam, near)
+            bounds, visible = _gaussian_bounds(view[0], *cov, depth, camera, near)
     else:
         raise TypeError(f"cannot render {type(prims).__name__}")
-    intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)
 
-    ids = torch.nonzero(visible).squeeze(1)
-    ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
-    bounds = bounds[ids]
-    x0, y0, x1, y1 = bounds.unbind(-1)
-    counts = (x1 - x0 + 1) * (y1 - y0 + 1)
-    view = [t[ids] for t in view]
     if use_fused:
-        # the whole view in one C++ kernel (core/csrc/view_kernels.cpp): same compositing rules
+        # the whole view in one C++ kernel (core/csrc/view_kernels.cpp): same compositing rules; it
+        # reads every per-primitive tensor through `ids` (the visible primitives front to back),
+        # so nothing is gathered here and the gradients land in place
         if isinstance(prims, NeuralPrimitives):
-            out = fused.neural_view(bounds, intrinsics, height, width, t_min, colors[ids], depth[ids], *view)
+            out = fused.neural_view(bounds, ids, intrinsics, height, width, t_min, colors, depth, *view)
         else:
-            out = fused.gaussian_view(bounds, height, width, t_min, colors[ids], depth[ids], *view)
+            out = fused.gaussian_view(bounds, ids, height, width, t_min, colors, depth, *view)
         acc_color, acc_depth, transmittance, counters = out
         n_pairs, n_contrib, n_done = counters.tolist()
+        bounds = bounds[ids]
     else:
+        ids = torch.nonzero(visible).squeeze(1)
+        ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
+        bounds = bounds[ids]
         kernel = _neural_block if isinstance(prims, NeuralPrimitives) else _gaussian_block
         acc_color, acc_depth, transmittance, (n_pairs, n_contrib, n_done) = _composite(
-            kernel, view, bounds, colors[ids], depth[ids], intrinsics, height, width, max_pairs, t_min)
+            kernel, [t[ids] for t in view], bounds, colors[ids], depth[ids], intrinsics, height, width, max_pairs, t_min)
+    x0, y0, x1, y1 = bounds.unbind(-1)
+    counts = (x1 - x0 + 1) * (y1 - y0 + 1)
 
     bg = torch.as_tensor(background, device=device, dtype=dtype)
     color = acc_color + transmittance[..., None] * bg
@@ -235,10 +246,10 @@ def _clip_bounds(bounds, visible, camera):
 
 
 def _gaussian_view(prims: Gaussians, camera: Camera, w2c, means_cam, near):
-    """EWA splatting (Zwicker et al., as in 3DGS): 2D mean, conic of J W Σ Wᵀ Jᵀ + 0.3 I, opacity."""
+    """EWA splatting (Zwicker et al., as in 3DGS): ((2D mean, conic of J W Σ Wᵀ Jᵀ + 0.3 I,
+    opacity), the 2D covariance's entries (a, b, c))."""
     x, y, z = means_cam.unbind(-1)
-    visible = z > near
-    zs = torch.where(visible, z, torch.ones_like(z))
+    zs = torch.where(z > near, z, torch.ones_like(z))
     # as 3DGS/gsplat: clamp the Jacobian's point to 1.3× the field of view, which keeps the
     # affine approximation of far off-screen splats from exploding
     margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
@@ -255,15 +266,22 @@ def _gaussian_view(prims: Gaussians, camera: Camera, w2c, means_cam, near):
     det = a * c - b * b
     conic = torch.stack([c, -b, a], -1) / det[:, None]
     mean2d = torch.stack([camera.fx * x / zs + camera.cx, camera.fy * y / zs + camera.cy], -1)
-    with torch.no_grad():
-        lam_max = 0.5 * (a + c) + torch.sqrt(torch.clamp_min(0.25 * (a - c) ** 2 + b * b, 0.0))
-        radius = torch.ceil(3.0 * torch.sqrt(lam_max))
-        cx, cy = mean2d[:, 0], mean2d[:, 1]
-        box = torch.stack([torch.ceil(cx - radius - 0.5), torch.ceil(cy - radius - 0.5),
-                           torch.floor(cx + radius - 0.5), torch.floor(cy + radius - 0.5)], -1)
-        big = float(max(camera.width, camera.height) + 1)
-        bounds, visible = _clip_bounds(torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long(), visible & (det > 0), camera)
-    return (mean2d, conic, torch.sigmoid(prims.opacities)), bounds, visible
+    return (mean2d, conic, torch.sigmoid(prims.opacities)), (a, b, c)
+
+
+@torch.no_grad()
+def _gaussian_bounds(mean2d, a, b, c, depth, camera: Camera, near):
+    """The 3σ pixel box of each splat (largest eigenvalue of its covariance (a, b, c)); visible
+    when in front of the near plane with a positive-definite covariance and a box in the image."""
+    det = a * c - b * b
+    lam_max = 0.5 * (a + c) + torch.sqrt(torch.clamp_min(0.25 * (a - c) ** 2 + b * b, 0.0))
+    radius = torch.ceil(3.0 * torch.sqrt(lam_max))
+    cx, cy = mean2d[:, 0], mean2d[:, 1]
+    box = torch.stack([torch.ceil(cx - radius - 0.5), torch.ceil(cy - radius - 0.5),
+                       torch.floor(cx + radius - 0.5), torch.floor(cy + radius - 0.5)], -1)
+    big = float(max(camera.width, camera.height) + 1)
+    return _clip_bounds(torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long(), (depth > near) & (det > 0), camera)
+
 
 
 # --- pair kernels (elementwise over pairs; gathers by index fuse under torch.compile) -----------

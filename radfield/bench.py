@@ -10,7 +10,9 @@ device is synchronised before every clock reading (radfield.core.timing), so a t
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 from dataclasses import dataclass
 
 import torch
@@ -20,6 +22,22 @@ from radfield.core.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
 from radfield.core.rasterize import render
 from radfield.core.sh import num_sh_coeffs
 from radfield.core.timing import clock
+
+
+@contextlib.contextmanager
+def reference_twin(enabled: bool = True):
+    """Within the block the renderer and the loss run their readable torch twins
+    (RADFIELD_KERNELS=torch, read at every call): the "before" of a before/after table."""
+    saved = os.environ.get("RADFIELD_KERNELS")
+    if enabled:
+        os.environ["RADFIELD_KERNELS"] = "torch"
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop("RADFIELD_KERNELS", None)
+        else:
+            os.environ["RADFIELD_KERNELS"] = saved
 
 
 def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0):
@@ -84,18 +102,29 @@ def time_model(prims, cams, repeats: int, device: str) -> Timing:
 
 
 def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int = 4, repeats: int = 2,
-              device: str = "cpu", profile: bool = False, echo=print) -> dict:
+              device: str = "cpu", profile: bool = False, echo=print, baseline: bool = False) -> dict:
+    """Print forward and forward+backward ms/frame of both kinds; with `baseline`, first the
+    reference twin's (RADFIELD_KERNELS=torch) in the same run, and the ratios."""
     neural, gauss = bench_scene(num)
     cams = bench_cameras(views, width, height)
     echo(f"bench-render: {num} primitives, {views} views of {width}x{height}, {repeats} repeats, "
          f"device={device}, threads={torch.get_num_threads()}")
-    results = {}
+    results, before = {}, {}
     for name, prims in (("neural", neural), ("gaussian", gauss)):
+        if baseline:
+            with reference_twin():
+                t = time_model(prims, cams, repeats, device)
+            before[name] = t
+            echo(f"  {name:9s} torch twin  forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame")
         t = time_model(prims, cams, repeats, device)
         results[name] = t
         echo(f"  {name:9s} forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame   "
              f"{t.pairs / 1e6:.2f} M pairs/frame ({t.contributing / 1e6:.2f} M contributing)   "
              f"{t.pairs / t.forward_ms / 1e3:.2f} M pairs/s forward")
+        if baseline:
+            b = before[name]
+            echo(f"  {name:9s} speed-up over the torch twin: forward {b.forward_ms / t.forward_ms:.2f}x, "
+                 f"forward+backward {b.backward_ms / t.backward_ms:.2f}x")
     n, g = results["neural"], results["gaussian"]
     echo(f"  neural/gaussian time ratio: forward {n.forward_ms / g.forward_ms:.2f}x, "
          f"forward+backward {n.backward_ms / g.backward_ms:.2f}x; per pair {(n.forward_ms / n.pairs) / (g.forward_ms / g.pairs):.2f}x")
@@ -107,4 +136,7 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
                 render(params, cams[0]).color.sum().backward()
             echo(f"\n  top costs, {name}, one forward+backward:")
             echo(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
-    return {k: vars(v) for k, v in results.items()}
+    out = {k: vars(v) for k, v in results.items()}
+    for k, v in before.items():
+        out[f"{k}/torch"] = vars(v)
+    return out

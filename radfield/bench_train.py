@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
-from radfield.bench import bench_cameras, bench_scene
+from radfield.bench import bench_cameras, bench_scene, reference_twin
 from radfield.core.losses import anisotropy, photometric, psnr
 from radfield.core.rasterize import render
 from radfield.core.strategy import make_strategy
@@ -127,13 +127,16 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
 
 
 def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neural", "gaussian"), steps: int = 5,
-                    warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None) -> dict:
+                    warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None,
+                    baseline: bool = False) -> dict:
     """Print one row per (kind, count, size): ms per step of each part, their sum, trainer.train's
-    ms per step, and evaluated pairs per second of the render forward. Returns the figures."""
+    ms per step, and evaluated pairs per second of the render forward. With `baseline`, each row
+    is preceded by the same row on the reference twins (RADFIELD_KERNELS=torch, "torch") and
+    followed by the speed-up of the sum and of train(). Returns the figures."""
     cfg = bench_config(steps)
     echo(f"bench-train: {steps} timed steps (+{warmup} warm-up) per row, {views} orbit views, device={device}, "
          f"threads={torch.get_num_threads()}; ms per step")
-    echo(f"  {'kind':8s} {'count':>6s} {'size':>7s} " + " ".join(f"{p:>10s}" for p in PARTS)
+    echo(f"  {'kind':8s} {'count':>6s} {'size':>7s} {'path':>6s} " + " ".join(f"{p:>10s}" for p in PARTS)
          + f" {'sum':>8s} {'train()':>8s} {'Mpairs/s':>9s}")
     results = {}
     for kind in kinds:
@@ -143,10 +146,19 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
             for size in sizes:
                 cams = bench_cameras(views, size, size)
                 images = _targets(prims, cams, device)
-                t = time_steps(prims, cams, images, cfg, steps, warmup, device)
-                rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
-                echo(f"  {kind:8s} {count:6d} {size:3d}x{size:<3d} " + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS)
-                     + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {rate:9.1f}")
-                results[f"{kind}/{count}/{size}"] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "pairs": t.pairs}
+                rows = {}
+                for path in (("torch", "fused") if baseline else ("fused",)):
+                    with reference_twin(path == "torch"):
+                        t = time_steps(prims, cams, images, cfg, steps, warmup, device)
+                    rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
+                    echo(f"  {kind:8s} {count:6d} {size:3d}x{size:<3d} {path:>6s} "
+                         + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS) + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {rate:9.1f}")
+                    rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "pairs": t.pairs}
+                if baseline:
+                    before, after = rows["torch"], rows["fused"]
+                    echo(f"  {'':8s} {'':6s} {'':7s} {'x':>6s} " + " ".join(f"{before[p] / after[p]:10.1f}" for p in PARTS)
+                         + f" {before['sum'] / after['sum']:8.1f} {before['train'] / after['train']:8.1f}")
+                    results[f"{kind}/{count}/{size}/torch"] = before
+                results[f"{kind}/{count}/{size}"] = rows["fused"]
                 advance()
     return results

@@ -388,3 +388,136 @@ def test_neural_prep_matches_torch_twin_and_finite_differences():
     prims = sub
     inputs = [getattr(sub, n).clone().requires_grad_(True) for n in names]
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6)
+
+
+# --- the loss (core/csrc/loss_kernels.cpp) against its torch twins in core/losses.py -------------
+
+@pytest.mark.parametrize("padding", ["valid", "same"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssim_map_matches_torch_twin_and_finite_differences(padding, dtype):
+    from radfield.core import losses
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 19, 23, 3, generator=g, dtype=dtype)
+    y = (x + 0.2 * torch.randn(x.shape, generator=g, dtype=dtype)).clamp(0, 1)   # similar, not equal
+    pad = 5 if padding == "same" else 0
+    w = losses._gaussian_window(dtype, "cpu")
+    tol = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-5, atol=1e-5)
+    fast_x, slow_x = x.clone().requires_grad_(), x.clone().requires_grad_()
+    fast = fused.ssim_map(fast_x, y, w, pad, losses.SSIM_C1, losses.SSIM_C2)
+    slow = losses._ssim_map(slow_x, y, w, pad)
+    assert fast.shape == slow.shape == (2, 19 - 10 + 2 * pad, 23 - 10 + 2 * pad, 3)
+    torch.testing.assert_close(fast, slow, **tol)
+    weight = torch.randn(fast.shape, generator=g, dtype=dtype)
+    (fast * weight).sum().backward()
+    (slow * weight).sum().backward()
+    torch.testing.assert_close(fast_x.grad, slow_x.grad, **tol)
+    if dtype == torch.float64:
+        small = x[:1, :13, :12].clone().requires_grad_()
+        assert torch.autograd.gradcheck(lambda a: fused.ssim_map(a, y[:1, :13, :12], w, pad, 1e-4, 9e-4), (small,))
+
+
+def test_losses_use_the_fused_ssim_and_anisotropy_with_a_mask(monkeypatch):
+    """losses.ssim / dssim / anisotropy on the fused path equal the torch path (RADFIELD_KERNELS=torch),
+    values and gradients, with a valid-pixel mask."""
+    from radfield.core import losses
+
+    g = torch.Generator().manual_seed(4)
+    img, ref = torch.rand(24, 30, 3, generator=g), torch.rand(24, 30, 3, generator=g)
+    mask = torch.ones(24, 30, dtype=torch.bool)
+    mask[:3] = False
+    log_scales = torch.randn(50, 3, generator=g)
+    log_scales[0] = 0.1                  # isotropic: std 0, and a three-way tie of the minimum
+    log_scales[1, 1:] = -0.4             # a two-way tie
+
+    def run():
+        x, x2, ls = (t.clone().requires_grad_() for t in (img, img, log_scales))
+        values = [losses.ssim(x, ref, "valid", mask), losses.dssim(x, ref, mask), losses.ssim(x2, ref), losses.anisotropy(ls)]
+        sum(values).backward()
+        return [v.detach() for v in values] + [x.grad, x2.grad, ls.grad]
+
+    fast = run()
+    monkeypatch.setenv("RADFIELD_KERNELS", "torch")
+    slow = run()
+    for f, s in zip(fast, slow):
+        torch.testing.assert_close(f, s, rtol=1e-5, atol=1e-6)
+    assert (fast[4][:3] == 0).all()   # no gradient reaches an invalid pixel
+
+
+# --- pixel bounds and depth order (core/csrc/prepare_kernels.cpp) against rasterize.py ----------
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bounds_and_depth_order_match_torch_twins(dtype):
+    """The C++ bounds and depth order equal the torch twins' (_neural_bounds, _gaussian_bounds, a
+    stable argsort of the visible primitives by depth), on primitives in front of, straddling and
+    behind the near plane, off screen and on screen, with depth ties."""
+    from radfield.core.rasterize import _gaussian_bounds, _gaussian_view, _neural_bounds
+
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
+    near = 0.05
+    for make in (random_neural, random_gaussians):
+        prims = make(300, extent=3.0, scale=0.3, seed=11, dtype=dtype)
+        prims.means[:4] = 0.0                 # depth ties (at the centre of the view): index order
+        c2w = cam.c2w.to(dtype)
+        w2c = torch.linalg.inv(c2w)
+        means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
+        depth = means_cam[:, 2]
+        intrinsics = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, near], dtype=dtype)
+        if make is random_neural:
+            bounds, order = fused.neural_bounds(means_cam, prims.log_scales, prims.quats, w2c[:3, :3], intrinsics, W, H, near)
+            twin, visible = _neural_bounds(prims, cam, w2c, means_cam, near)
+        else:
+            view, cov = _gaussian_view(prims, cam, w2c, means_cam, near)
+            bounds, order = fused.gaussian_bounds(view[0], torch.stack(cov, -1), depth, W, H, near)
+            twin, visible = _gaussian_bounds(view[0], *cov, depth, cam, near)
+        ids = torch.nonzero(visible).squeeze(1)
+        ids = ids[torch.argsort(depth[ids], stable=True)]
+        assert 20 < len(ids) < 300 and {0, 1, 2, 3} <= set(ids.tolist())
+        assert torch.equal(order, ids)
+        box, box_twin = bounds[ids], twin[ids]
+        if make is random_gaussians:
+            assert torch.equal(box, box_twin)     # the same float operations in the same order
+        else:   # the dual conic's products round differently from bmm's: a box edge may move by a pixel
+            assert (box - box_twin).abs().max() <= 1 and (box != box_twin).any(-1).float().mean() < 0.05
+
+
+def test_gaussian_prep_matches_torch_twin_and_finite_differences():
+    """The EWA projection (mean2d, conic, cov) against rasterize._gaussian_view, values and
+    gradients, with splats off screen (the Jacobian's clamped point) and behind the near plane."""
+    from radfield.core.rasterize import _gaussian_view
+
+    near = 0.05
+    prims = random_gaussians(60, extent=3.0, scale=0.3, seed=5, dtype=torch.float64)
+    prims.means[0] = torch.tensor([0.6, -6.0, 1.0], dtype=torch.float64)     # behind the camera
+    prims.means[1] = torch.tensor([0.3, -2.99, 0.5], dtype=torch.float64)    # in front, before the near plane
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
+    w2c = torch.linalg.inv(cam.c2w.to(torch.float64))
+    intrinsics = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, near], dtype=torch.float64)
+    g = torch.Generator().manual_seed(2)
+    weights = [torch.randn(60, k, generator=g, dtype=torch.float64) for k in (2, 3, 3)]
+
+    def run(fast):
+        means, log_scales, quats = (t.clone().requires_grad_(True) for t in (prims.means, prims.log_scales, prims.quats))
+        means_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+        if fast:
+            mean2d, conic, cov = fused.gaussian_prep(means_cam, log_scales, quats, w2c[:3, :3], intrinsics, W, H, near)
+        else:
+            p = prims.map(lambda t: t)
+            p.means, p.log_scales, p.quats = means, log_scales, quats
+            (mean2d, conic, _), abc = _gaussian_view(p, cam, w2c, means_cam, near)
+            cov = torch.stack(abc, -1)
+        out = [mean2d, conic, cov]
+        loss = (weights[0] * mean2d).sum() + (weights[1] * conic).sum()
+        return [t.detach() for t in out], torch.autograd.grad(loss, (means, log_scales, quats)), means_cam.detach()
+
+    fast, fast_grads, means_cam = run(True)
+    slow, slow_grads, _ = run(False)
+    x_over_z = means_cam[:, 0] / means_cam[:, 2]
+    assert (means_cam[:, 2] < near).any() and ((x_over_z > 0.8) & (means_cam[:, 2] > near)).any()   # clamped Jacobians
+    for f, s in zip(fast, slow):
+        torch.testing.assert_close(f, s, rtol=1e-10, atol=1e-12)
+    for name, f, s in zip(("means", "log_scales", "quats"), fast_grads, slow_grads):
+        torch.testing.assert_close(f, s, rtol=1e-9, atol=1e-11, msg=lambda m: f"d/d{name}: {m}")
+    keep = [t[:6].clone().requires_grad_(True) for t in (means_cam, prims.log_scales, prims.quats)]
+    assert torch.autograd.gradcheck(
+        lambda m, l, q: fused.gaussian_prep(m, l, q, w2c[:3, :3], intrinsics, W, H, near)[:2], keep, eps=1e-6, atol=1e-6)

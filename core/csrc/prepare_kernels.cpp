@@ -7,6 +7,11 @@
 //   sh_color:    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|, v = μ − o   (core/sh.py)
 //   neural_prep: M = S⁻¹Rᵀ, m_cam = M R_cam, o' = M (o − μ), w_cam = ω0 W1 R_cam,
 //                c_k = ω0 (W1_k·(o − μ)/max(s) + b1_k), 1/max(s)           (rasterize._neural_view)
+//   gaussian_prep: EWA splatting (rasterize._gaussian_view): 2D mean, the 2D covariance
+//                J W Σ Wᵀ Jᵀ + 0.3 I (a, b, c) and its conic, from the camera-space mean
+//   neural_bounds, gaussian_bounds: (no gradient) the pixel bounds of every primitive and the
+//                visible ones front to back, stable by centre depth   (rasterize._neural_bounds,
+//                rasterize._gaussian_bounds, and the depth sort of rasterize.render)
 //
 // Threads: OpenMP over primitives (each primitive's gradient is its own).
 
@@ -302,6 +307,300 @@ std::vector<at::Tensor> neural_prep_backward(const at::Tensor& g_m_cam, const at
   return {g_means, g_ls, g_q, g_w1, g_b1};
 }
 
+// --- Gaussians: EWA projection ---------------------------------------------------------------
+
+constexpr double kEwaBlur = 0.3;  // rasterize.EWA_BLUR
+
+template <typename T>
+struct EwaCamera {
+  T fx, fy, cx, cy, near, lo_x, hi_x, lo_y, hi_y;
+  const T* W;  // world-to-camera rotation (3, 3)
+};
+
+template <typename T>
+EwaCamera<T> ewa_camera(const at::Tensor& w2c_rot, const at::Tensor& intrinsics, int64_t width, int64_t height,
+                        double near) {
+  const T* k = intrinsics.data_ptr<T>();
+  const double fx = double(k[0]), fy = double(k[1]), cx = double(k[2]), cy = double(k[3]);
+  // as 3DGS/gsplat: the Jacobian's point is clamped to 1.3× the field of view (rasterize.py)
+  const double mx = 0.15 * double(width) / fx, my = 0.15 * double(height) / fy;
+  return {k[0], k[1], k[2], k[3], T(near), T(-cx / fx - mx), T((double(width) - cx) / fx + mx),
+          T(-cy / fy - my), T((double(height) - cy) / fy + my), w2c_rot.data_ptr<T>()};
+}
+
+template <typename T>
+struct Ewa {  // one splat's forward quantities, kept for its backward
+  T zs, r_x, r_y, tx, ty, J[4], qn[4], qnorm, R[9], rot[9], s[3], rs[9], t[6], a, b, c, det;
+};
+
+template <typename T>
+void ewa_forward(const EwaCamera<T>& cam, const T* m, const T* ls, const T* q, Ewa<T>& e) {
+  e.zs = m[2] > cam.near ? m[2] : T(1);
+  e.r_x = m[0] / e.zs, e.r_y = m[1] / e.zs;
+  e.tx = e.zs * std::min(std::max(e.r_x, cam.lo_x), cam.hi_x);
+  e.ty = e.zs * std::min(std::max(e.r_y, cam.lo_y), cam.hi_y);
+  const T zz = e.zs * e.zs;
+  e.J[0] = cam.fx / e.zs, e.J[1] = -cam.fx * e.tx / zz, e.J[2] = cam.fy / e.zs, e.J[3] = -cam.fy * e.ty / zz;
+  e.qnorm = std::max(std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), T(1e-12));
+  for (int i = 0; i < 4; ++i) e.qn[i] = q[i] / e.qnorm;
+  rotmat(e.qn, e.R);
+  for (int j = 0; j < 3; ++j) e.s[j] = std::exp(ls[j]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      e.rot[3 * i + j] = cam.W[3 * i] * e.R[j] + cam.W[3 * i + 1] * e.R[3 + j] + cam.W[3 * i + 2] * e.R[6 + j];
+      e.rs[3 * i + j] = e.rot[3 * i + j] * e.s[j];
+    }
+  // t = J rs with J = [[J0, 0, J1], [0, J2, J3]]
+  for (int k = 0; k < 3; ++k) {
+    e.t[k] = e.J[0] * e.rs[k] + e.J[1] * e.rs[6 + k];
+    e.t[3 + k] = e.J[2] * e.rs[3 + k] + e.J[3] * e.rs[6 + k];
+  }
+  e.a = e.t[0] * e.t[0] + e.t[1] * e.t[1] + e.t[2] * e.t[2] + T(kEwaBlur);
+  e.b = e.t[0] * e.t[3] + e.t[1] * e.t[4] + e.t[2] * e.t[5];
+  e.c = e.t[3] * e.t[3] + e.t[4] * e.t[4] + e.t[5] * e.t[5] + T(kEwaBlur);
+  e.det = e.a * e.c - e.b * e.b;
+}
+
+// Outputs mean2d (P, 2), conic (P, 3), cov (a, b, c) (P, 3).
+std::vector<at::Tensor> gaussian_prep_forward(const at::Tensor& means_cam, const at::Tensor& log_scales,
+                                              const at::Tensor& quats, const at::Tensor& w2c_rot,
+                                              const at::Tensor& intrinsics, int64_t width, int64_t height, double near) {
+  check_params({means_cam, log_scales, quats, w2c_rot, intrinsics});
+  const int64_t P = means_cam.size(0);
+  TORCH_CHECK(means_cam.sizes() == at::IntArrayRef({P, 3}) && log_scales.sizes() == at::IntArrayRef({P, 3}) &&
+                  quats.sizes() == at::IntArrayRef({P, 4}) && w2c_rot.numel() == 9 && intrinsics.numel() >= 4,
+              "gaussian_prep: bad shapes");
+  at::Tensor mean2d = at::empty({P, 2}, means_cam.options()), conic = at::empty({P, 3}, means_cam.options());
+  at::Tensor cov = at::empty({P, 3}, means_cam.options());
+  AT_DISPATCH_FLOATING_TYPES(means_cam.scalar_type(), "gaussian_prep_forward", [&] {
+    using T = scalar_t;
+    const EwaCamera<T> cam = ewa_camera<T>(w2c_rot, intrinsics, width, height, near);
+    const T *mc = means_cam.data_ptr<T>(), *ls = log_scales.data_ptr<T>(), *qs = quats.data_ptr<T>();
+    T *m2 = mean2d.data_ptr<T>(), *cn = conic.data_ptr<T>(), *cv = cov.data_ptr<T>();
+    at::parallel_for(0, P, 512, [&](int64_t p0, int64_t p1) {
+      Ewa<T> e;
+      for (int64_t p = p0; p < p1; ++p) {
+        const T* m = mc + 3 * p;
+        ewa_forward(cam, m, ls + 3 * p, qs + 4 * p, e);
+        cn[3 * p] = e.c / e.det, cn[3 * p + 1] = -e.b / e.det, cn[3 * p + 2] = e.a / e.det;
+        cv[3 * p] = e.a, cv[3 * p + 1] = e.b, cv[3 * p + 2] = e.c;
+        m2[2 * p] = cam.fx * m[0] / e.zs + cam.cx, m2[2 * p + 1] = cam.fy * m[1] / e.zs + cam.cy;
+      }
+    });
+  });
+  return {mean2d, conic, cov};
+}
+
+// Gradients for (means_cam, log_scales, quats) from those of (mean2d, conic).
+std::vector<at::Tensor> gaussian_prep_backward(const at::Tensor& g_mean2d, const at::Tensor& g_conic,
+                                               const at::Tensor& means_cam, const at::Tensor& log_scales,
+                                               const at::Tensor& quats, const at::Tensor& w2c_rot,
+                                               const at::Tensor& intrinsics, int64_t width, int64_t height,
+                                               double near) {
+  check_params({g_mean2d, g_conic, means_cam, log_scales, quats, w2c_rot, intrinsics});
+  const int64_t P = means_cam.size(0);
+  at::Tensor g_m = at::empty_like(means_cam), g_ls = at::empty_like(log_scales), g_q = at::empty_like(quats);
+  AT_DISPATCH_FLOATING_TYPES(means_cam.scalar_type(), "gaussian_prep_backward", [&] {
+    using T = scalar_t;
+    const EwaCamera<T> cam = ewa_camera<T>(w2c_rot, intrinsics, width, height, near);
+    const T *mc = means_cam.data_ptr<T>(), *ls = log_scales.data_ptr<T>(), *qs = quats.data_ptr<T>();
+    const T *gm2 = g_mean2d.data_ptr<T>(), *gcn = g_conic.data_ptr<T>();
+    T *gmc = g_m.data_ptr<T>(), *gls = g_ls.data_ptr<T>(), *gq = g_q.data_ptr<T>();
+    at::parallel_for(0, P, 512, [&](int64_t p0, int64_t p1) {
+      Ewa<T> e;
+      for (int64_t p = p0; p < p1; ++p) {
+        const T* m = mc + 3 * p;
+        ewa_forward(cam, m, ls + 3 * p, qs + 4 * p, e);
+        const T* gc = gcn + 3 * p;
+        // conic = (c, −b, a) / det, det = a c − b²
+        const T d2 = e.det * e.det;
+        const T g_det = -(gc[0] * e.c - gc[1] * e.b + gc[2] * e.a) / d2;
+        const T g_a = gc[2] / e.det + g_det * e.c, g_c = gc[0] / e.det + g_det * e.a;
+        const T g_b = -gc[1] / e.det - T(2) * e.b * g_det;
+        // cov = t tᵀ, read at (0,0), (0,1), (1,1)
+        T g_t[6];
+        for (int k = 0; k < 3; ++k) {
+          g_t[k] = T(2) * g_a * e.t[k] + g_b * e.t[3 + k];
+          g_t[3 + k] = g_b * e.t[k] + T(2) * g_c * e.t[3 + k];
+        }
+        // t = J rs
+        T g_J[4] = {0, 0, 0, 0}, g_rs[9];
+        for (int k = 0; k < 3; ++k) {
+          g_J[0] += g_t[k] * e.rs[k];
+          g_J[1] += g_t[k] * e.rs[6 + k];
+          g_J[2] += g_t[3 + k] * e.rs[3 + k];
+          g_J[3] += g_t[3 + k] * e.rs[6 + k];
+          g_rs[k] = e.J[0] * g_t[k];
+          g_rs[3 + k] = e.J[2] * g_t[3 + k];
+          g_rs[6 + k] = e.J[1] * g_t[k] + e.J[3] * g_t[3 + k];
+        }
+        // rs = rot diag(s), rot = W R(q̂), s = exp(ℓ)
+        T g_R[9];
+        for (int j = 0; j < 3; ++j) {
+          T g_s = T(0);
+          for (int i = 0; i < 3; ++i) g_s += g_rs[3 * i + j] * e.rot[3 * i + j];
+          gls[3 * p + j] = g_s * e.s[j];
+          for (int i = 0; i < 3; ++i)  // (Wᵀ g_rot)_ij, g_rot = g_rs diag(s)
+            g_R[3 * i + j] = (cam.W[i] * g_rs[j] + cam.W[3 + i] * g_rs[3 + j] + cam.W[6 + i] * g_rs[6 + j]) * e.s[j];
+        }
+        T gqn[4];
+        rotmat_backward(e.qn, g_R, gqn);
+        const T dot = gqn[0] * e.qn[0] + gqn[1] * e.qn[1] + gqn[2] * e.qn[2] + gqn[3] * e.qn[3];
+        for (int i = 0; i < 4; ++i) gq[4 * p + i] = (gqn[i] - e.qn[i] * dot) / e.qnorm;
+        // J = [[fx/zs, 0, −fx tx/zs²], [0, fy/zs, −fy ty/zs²]], tx = zs clamp(x/zs), mean2d = f x/zs + c
+        const T zs = e.zs, zz = zs * zs, zzz = zz * zs;
+        const T* g2 = gm2 + 2 * p;
+        const T g_tx = -cam.fx * g_J[1] / zz, g_ty = -cam.fy * g_J[3] / zz;
+        T g_zs = -cam.fx * g_J[0] / zz + T(2) * cam.fx * e.tx * g_J[1] / zzz - cam.fy * g_J[2] / zz +
+                 T(2) * cam.fy * e.ty * g_J[3] / zzz;
+        const T cl_x = std::min(std::max(e.r_x, cam.lo_x), cam.hi_x), cl_y = std::min(std::max(e.r_y, cam.lo_y), cam.hi_y);
+        g_zs += cl_x * g_tx + cl_y * g_ty;
+        const T g_rx = (e.r_x >= cam.lo_x && e.r_x <= cam.hi_x) ? zs * g_tx : T(0);  // clamp passes at equality
+        const T g_ry = (e.r_y >= cam.lo_y && e.r_y <= cam.hi_y) ? zs * g_ty : T(0);
+        const T g_x = g_rx / zs + cam.fx * g2[0] / zs, g_y = g_ry / zs + cam.fy * g2[1] / zs;
+        g_zs -= (g_rx * m[0] + cam.fx * m[0] * g2[0] + g_ry * m[1] + cam.fy * m[1] * g2[1]) / zz;
+        gmc[3 * p] = g_x, gmc[3 * p + 1] = g_y, gmc[3 * p + 2] = m[2] > cam.near ? g_zs : T(0);
+      }
+    });
+  });
+  return {g_m, g_ls, g_q};
+}
+
+// --- pixel bounds and depth order (no gradient) ---------------------------------------------
+
+// Integer pixel box (x0, y0, x1, y1) of the centres inside [lo_u, hi_u] × [lo_v, hi_v] as
+// rasterize._conic_box: first/last centres j + 0.5 inside, NaN → −1, clamped to ±(max(W, H) + 1).
+template <typename T>
+void pixel_box(T u0, T v0, T u1, T v1, int64_t width, int64_t height, int64_t* box) {
+  const T big = T(std::max(width, height) + 1);
+  const T raw[4] = {std::ceil(u0 - T(0.5)), std::ceil(v0 - T(0.5)), std::floor(u1 - T(0.5)), std::floor(v1 - T(0.5))};
+  for (int i = 0; i < 4; ++i) box[i] = int64_t(std::isnan(raw[i]) ? T(-1) : std::min(std::max(raw[i], -big), big));
+}
+
+// Clip a box to the image (rasterize._clip_bounds); false when nothing is left.
+inline bool clip_box(int64_t* b, int64_t width, int64_t height) {
+  b[0] = std::max<int64_t>(b[0], 0), b[1] = std::max<int64_t>(b[1], 0);
+  b[2] = std::min<int64_t>(b[2], width - 1), b[3] = std::min<int64_t>(b[3], height - 1);
+  return b[2] >= b[0] && b[3] >= b[1];
+}
+
+// The visible primitives' indices sorted by depth, ties in index order (torch.argsort(stable=True)).
+template <typename T>
+at::Tensor depth_order(const std::vector<uint8_t>& visible, const T* depth, const at::TensorOptions& options) {
+  std::vector<int64_t> ids;
+  for (int64_t p = 0; p < int64_t(visible.size()); ++p)
+    if (visible[p]) ids.push_back(p);
+  std::stable_sort(ids.begin(), ids.end(), [&](int64_t a, int64_t b) { return depth[a] < depth[b]; });
+  at::Tensor order = at::empty({int64_t(ids.size())}, options.dtype(at::kLong));
+  std::copy(ids.begin(), ids.end(), order.data_ptr<int64_t>());
+  return order;
+}
+
+// Neural primitives: bounds of the projected bounding ellipsoid from its dual conic
+// C* = K (μμᵀ − Σ) Kᵀ (camera frame, Σ = R S² Rᵀ); the whole image for one straddling the near
+// plane; visible when some of it lies beyond the near plane and its box meets the image.
+// Returns bounds (P, 4) int64 and order (V,) int64.
+std::vector<at::Tensor> neural_bounds(const at::Tensor& means_cam, const at::Tensor& log_scales, const at::Tensor& quats,
+                                      const at::Tensor& w2c_rot, const at::Tensor& intrinsics, int64_t width,
+                                      int64_t height, double near) {
+  check_params({means_cam, log_scales, quats, w2c_rot, intrinsics});
+  const int64_t P = means_cam.size(0);
+  TORCH_CHECK(means_cam.sizes() == at::IntArrayRef({P, 3}) && log_scales.sizes() == at::IntArrayRef({P, 3}) &&
+                  quats.sizes() == at::IntArrayRef({P, 4}) && w2c_rot.numel() == 9 && intrinsics.numel() >= 4,
+              "neural_bounds: bad shapes");
+  at::Tensor bounds = at::empty({P, 4}, means_cam.options().dtype(at::kLong));
+  std::vector<uint8_t> visible(P);
+  at::Tensor order;
+  AT_DISPATCH_FLOATING_TYPES(means_cam.scalar_type(), "neural_bounds", [&] {
+    using T = scalar_t;
+    const T *mc = means_cam.data_ptr<T>(), *ls = log_scales.data_ptr<T>(), *qs = quats.data_ptr<T>();
+    const T *W = w2c_rot.data_ptr<T>(), *k = intrinsics.data_ptr<T>();
+    const T fx = k[0], fy = k[1], cx = k[2], cy = k[3];
+    int64_t* bp = bounds.data_ptr<int64_t>();
+    at::parallel_for(0, P, 1024, [&](int64_t p0, int64_t p1) {
+      for (int64_t p = p0; p < p1; ++p) {
+        const T* q = qs + 4 * p;
+        const T qn = std::max(std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), T(1e-12));
+        const T unit[4] = {q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn};
+        T R[9], rs[9], S[9];
+        rotmat(unit, R);
+        for (int i = 0; i < 3; ++i)  // rs = (W2C R) diag(s)
+          for (int j = 0; j < 3; ++j) rs[3 * i + j] = (W[3 * i] * R[j] + W[3 * i + 1] * R[3 + j] + W[3 * i + 2] * R[6 + j]) * std::exp(ls[3 * p + j]);
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) S[3 * i + j] = rs[3 * i] * rs[3 * j] + rs[3 * i + 1] * rs[3 * j + 1] + rs[3 * i + 2] * rs[3 * j + 2];
+        const T* m = mc + 3 * p;
+        const T z_ext = std::sqrt(S[8]), z = m[2];
+        const bool in_front = z - z_ext > T(near);
+        bool vis = z + z_ext > T(near);
+        int64_t* b = bp + 4 * p;
+        if (in_front) {
+          T A[9], D[9];  // A = μμᵀ − Σ, D = K A Kᵀ
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) A[3 * i + j] = m[i] * m[j] - S[3 * i + j];
+          const T K[9] = {fx, 0, cx, 0, fy, cy, 0, 0, 1};
+          T KA[9];
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) KA[3 * i + j] = K[3 * i] * A[j] + K[3 * i + 1] * A[3 + j] + K[3 * i + 2] * A[6 + j];
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) D[3 * i + j] = KA[3 * i] * K[3 * j] + KA[3 * i + 1] * K[3 * j + 1] + KA[3 * i + 2] * K[3 * j + 2];
+          // tangent lines u = const: C*_00 − 2u C*_02 + u² C*_22 = 0 (likewise v)
+          T lo[2], hi[2];
+          for (int i = 0; i < 2; ++i) {
+            const T cii = D[4 * i], ci2 = D[3 * i + 2], c22 = D[8];
+            const T root = std::sqrt(std::max(ci2 * ci2 - cii * c22, T(0)));
+            const T a = (ci2 + root) / c22, c = (ci2 - root) / c22;
+            lo[i] = std::isnan(a) || std::isnan(c) ? a + c : std::min(a, c);
+            hi[i] = std::isnan(a) || std::isnan(c) ? a + c : std::max(a, c);
+          }
+          pixel_box(lo[0], lo[1], hi[0], hi[1], width, height, b);
+        } else {
+          b[0] = 0, b[1] = 0, b[2] = width - 1, b[3] = height - 1;
+        }
+        visible[p] = vis && clip_box(b, width, height);
+      }
+    });
+    std::vector<T> z(P);
+    for (int64_t p = 0; p < P; ++p) z[p] = mc[3 * p + 2];
+    order = depth_order(visible, z.data(), means_cam.options());
+  });
+  return {bounds, order};
+}
+
+// Gaussians: the 3σ box of the EWA splat (the largest eigenvalue of its 2D covariance (a, b, c),
+// blur included), visible when in front of the near plane with det > 0 and its box meets the
+// image; the same float operations in the same order as rasterize._gaussian_view.
+std::vector<at::Tensor> gaussian_bounds(const at::Tensor& mean2d, const at::Tensor& cov, const at::Tensor& depth,
+                                        int64_t width, int64_t height, double near) {
+  check_params({mean2d, cov, depth});
+  const int64_t P = mean2d.size(0);
+  TORCH_CHECK(mean2d.sizes() == at::IntArrayRef({P, 2}) && cov.sizes() == at::IntArrayRef({P, 3}) &&
+                  depth.sizes() == at::IntArrayRef({P}),
+              "gaussian_bounds: mean2d (P, 2), cov (P, 3), depth (P,)");
+  at::Tensor bounds = at::empty({P, 4}, mean2d.options().dtype(at::kLong));
+  std::vector<uint8_t> visible(P);
+  at::Tensor order;
+  AT_DISPATCH_FLOATING_TYPES(mean2d.scalar_type(), "gaussian_bounds", [&] {
+    using T = scalar_t;
+    const T *m = mean2d.data_ptr<T>(), *cv = cov.data_ptr<T>(), *z = depth.data_ptr<T>();
+    int64_t* bp = bounds.data_ptr<int64_t>();
+    at::parallel_for(0, P, 1024, [&](int64_t p0, int64_t p1) {
+      for (int64_t p = p0; p < p1; ++p) {
+        const T a = cv[3 * p], b = cv[3 * p + 1], c = cv[3 * p + 2];
+        const T det = a * c - b * b;
+        const T d = a - c;
+        const T lam_max = T(0.5) * (a + c) + std::sqrt(std::max(T(0.25) * (d * d) + b * b, T(0)));
+        const T radius = std::ceil(T(3) * std::sqrt(lam_max));
+        const T u = m[2 * p], v = m[2 * p + 1];
+        int64_t* box = bp + 4 * p;
+        pixel_box(u - radius, v - radius, u + radius, v + radius, width, height, box);
+        visible[p] = z[p] > T(near) && det > T(0) && clip_box(box, width, height);
+      }
+    });
+    order = depth_order(visible, z, mean2d.options());
+  });
+  return {bounds, order};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(radfield, m) {
@@ -309,4 +608,8 @@ TORCH_LIBRARY_FRAGMENT(radfield, m) {
   m.def("sh_color_backward", &sh_color_backward);
   m.def("neural_prep_forward", &neural_prep_forward);
   m.def("neural_prep_backward", &neural_prep_backward);
+  m.def("gaussian_prep_forward", &gaussian_prep_forward);
+  m.def("gaussian_prep_backward", &gaussian_prep_backward);
+  m.def("neural_bounds", &neural_bounds);
+  m.def("gaussian_bounds", &gaussian_bounds);
 }

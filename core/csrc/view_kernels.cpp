@@ -4,7 +4,9 @@
 // per-pair tensor.
 //
 // Binning: the image is cut into 16×16 tiles; every tile gets the list of the primitives whose
-// pixel bounds touch it, in the caller's order (front to back by centre depth).
+// pixel bounds touch it, in the caller's `order` (the visible primitives' indices front to back by
+// centre depth). Every per-primitive tensor is indexed by the primitive itself, so nothing is
+// gathered into depth order and the gradients land in place (zero for the primitives not drawn).
 //
 // Forward, per tile (OpenMP over tiles): for each primitive of the list, the tile's pixels inside
 // its bounds that have not terminated form one batch whose α is evaluated in SIMD
@@ -45,9 +47,11 @@ struct Grid {
 };
 
 // Tile lists: offsets (tiles + 1) into entries, the primitives of tile t at [offsets[t], offsets[t+1]).
-void bin(const int64_t* bounds, int64_t P, const Grid& g, int64_t* offsets, std::vector<int32_t>& entries) {
+void bin(const int64_t* bounds, const int64_t* order, int64_t V, const Grid& g, int64_t* offsets,
+         std::vector<int32_t>& entries) {
   std::vector<int64_t> count(g.tiles() + 1, 0);
-  for (int64_t p = 0; p < P; ++p) {
+  for (int64_t v = 0; v < V; ++v) {
+    const int64_t p = order[v];
     const int64_t* b = bounds + 4 * p;  // x0, y0, x1, y1 inclusive, inside the image
     for (int64_t ty = b[1] / kSide; ty <= b[3] / kSide; ++ty)
       for (int64_t tx = b[0] / kSide; tx <= b[2] / kSide; ++tx) ++count[ty * g.nx + tx + 1];
@@ -56,7 +60,8 @@ void bin(const int64_t* bounds, int64_t P, const Grid& g, int64_t* offsets, std:
   for (int64_t t = 0; t < g.tiles(); ++t) offsets[t + 1] = offsets[t] + count[t + 1];
   entries.resize(offsets[g.tiles()]);
   std::vector<int64_t> fill(offsets, offsets + g.tiles());
-  for (int64_t p = 0; p < P; ++p) {
+  for (int64_t v = 0; v < V; ++v) {
+    const int64_t p = order[v];
     const int64_t* b = bounds + 4 * p;
     for (int64_t ty = b[1] / kSide; ty <= b[3] / kSide; ++ty)
       for (int64_t tx = b[0] / kSide; tx <= b[2] / kSide; ++tx) entries[fill[ty * g.nx + tx]++] = int32_t(p);
@@ -355,26 +360,33 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
   return sums;
 }
 
-// Copy the double sums into gradient tensors: colors, depth, then the kind's fields of `sizes`.
+// Copy the double sums into gradient tensors: colors, depth, then the kind's fields, whose
+// per-primitive sizes add up to stride.
 template <typename T>
 std::vector<at::Tensor> unpack_grads(const std::vector<double>& sums, int64_t P, int64_t stride,
                                      const std::vector<at::Tensor>& like) {
-  // like: colors, depth, then the kind's parameters, whose per-primitive sizes add up to stride
   std::vector<at::Tensor> out;
-  for (const at::Tensor& t : like) out.push_back(at::empty_like(t));
-  const int64_t width = stride + 4;
-  for (int64_t p = 0; p < P; ++p) {
-    const double* s = sums.data() + p * width;
-    T* gc = out[0].data_ptr<T>() + 3 * p;
-    gc[0] = T(s[stride]), gc[1] = T(s[stride + 1]), gc[2] = T(s[stride + 2]);
-    out[1].data_ptr<T>()[p] = T(s[stride + 3]);
-    for (size_t f = 2; f < like.size(); ++f) {
-      const int64_t size = P > 0 ? like[f].numel() / P : 0;
-      T* dst = out[f].data_ptr<T>() + size * p;
-      for (int64_t e = 0; e < size; ++e) dst[e] = T(s[e]);
-      s += size;
-    }
+  std::vector<T*> dst;
+  std::vector<int64_t> size;
+  for (const at::Tensor& t : like) {
+    out.push_back(at::empty_like(t));
+    dst.push_back(out.back().data_ptr<T>());
+    size.push_back(P > 0 ? t.numel() / P : 0);
   }
+  const int64_t width = stride + 4;
+  at::parallel_for(0, P, 1024, [&](int64_t p0, int64_t p1) {
+    for (int64_t p = p0; p < p1; ++p) {
+      const double* s = sums.data() + p * width;
+      T* gc = dst[0] + 3 * p;
+      gc[0] = T(s[stride]), gc[1] = T(s[stride + 1]), gc[2] = T(s[stride + 2]);
+      dst[1][p] = T(s[stride + 3]);
+      for (size_t f = 2; f < like.size(); ++f) {
+        T* d = dst[f] + size[f] * p;
+        for (int64_t e = 0; e < size[f]; ++e) d[e] = T(s[e]);
+        s += size[f];
+      }
+    }
+  });
   return out;
 }
 
@@ -388,21 +400,31 @@ void check_view(const at::Tensor& bounds, const at::Tensor& colors, const at::Te
   TORCH_CHECK(colors.sizes() == at::IntArrayRef({P, 3}) && depth.sizes() == at::IntArrayRef({P}),
               "colors must be (P, 3) and depth (P,)");
   TORCH_CHECK(height > 0 && width > 0, "the view needs pixels");
+}
+
+// the drawn primitives: valid indices whose bounds are non-empty and inside the image
+void check_order(const at::Tensor& order, const at::Tensor& bounds, int64_t height, int64_t width) {
+  const int64_t P = bounds.size(0);
+  TORCH_CHECK(order.scalar_type() == at::kLong && order.is_contiguous() && order.dim() == 1, "order must be int64 (V,)");
   const int64_t* b = bounds.data_ptr<int64_t>();
-  for (int64_t p = 0; p < P; ++p)
+  const int64_t* o = order.data_ptr<int64_t>();
+  for (int64_t v = 0; v < order.numel(); ++v) {
+    const int64_t p = o[v];
+    TORCH_CHECK(0 <= p && p < P, "order holds a primitive index out of range");
     TORCH_CHECK(0 <= b[4 * p] && b[4 * p] <= b[4 * p + 2] && b[4 * p + 2] < width && 0 <= b[4 * p + 1] &&
                     b[4 * p + 1] <= b[4 * p + 3] && b[4 * p + 3] < height,
                 "bounds must be non-empty and inside the image");
+  }
 }
 
 struct Binned {
   at::Tensor offsets, entries;
 };
 
-Binned bin_view(const at::Tensor& bounds, const Grid& g) {
+Binned bin_view(const at::Tensor& bounds, const at::Tensor& order, const Grid& g) {
   at::Tensor offsets = at::empty({g.tiles() + 1}, bounds.options());
   std::vector<int32_t> entries;
-  bin(bounds.data_ptr<int64_t>(), bounds.size(0), g, offsets.data_ptr<int64_t>(), entries);
+  bin(bounds.data_ptr<int64_t>(), order.data_ptr<int64_t>(), order.numel(), g, offsets.data_ptr<int64_t>(), entries);
   at::Tensor list = at::empty({int64_t(entries.size())}, bounds.options().dtype(at::kInt));
   std::copy(entries.begin(), entries.end(), list.data_ptr<int32_t>());
   return {offsets, list};
@@ -410,10 +432,11 @@ Binned bin_view(const at::Tensor& bounds, const Grid& g) {
 
 // Runs the forward; returns acc_color, acc_depth, T, T (float64), last, offsets, entries, counters.
 template <typename Run>
-std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tensor& bounds, int64_t height,
-                                        int64_t width, Run&& run) {
+std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tensor& bounds, const at::Tensor& order,
+                                        int64_t height, int64_t width, Run&& run) {
   const Grid g(height, width);
-  Binned binned = bin_view(bounds, g);
+  check_order(order, bounds, height, width);
+  Binned binned = bin_view(bounds, order, g);
   at::Tensor acc_color = at::empty({height, width, 3}, colors.options());
   at::Tensor acc_depth = at::empty({height, width}, colors.options());
   at::Tensor trans = at::empty({height, width}, colors.options());
@@ -443,7 +466,7 @@ void check_backward(const at::Tensor& g_color, const at::Tensor& g_depth, const 
   TORCH_CHECK(offsets.numel() == Grid(height, width).tiles() + 1, "offsets do not match the view");
 }
 
-std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::Tensor& intrinsics,
+std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::Tensor& order, const at::Tensor& intrinsics,
                                             const at::Tensor& colors, const at::Tensor& depth,
                                             const at::Tensor& m_cam, const at::Tensor& o_ell, const at::Tensor& w_cam,
                                             const at::Tensor& c, const at::Tensor& w2, const at::Tensor& b2,
@@ -455,7 +478,7 @@ std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::
     using T = scalar_t;
     const NeuralTensors<T> prm = neural_tensors<T>(m_cam, o_ell, w_cam, c, w2, b2, inv_smax);
     const Intrinsics<T> k = read_intrinsics<T>(intrinsics);
-    result = forward_outputs(colors, bounds, height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
+    result = forward_outputs(colors, bounds, order, height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
       const View<T> view{g, bounds.size(0), bounds.data_ptr<int64_t>(), colors.data_ptr<T>(), depth.data_ptr<T>()};
       view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T>(prm, k, backward); }, out);
     });
@@ -493,7 +516,7 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
   return grads;
 }
 
-std::vector<at::Tensor> gaussian_view_forward(const at::Tensor& bounds, const at::Tensor& colors,
+std::vector<at::Tensor> gaussian_view_forward(const at::Tensor& bounds, const at::Tensor& order, const at::Tensor& colors,
                                               const at::Tensor& depth, const at::Tensor& mean2d,
                                               const at::Tensor& conic, const at::Tensor& opacity, int64_t height,
                                               int64_t width, double t_min) {
@@ -506,7 +529,7 @@ std::vector<at::Tensor> gaussian_view_forward(const at::Tensor& bounds, const at
   std::vector<at::Tensor> result;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "gaussian_view_forward", [&] {
     using T = scalar_t;
-    result = forward_outputs(colors, bounds, height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
+    result = forward_outputs(colors, bounds, order, height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
       const View<T> view{g, P, bounds.data_ptr<int64_t>(), colors.data_ptr<T>(), depth.data_ptr<T>()};
       view_forward<T>(view, off, ent, t_min, [&](bool) {
         return GaussianKind<T>(mean2d.data_ptr<T>(), conic.data_ptr<T>(), opacity.data_ptr<T>());
