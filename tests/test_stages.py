@@ -244,7 +244,7 @@ def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
     assert read_manifest(run_dir / "init")["figures"] == {"primitives": 150, "params": 150 * 99, "source": "mesh",
                                                           "cage_samples": 15, "bound": True}
     model = load_model(run_dir / "init" / init.INIT_MODEL)
-    assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 30.0 and model.hidden == 8
+    assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 10.0 and model.hidden == 8
     assert torch.all(model.b2 == torch.tensor(init.NEURAL_B2))
     assert torch.all(model.log_scales == model.log_scales[:, :1]) and torch.all(model.quats[:, 0] == 1)
     assert torch.all(model.sh[:, 1:] == 0) and not torch.all(model.sh[:, 0] == 0)
