@@ -12,9 +12,9 @@ with one group per parameter tensor (means' rate × scene extent, decaying expon
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
 loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
 views (`alphas`), every view of a step is composited on a fresh uniformly random colour, and
-rendered over it: a transparent pixel then has no fixed colour to be fitted by floaters. Every `eval_every` steps and at the last,
-`held_out(primitives)` (e.g. the PSNR of held-out views) is reported as info["test_psnr"]: for
-information only, it changes nothing in training.
+rendered over it: a transparent pixel then has no fixed colour to be fitted by floaters. Every
+`eval_every` steps and at the last, `held_out(primitives)` (e.g. the PSNR of held-out views) is
+reported as info["test_psnr"]: for information only, it changes nothing in training.
 
 Continuing: a start_state of a finished run (its step s < the new cfg["iterations"] N) goes on
 from step s with its parameters, Adam moments and strategy accumulators, under the schedules of
