@@ -12,7 +12,8 @@
 Shading is Lambertian under one fixed directional light plus ambient, so colour is view-independent
 and a radiance field can fit it exactly, except on glossy materials (`Material.specular` > 0, the
 'glossy' scene): a white Blinn-Phong highlight k_s · max(0, n·h)^p, h = normalise(l − d), that
-moves over the surface with the viewing direction d (what SH colour must fit). Cameras sit on a sphere around the origin, looking at it:
+moves over the surface with the viewing direction d (what SH colour must fit).
+Cameras sit on a sphere around the origin, looking at it:
 a golden-angle (Fibonacci) spiral over the upper hemisphere, with the test views interleaved in it.
 """
 

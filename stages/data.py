@@ -153,7 +153,8 @@ def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
     `data` config section sees it (what `radfield render` uses): a split the dataset defines
     itself (a transforms_SPLIT.json, nerfstudio's SPLIT_filenames) is read as it is; otherwise
     every `data.test_every`-th view by file name is the test split and the rest train, as the data
-    stage splits it; with data.val_every > 0, val is carved out of train likewise. Images are downscaled by data.downscale and composited on data.background."""
+    stage splits it; with data.val_every > 0, val is carved out of train likewise. Images are
+    downscaled by data.downscale and composited on data.background."""
     path = Path(path).resolve()
     if split not in SPLITS:
         raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
