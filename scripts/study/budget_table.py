@@ -12,7 +12,8 @@ ROWS = [("glossy (90 train / 10 val / 20 test, 64×64)", "500", "b_neural_500", 
         ("glossy", "8000", "b_neural_8000", "b_gauss_8000"),
         ("glossy", "none", "g_om10", "g_gauss_reset1000"),
         ("lego_small (--downscale 8: 50×50; 90 / 10 / 25)", "none", "l_neural", "l_gauss"),
-        ("fern (--downscale 8: 63×47; 17 train / 3 test, no val)", "none", "f_neural", "f_gauss")]
+        ("fern (--downscale 8: 63×47; 17 train / 3 test, no val)", "none", "f_neural", "f_gauss"),
+        ("fox_small photos (SfM, --downscale 4: 56×100; 39 / 4 / 7)", "none", "x_neural", "x_gauss")]
 
 
 def figures(name):
