@@ -2,7 +2,7 @@
 
 Rank 0 (the one that runs the pipeline) calls `train_on_ranks` with exactly the arguments of
 radfield.core.trainer.train; with several ranks it first broadcasts them (cameras, images, valid
-masks, the initial primitives, the state to resume from, the train config) to the other ranks,
+masks, alpha channels, the initial primitives, the state to resume from, the train config) to the other ranks,
 which wait in `follow` and then run the same trainer with them. So the other ranks need no
 dataset, run directory or config file of their own (they may be on other machines), and they
 never write a file: rank 0 alone logs, checkpoints and writes the outputs.
@@ -21,7 +21,7 @@ from radfield.core.trainer import TrainState, state_from_tensors, state_tensors,
 
 
 def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, extent, seed, device="cpu",
-                   near=0.01, start_state=None, masks=None, on_step=None, held_out=None,
+                   near=0.01, start_state=None, masks=None, alphas=None, on_step=None, held_out=None,
                    checkpoint=None) -> TrainState:
     """trainer.train on every rank of distributed.current() (just trainer.train with one)."""
     world = distributed.current()
@@ -32,6 +32,8 @@ def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, exten
         tensors.update({f"camera{k}.c2w": c.c2w for k, c in enumerate(train_cameras)})
         if masks is not None:
             tensors["masks"] = masks
+        if alphas is not None:
+            tensors["alphas"] = alphas
         if start_state is not None:
             tensors.update({f"start.{n}": t for n, t in state_tensors(start_state).items()})
         meta = {"cfg": cfg, "kwargs": kwargs, "device": dev.type, "kind": prims.kind,
@@ -43,7 +45,7 @@ def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, exten
         distributed.start_training(world, dev)
         device = dev
     return train(prims, train_cameras, train_images, cfg, device=device, start_state=start_state, masks=masks,
-                 on_step=on_step, held_out=held_out, checkpoint=checkpoint, world=world, **kwargs)
+                 alphas=alphas, on_step=on_step, held_out=held_out, checkpoint=checkpoint, world=world, **kwargs)
 
 
 def follow() -> bool:
@@ -65,7 +67,7 @@ def follow() -> bool:
             start, {n.removeprefix("start."): t for n, t in tensors.items() if n.startswith("start.")})
         distributed.start_training(world, device)
         train(prims, cameras, tensors["images"], meta["cfg"], device=device, start_state=start_state,
-              masks=tensors.get("masks"), world=world, **meta["kwargs"])
+              masks=tensors.get("masks"), alphas=tensors.get("alphas"), world=world, **meta["kwargs"])
         del tensors, prims, start_state
         if device.type == "cuda":
             torch.cuda.empty_cache()

@@ -2,6 +2,7 @@
 values in [0, 1] (what the renderer returns); every function reduces to a scalar tensor.
 
     loss = (1 − λ) L1 + λ D-SSIM + λ_aniso · anisotropy      (3DGS loss + Splat the Net §3.3)
+           + λ_w1 · frequency_magnitude + λ_density · density_magnitude   (neural primitives; off by default)
 
 Valid-pixel masks: `mask` (..., H, W) bool marks the pixels that hold image content (undistortion
 leaves invalid, black pixels at the borders: radfield.datasets.views.Dataset.load_valid_mask).
@@ -118,6 +119,19 @@ def _anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
     scales = torch.exp(log_scales)
     ratio = scales / scales.amin(-1, keepdim=True)
     return ratio.std(-1).mean()
+
+
+def frequency_magnitude(w1: torch.Tensor) -> torch.Tensor:
+    """Penalty on the density MLP's frequencies: mean over primitives of ‖W1‖²_F (w1 (P, N, 3)).
+    The cosines of eq. 5 oscillate at ω0 · W1 per unit of u: a small ‖W1‖ keeps each
+    primitive's density smooth, so it cannot carve view-specific detail."""
+    return w1.square().sum((-2, -1)).mean()
+
+
+def density_magnitude(w2: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:
+    """Penalty on the density level: mean over primitives of ‖W2‖₁ + |b2|, the bound on σ of
+    eq. 6 (an L1 opacity regulariser for neural primitives). w2 (P, N), b2 (P,)."""
+    return (w2.abs().sum(-1) + b2.abs()).mean()
 
 
 def _masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:

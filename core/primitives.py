@@ -121,12 +121,15 @@ class Gaussians(_Primitives):
 Primitives = NeuralPrimitives | Gaussians
 
 
-def siren_mlp_init(num: int, hidden: int = DEFAULT_HIDDEN, omega0: float = DEFAULT_OMEGA0, generator=None, dtype=torch.float32):
+def siren_mlp_init(num: int, hidden: int = DEFAULT_HIDDEN, omega0: float = DEFAULT_OMEGA0, generator=None, dtype=torch.float32,
+                   w1_bound: float = 1 / 3):
     """MLP weights as in the paper (§3.3, after SIREN): W1 ~ U(−1/3, 1/3), W2 ~ U(±√(6/N)/ω0), b1 ~ U(−1/3, 1/3).
+    `w1_bound` replaces W1's 1/3: the initial frequency scale (each cosine starts at most
+    ω0 · w1_bound · √3 rad per unit of u).
 
     b2 is returned as zeros; callers set it to the opacity level they want (see `density_offset_for_alpha`)."""
     u = lambda *shape: torch.rand(*shape, generator=generator, dtype=dtype) * 2 - 1
-    w1 = u(num, hidden, 3) / 3
+    w1 = u(num, hidden, 3) * w1_bound
     b1 = u(num, hidden) / 3
     w2 = u(num, hidden) * math.sqrt(6 / hidden) / omega0
     return w1, b1, w2, torch.zeros(num, dtype=dtype)

@@ -3,15 +3,18 @@ primitives out. A pure library: no pipeline, no files except through the checkpo
 
 Per step (3DGS's recipe with Splat the Net's regulariser, §3.3 and appendix A):
     loss = (1 − λ) L1 + λ D-SSIM + λ_aniso · mean std(s / min(s))
+           [+ λ_w1 · mean ‖W1‖²_F + λ_density · mean (‖W2‖₁ + |b2|), neural primitives]
 over `batch_views` training views (each view's photometric loss weighted 1/batch_views); Adam
 with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
 `sh_increase_every` steps; population control by radfield.core.strategy after the step.
 
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
-loss and the per-step PSNR, radfield.core.losses). Every `eval_every` steps and at the last,
-`held_out(primitives)` (e.g. the PSNR of held-out views) is reported as info["test_psnr"]: for
-information only, it changes nothing in training.
+loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
+views (`alphas`), every view of a step is composited on a fresh uniformly random colour, and
+rendered over it: a transparent pixel then has no fixed colour to be fitted by floaters. Every
+`eval_every` steps and at the last, `held_out(primitives)` (e.g. the PSNR of held-out views) is
+reported as info["test_psnr"]: for information only, it changes nothing in training.
 
 Continuing: a start_state of a finished run (its step s < the new cfg["iterations"] N) goes on
 from step s with its parameters, Adam moments and strategy accumulators, under the schedules of
@@ -46,7 +49,7 @@ from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.distributed import StepSync, World
 from radfield.core.errors import RadfieldError
-from radfield.core.losses import anisotropy, photometric, psnr
+from radfield.core.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.rasterize import render
 from radfield.core.sh import num_sh_coeffs
@@ -60,7 +63,7 @@ GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
 PARAM_NAMES = {"neural": GEOMETRY + ("w1", "b1", "w2", "b2"), "gaussian": GEOMETRY + ("opacities",)}
 LR_KEYS = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}  # param name -> train.lr key, if not its own
 
-_VIEWS, _REFINE = 0, 1  # random streams
+_VIEWS, _REFINE, _BACKGROUND = 0, 1, 2  # random streams
 
 
 @dataclass
@@ -88,7 +91,7 @@ class TrainState:
 def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], train_images: torch.Tensor,
           cfg: dict, *, background: Sequence[float], extent: float, seed: int, device: str | torch.device = "cpu",
           near: float = 0.01, max_pairs: int = 1 << 20, start_state: TrainState | None = None,
-          masks: torch.Tensor | None = None,
+          masks: torch.Tensor | None = None, alphas: torch.Tensor | None = None,
           on_step: Callable[[int, dict], None] | None = None,
           held_out: Callable[[NeuralPrimitives | Gaussians], float] | None = None,
           checkpoint: Callable[[TrainState], None] | None = None, world: World | None = None) -> TrainState:
@@ -98,6 +101,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     prims: the initial primitives (also when resuming: population control needs their count).
     train_images: (N, H, W, 3) float in [0, 1], matching train_cameras.
     masks: (N, H, W) bool valid pixels of each image, or None (all valid).
+    alphas: (N, H, W) alpha of RGBA images (train_images are composited on `background`), or
+    None; with cfg["random_background"] they are recomposited on a random colour every step.
     cfg: the `train` config section (pipeline.yaml documents every key).
     extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
     start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
@@ -118,6 +123,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     device = torch.device(device)
     images = train_images.to(device=device, dtype=torch.float32)
     masks = None if masks is None else masks.to(device=device, dtype=torch.bool)
+    alphas = None if alphas is None or not cfg["random_background"] else alphas.to(device=device,
+                                                                                  dtype=torch.float32)
     state = start_state or initial_state(prims, cfg["sh_degree"])
     params = {name: state.params[name].detach().to(device).clone().requires_grad_(True)
               for name in PARAM_NAMES[state.kind]}
@@ -135,22 +142,29 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
         degree = min(cfg["sh_degree"], step // cfg["sh_increase_every"])
-        if cfg["lambda_aniso"] > 0 and sync.rank == 0:  # counted once over the ranks
-            (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
+        regulariser = regularisers(params, cfg) if sync.rank == 0 else None  # counted once over the ranks
+        if regulariser is not None:
+            regulariser.backward()
         loss_sum = psnr_sum = 0.0
+        backgrounds = None if alphas is None else torch.rand(batch, 3, generator=generator(seed, _BACKGROUND, step))
         gathered = sync.gather_into(accumulators, strategy.gathering(step + 1))
-        for view in sync.share(views_for_step(seed, step, batch, len(train_cameras))):
+        # k: the view's place in the whole batch (its random background), the same on every rank
+        for k, view in sync.share(list(enumerate(views_for_step(seed, step, batch, len(train_cameras))))):
             before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
-            out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=bg, near=near,
-                         sh_degree=degree, max_pairs=max_pairs)
+            view_bg, target = bg, images[view]
+            if backgrounds is not None:  # the same RGBA pixels "over" another colour
+                view_bg = backgrounds[k].to(device)
+                target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
+            out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=view_bg,
+                         near=near, sh_degree=degree, max_pairs=max_pairs)
             mask = None if masks is None else masks[view]
-            loss = photometric(out.color, images[view], cfg["lambda_dssim"], mask)
+            loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
             (loss / batch).backward()
             # this view's own gradients (unscaled), what the densification statistics measure
             grads = {n: (params[n].grad - before[n]) * batch for n in strategy.grad_names}
             strategy.accumulate(gathered, params, grads, train_cameras[view], step + 1)
             loss_sum += float(loss.detach())
-            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), images[view], mask))
+            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), target, mask))
         loss_sum, psnr_sum = sync.reduce(params, accumulators, loss_sum, psnr_sum, step + 1)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
@@ -166,6 +180,20 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
             checkpoint(snapshot(step + 1, state, params, optimizer, accumulators))
     return snapshot(max(iterations, state.step), state, params, optimizer, accumulators)
+
+
+def regularisers(params: dict[str, torch.Tensor], cfg: dict) -> torch.Tensor | None:
+    """The weighted geometry and density regularisers of a step (None when all are off): the
+    anisotropy of the scales, and for neural primitives the frequency (‖W1‖²) and density
+    (‖W2‖₁ + |b2|) magnitudes (radfield.core.losses)."""
+    terms = []
+    if cfg["lambda_aniso"] > 0:
+        terms.append(cfg["lambda_aniso"] * anisotropy(params["log_scales"]))
+    if "w1" in params and cfg["lambda_w1"] > 0:
+        terms.append(cfg["lambda_w1"] * frequency_magnitude(params["w1"]))
+    if "w2" in params and cfg["lambda_density"] > 0:
+        terms.append(cfg["lambda_density"] * density_magnitude(params["w2"], params["b2"]))
+    return sum(terms) if terms else None
 
 
 # --- parameters and optimiser ----------------------------------------------------------------

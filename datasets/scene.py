@@ -28,7 +28,9 @@ would sit above it for a hemisphere of views), else the mean of the train camera
 world units (3DGS's camera extent; 1.1 in normalised units).
 
 Splits: the dataset's own (NeRF-synthetic split files, nerfstudio *_filenames lists), else every
-`data.test_every`-th view by file name is a test view (the LLFF protocol).
+`data.test_every`-th view by file name is a test view (the LLFF protocol). With `data.val_every`
+N > 0 (and no val split of the dataset's own) every N-th training view becomes a "val" view,
+left out of training: tuning and selection look at val, never at test.
 
 ``points.npz``: `xyz`, `rgb` (P×3 float32, world frame; SfM points, empty when the dataset has
 none) and `mesh_vertices`, `mesh_rgb`, `mesh_faces` (the dataset's `mesh.ply`: vertices, their
@@ -67,7 +69,7 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
     path = Path(path).resolve()
     _check_data(data)
     background = tuple(data["background"])
-    splits = _splits(path, data["downscale"], background, data["test_every"])
+    splits = _splits(path, data["downscale"], background, data["test_every"], data["val_every"])
     for dataset in splits.values():
         validate(dataset)
     train = splits["train"]
@@ -90,20 +92,32 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
     return scene, points
 
 
-def _splits(path: Path, downscale: int, background: tuple, test_every: int) -> dict[str, Dataset]:
+def _splits(path: Path, downscale: int, background: tuple, test_every: int, val_every: int = 0) -> dict[str, Dataset]:
     """{"train", "test"[, "val"]: Dataset}: the dataset's own split when it has one, else every
-    `test_every`-th view (sorted by file name) held out for testing."""
+    `test_every`-th view (sorted by file name) held out for testing. Then, when val_every > 0 and
+    the dataset has no val split of its own, every val_every-th training view (the N-th, 2N-th, ...)
+    leaves train for a validation split: what tuning and model selection may look at."""
     fmt = detect_format(path)
     native = _native_splits(path, fmt)
     if native:
-        return {split: load_dataset(path, split, downscale, background) for split in native}
-    everything = load_dataset(path, "all", downscale, background)
-    views = everything.views
-    if len(views) < 2:
-        raise RadfieldError(f"{path}: {len(views)} image; a reconstruction needs at least 2 (train and test)")
-    train = tuple(view for k, view in enumerate(views) if k % test_every)
-    return {"train": replace(everything, split="train", views=train),
-            "test": replace(everything, split="test", views=views[::test_every])}
+        splits = {split: load_dataset(path, split, downscale, background) for split in native}
+    else:
+        everything = load_dataset(path, "all", downscale, background)
+        views = everything.views
+        if len(views) < 2:
+            raise RadfieldError(f"{path}: {len(views)} image; a reconstruction needs at least 2 (train and test)")
+        train = tuple(view for k, view in enumerate(views) if k % test_every)
+        splits = {"train": replace(everything, split="train", views=train),
+                  "test": replace(everything, split="test", views=views[::test_every])}
+    if val_every > 0 and "val" not in splits:
+        train = splits["train"]
+        held = {k for k in range(len(train.views)) if (k + 1) % val_every == 0}
+        if len(held) == len(train.views) or not held:
+            raise RadfieldError(f"data.val_every={val_every} leaves no training or no validation view "
+                                f"({len(train.views)} training views)")
+        splits["train"] = replace(train, views=tuple(v for k, v in enumerate(train.views) if k not in held))
+        splits["val"] = replace(train, split="val", views=tuple(v for k, v in enumerate(train.views) if k in held))
+    return splits
 
 
 def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
@@ -111,22 +125,27 @@ def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
     `data` config section sees it (what `radfield render` uses): a split the dataset defines
     itself (a transforms_SPLIT.json, nerfstudio's SPLIT_filenames) is read as it is; otherwise
     every `data.test_every`-th view by file name is the test split and the rest train, as the data
-    stage splits it. Images are downscaled by data.downscale and composited on data.background."""
+    stage splits it; with data.val_every > 0, val is carved out of train likewise. Images are
+    downscaled by data.downscale and composited on data.background."""
     path = Path(path).resolve()
     if split not in SPLITS:
         raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
     _check_data(data)
     downscale, background = data["downscale"], tuple(data["background"])
     fmt = detect_format(path)
-    if split == "all" or split in _present_splits(path, fmt):
+    present = _present_splits(path, fmt)
+    carved = data["val_every"] > 0 and "val" not in present and split in ("train", "val")  # val cut from train
+    if split == "all" or (split in present and not carved):
         return load_dataset(path, split, downscale, background)
-    if split not in ("train", "test"):
-        raise RadfieldError(f"{path}: the dataset has no {split!r} split (without split files it has train and test)")
-    return _splits(path, downscale, background, data["test_every"])[split]
+    splits = _splits(path, downscale, background, data["test_every"], data["val_every"])
+    if split not in splits:
+        raise RadfieldError(f"{path}: the dataset has no {split!r} split (it has {', '.join(splits)}; "
+                            "data.val_every > 0 makes a val split of the training views)")
+    return splits[split]
 
 
 def _check_data(data: dict[str, Any]) -> None:
-    for key, least in (("downscale", 1), ("test_every", 2)):
+    for key, least in (("downscale", 1), ("test_every", 2), ("val_every", 0)):
         if data[key] < least:
             raise RadfieldError(f"config key data.{key} must be at least {least}, got {data[key]}")
     if not all(0.0 <= c <= 1.0 for c in data["background"]):

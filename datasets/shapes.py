@@ -19,14 +19,18 @@ _EPS = 1e-9
 
 @dataclass(frozen=True)
 class Material:
-    """View-independent colour: 'solid' `colour`, a 3D 'checker' of cells 1/frequency wide, or
-    'stripes' across `axis` with period 1/frequency, alternating `colour` and `colour2`."""
+    """Albedo: 'solid' `colour`, a 3D 'checker' of cells 1/frequency wide, or 'stripes' across
+    `axis` with period 1/frequency, alternating `colour` and `colour2`. `specular` > 0 adds a
+    white Blinn-Phong highlight specular · max(0, n·h)^shininess (h the half vector between the
+    light and the eye): view-dependent colour; 0 is Lambertian (view-independent)."""
 
     colour: tuple[float, float, float]
     pattern: str = "solid"
     colour2: tuple[float, float, float] = (1.0, 1.0, 1.0)
     frequency: float = 0.0
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    specular: float = 0.0
+    shininess: float = 32.0
 
     def albedo(self, x: np.ndarray) -> np.ndarray:
         """Albedo (M, 3) at world points x (M, 3)."""

@@ -10,7 +10,10 @@
     scene.json                                    the exact analytic shapes, light and cameras
 
 Shading is Lambertian under one fixed directional light plus ambient, so colour is view-independent
-and a radiance field can fit it exactly. Cameras sit on a sphere around the origin, looking at it:
+and a radiance field can fit it exactly, except on glossy materials (`Material.specular` > 0, the
+'glossy' scene): a white Blinn-Phong highlight k_s · max(0, n·h)^p, h = normalise(l − d), that
+moves over the surface with the viewing direction d (what SH colour must fit).
+Cameras sit on a sphere around the origin, looking at it:
 a golden-angle (Fibonacci) spiral over the upper hemisphere, with the test views interleaved in it.
 """
 
@@ -47,6 +50,8 @@ class Scene:
     description: str
     primitives: tuple
     mesh: bool = True  # write mesh.ply; without it a run builds its envelope from the alpha masks
+    train_views: int = 40  # what `radfield demo-scene NAME` writes unless told otherwise
+    test_views: int = 8
 
 
 def _solid(r, g, b) -> Material:
@@ -119,6 +124,21 @@ SCENES: dict[str, Scene] = {
             ),
             mesh=False,
         ),
+        Scene(
+            "glossy",
+            "glossy and matte objects on a matte slab (moving specular highlights), 100 + 20 views: the study scene",
+            (
+                Box((0.0, 0.0, -0.45), (0.85, 0.85, 0.06), _solid(0.8, 0.78, 0.72)),
+                Sphere((-0.35, -0.3, -0.07), 0.32, Material((0.8, 0.12, 0.1), specular=0.6, shininess=40.0)),
+                Sphere((0.45, 0.35, -0.17), 0.22, Material((0.15, 0.3, 0.85), specular=0.5, shininess=80.0)),
+                Box((0.4, -0.4, -0.21), (0.18, 0.18, 0.18), _solid(0.2, 0.7, 0.3), yaw=30.0),
+                Torus((-0.35, 0.45, -0.28), (0.0, 0.0, 1.0), 0.25, 0.09,
+                      Material((0.9, 0.65, 0.15), specular=0.5, shininess=24.0)),
+                Cylinder((0.05, 0.05, -0.39), (0.05, 0.05, 0.35), 0.07, Material((0.85, 0.85, 0.85), specular=0.4)),
+            ),
+            train_views=100,
+            test_views=20,
+        ),
     )
 }
 
@@ -145,11 +165,19 @@ def trace(scene: Scene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.nd
         rows, t_k, n_k = rows[closer], t_k[closer], n_k[closer]
         t[rows], normal[rows], index[rows] = t_k, n_k, k
     colour = np.zeros_like(d)
+    light = np.asarray(LIGHT)
+    shade = AMBIENT + (1 - AMBIENT) * np.clip(normal @ light, 0.0, None)
+    half = light - d
+    half /= np.linalg.norm(half, axis=-1, keepdims=True)
     for k, primitive in enumerate(scene.primitives):
         rows = index == k
-        colour[rows] = primitive.material.albedo(o + t[rows, None] * d[rows])
-    shade = AMBIENT + (1 - AMBIENT) * np.clip(normal @ np.asarray(LIGHT), 0.0, None)
-    return colour * shade[:, None], t
+        material = primitive.material
+        colour[rows] = material.albedo(o + t[rows, None] * d[rows]) * shade[rows, None]
+        if material.specular > 0:  # Blinn-Phong, lit side only
+            n_h = np.clip(np.einsum("ij,ij->i", normal[rows], half[rows]), 0.0, None)
+            lit = normal[rows] @ light > 0
+            colour[rows] += (material.specular * n_h**material.shininess * lit)[:, None]
+    return np.clip(colour, 0.0, 1.0), t
 
 
 def render_view(scene: Scene, camera: Camera, samples: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -210,13 +238,17 @@ def write_mesh(scene: Scene, path: Path) -> None:
 
 
 def generate_scene(
-    name: str, out_dir: str | os.PathLike, n_train: int = 40, n_test: int = 8, size: int = 64, seed: int = 0
+    name: str, out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None, size: int = 64,
+    seed: int = 0,
 ) -> Path:
-    """Render scene `name` into a new NeRF-synthetic folder `out_dir` (see the module docstring).
+    """Render scene `name` into a new NeRF-synthetic folder `out_dir` (see the module docstring);
+    n_train / n_test default to the scene's own counts (Scene.train_views / test_views).
     Written to a temporary sibling folder and renamed, so `out_dir` is either complete or absent;
     an existing non-empty `out_dir` is refused."""
     scene = get_scene(name)
     out_dir = Path(out_dir)
+    n_train = scene.train_views if n_train is None else n_train
+    n_test = scene.test_views if n_test is None else n_test
     if n_train < 1 or n_test < 1 or size < 8:
         raise RadfieldError(
             f"generate_scene: need n_train >= 1, n_test >= 1 and size >= 8 (got {n_train}, {n_test}, {size})"

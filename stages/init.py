@@ -72,7 +72,8 @@ def run(ctx: Context) -> dict[str, Any]:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
-                            cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed)
+                            cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed,
+                            w1_bound=cfg["init"]["w1_scale"])
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
@@ -205,7 +206,7 @@ def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
 
 def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, hidden: int,
-                    omega0: float, extent: float, seed: int) -> NeuralPrimitives | Gaussians:
+                    omega0: float, extent: float, seed: int, w1_bound: float = 1 / 3) -> NeuralPrimitives | Gaussians:
     """Isotropic primitives at `means` (see the module docstring for every initial value)."""
     num = len(means)
     radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
@@ -221,5 +222,6 @@ def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_deg
     }
     if kind == "gaussian":
         return Gaussians(**geometry, opacities=torch.full((num,), GAUSSIAN_OPACITY))
-    w1, b1, w2, b2 = siren_mlp_init(num, hidden, omega0, generator=torch.Generator().manual_seed(seed))
+    w1, b1, w2, b2 = siren_mlp_init(num, hidden, omega0, generator=torch.Generator().manual_seed(seed),
+                                    w1_bound=w1_bound)
     return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0)

@@ -56,7 +56,7 @@ def run(ctx: Context) -> dict[str, Any]:
     scene = load_scene(ctx.inputs[SCENE])
     norm = scene.normalization
     cameras = [norm.camera(camera) for camera in scene.train_cameras]  # a RadfieldError for unposed photos
-    images, masks = scene.train_images(), scene.valid_masks("train")
+    (images, alphas), masks = scene.load_images("train"), scene.valid_masks("train")
     prims = to_normalized(load_model(ctx.inputs[INIT_MODEL]), norm)
     near = ctx.config["render"]["near"] * norm.scale
     held_out = None
@@ -79,8 +79,8 @@ def run(ctx: Context) -> dict[str, Any]:
             log.write({"step": step, **info, "seconds": round(base + time.perf_counter() - clock, 3)})
 
         state = train_on_ranks(prims, cameras, images, cfg, background=scene.background,
-                               extent=scene.extent * norm.scale, seed=ctx.seed, device=ctx.device, near=near, start_state=start, masks=masks,
-                               on_step=on_step, held_out=held_out,
+                               extent=scene.extent * norm.scale, seed=ctx.seed, device=ctx.device, near=near,
+                               start_state=start, masks=masks, alphas=alphas, on_step=on_step, held_out=held_out,
                                checkpoint=lambda snapshot: save_checkpoint(ctx.work / CHECKPOINT, snapshot, key))
     steps_run = state.step - first_step
     seconds = time.perf_counter() - clock

@@ -18,7 +18,7 @@ import torch
 from radfield.core.cameras import Camera, look_at, opencv_to_opengl
 from radfield.core.errors import RadfieldError
 from radfield.datasets import detect_format, load_dataset, read_image, resize_area, validate, write_image
-from radfield.datasets.synthetic import SCENES, generate_scene, orbit_cameras, render_view
+from radfield.datasets.synthetic import LIGHT, SCENES, generate_scene, orbit_cameras, render_view, trace
 
 RED_SPHERE = SCENES["blobs"].primitives[1]  # on top of 'blobs': no other object can hide its centre
 
@@ -151,6 +151,27 @@ def test_other_scenes(name, tmp_path):
     assert 0.02 < coverage < 0.6
     points = meshio.read(root / "mesh.ply").points
     assert np.abs(points).max() < 1.0 and np.abs(points).max() > 0.6
+
+
+def test_glossy_scene_generates_fast_and_its_highlights_move_with_the_view(tmp_path):
+    root = generate_scene("glossy", tmp_path / "glossy", n_train=2, n_test=1, size=32)
+    assert len(load_dataset(root, "train")) == 2 and len(load_dataset(root, "test")) == 1
+    assert SCENES["glossy"].train_views == 100 and SCENES["glossy"].test_views == 20
+    # one surface point of the glossy sphere (and of the matte box) seen from two directions
+    scene = SCENES["glossy"]
+    sphere, box = scene.primitives[1], scene.primitives[3]
+    assert sphere.material.specular > 0 and box.material.specular == 0
+    for shape, moves in ((sphere, True), (box, False)):
+        top = np.asarray(shape.center) + np.array([0.0, 0.0, shape.radius if moves else shape.half_size[2]])
+        colours = []
+        mirror = 2 * LIGHT[2] * np.array([0.0, 0.0, 1.0]) - np.asarray(LIGHT)  # the light reflected in the normal +z
+        for eye in (top + 2 * mirror, top + 2 * np.asarray(LIGHT)):  # at the highlight's peak, then away from it
+            d = (top - eye) / np.linalg.norm(top - eye)
+            colour, t = trace(scene, eye, (d + np.array([0.0, 0.0, 1e-9]))[None])
+            assert np.isclose(t[0], np.linalg.norm(top - eye), atol=1e-3)
+            colours.append(colour[0])
+        change = np.abs(colours[0] - colours[1]).max()
+        assert (change > 0.2) if moves else (change < 1e-6), (shape, colours)
 
 
 # ---------------------------------------------------------------- image I/O

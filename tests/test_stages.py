@@ -115,6 +115,23 @@ def write_nerfstudio(folder: Path, scene_dir: Path, **extra) -> Path:
     return folder
 
 
+def test_val_every_carves_a_validation_split_out_of_the_training_views(scene_dir, tmp_path):
+    native = data.read_dataset(scene_dir, config("data.val_every=3")["data"])[0]["splits"]
+    train = [v["name"] for v in data.read_dataset(scene_dir, config()["data"])[0]["splits"]["train"]]
+    assert [v["name"] for v in native["val"]] == train[2::3]
+    assert [v["name"] for v in native["train"]] == [n for k, n in enumerate(train) if (k + 1) % 3]
+    assert "val" not in data.read_dataset(scene_dir, config()["data"])[0]["splits"]
+    # what `radfield render`/`eval` read back is the same split
+    for split in ("train", "val"):
+        again = data.load_split(scene_dir, split, config("data.val_every=3")["data"])
+        assert [v.image_path.stem for v in again.views] == [v["name"] for v in native[split]]
+    listed = data.read_dataset(write_nerfstudio(tmp_path / "every", scene_dir), config("data.test_every=3",
+                                                                                       "data.val_every=2")["data"])[0]
+    assert [v["name"] for v in listed["splits"]["val"]] == ["r_2", "r_5"]
+    with pytest.raises(RadfieldError, match="val_every=1 leaves no training"):
+        data.read_dataset(scene_dir, config("data.val_every=1")["data"])
+
+
 def test_splits(scene_dir, tmp_path):
     described = data.read_dataset(write_nerfstudio(tmp_path / "every", scene_dir), config("data.test_every=3")["data"])
     assert [v["name"] for v in described[0]["splits"]["test"]] == ["r_0", "r_3"]
@@ -228,7 +245,7 @@ def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
     assert read_manifest(run_dir / "init")["figures"] == {"primitives": 150, "params": 150 * 99, "source": "mesh",
                                                           "cage_samples": 15, "bound": True}
     model = load_model(run_dir / "init" / init.INIT_MODEL)
-    assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 30.0 and model.hidden == 8
+    assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 10.0 and model.hidden == 8
     assert torch.all(model.b2 == torch.tensor(init.NEURAL_B2))
     assert torch.all(model.log_scales == model.log_scales[:, :1]) and torch.all(model.quats[:, 0] == 1)
     assert torch.all(model.sh[:, 1:] == 0) and not torch.all(model.sh[:, 0] == 0)

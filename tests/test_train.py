@@ -12,7 +12,7 @@ from skimage.metrics import structural_similarity
 
 from radfield.core.cameras import Camera, look_at
 from radfield.core.io import load_model, save_model
-from radfield.core.losses import anisotropy, dssim, photometric, psnr
+from radfield.core.losses import anisotropy, density_magnitude, dssim, frequency_magnitude, photometric, psnr
 from radfield.core.metrics import ssim
 from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.rasterize import render
@@ -23,6 +23,7 @@ from radfield.core.trainer import (
     load_checkpoint,
     make_optimizer,
     mean_psnr,
+    regularisers,
     save_checkpoint,
     train,
     views_for_step,
@@ -105,6 +106,45 @@ def test_psnr_and_anisotropy_values():
     assert float(anisotropy(torch.zeros(5, 3))) == 0.0
     # scales (1, 1, 4): ratios (1, 1, 4), Bessel-corrected std √3
     assert float(anisotropy(torch.log(torch.tensor([[1.0, 1.0, 4.0]])))) == pytest.approx(math.sqrt(3))
+
+
+def test_frequency_and_density_penalties():
+    w1 = torch.tensor([[[1.0, 2.0, 0.0], [0.0, 0.0, 3.0]], [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])  # (2, 2, 3)
+    assert float(frequency_magnitude(w1)) == pytest.approx((14 + 1) / 2)
+    w2, b2 = torch.tensor([[1.0, -2.0], [0.5, 0.0]]), torch.tensor([-1.0, 0.5])
+    assert float(density_magnitude(w2, b2)) == pytest.approx((4 + 1) / 2)
+    prims = random_neural(10)
+    params = {"w1": prims.w1, "w2": prims.w2, "b2": prims.b2, "log_scales": prims.log_scales}
+    off = config(lambda_aniso=0.0)
+    assert regularisers(params, off) is None
+    both = regularisers(params, config(lambda_aniso=0.0, lambda_w1=0.5, lambda_density=2.0))
+    assert float(both) == pytest.approx(0.5 * float(frequency_magnitude(prims.w1))
+                                        + 2.0 * float(density_magnitude(prims.w2, prims.b2)), rel=1e-6)
+    gaussian = {"log_scales": prims.log_scales, "opacities": torch.zeros(10)}  # neural-only terms skip Gaussians
+    assert regularisers(gaussian, config(lambda_aniso=0.0, lambda_w1=0.5, lambda_density=2.0)) is None
+
+
+def test_random_background_recomposites_the_rgba_targets():
+    """Nothing in view, so every render is the background itself. Transparent views composited on
+    BG: over a random background the target is that background, so the loss is exactly 0 at
+    every step; opaque views of one colour: the random background changes the loss every step."""
+    cameras = orbit(3, 16)
+    empty = random_neural(5, seed=3).map(lambda t: t.clone())
+    empty.means.add_(torch.tensor([0.0, 0.0, 100.0]))  # far above every camera's view
+    cfg = config(iterations=4, random_background=True, densify={"start": 100, "stop": 100})
+    clear = torch.ones(3, 16, 16, 3) * torch.tensor(BG)
+
+    def losses(images, alphas, cfg):
+        log = []
+        train(empty, cameras, images, cfg, background=BG, extent=3.3, seed=0, alphas=alphas,
+              on_step=lambda s, i: log.append(i["loss"]))
+        return log
+
+    assert losses(clear, torch.zeros(3, 16, 16), cfg) == [0.0] * 4
+    grey = torch.full((3, 16, 16, 3), 0.25)
+    random_losses = losses(grey, torch.ones(3, 16, 16), cfg)
+    fixed = losses(grey, torch.ones(3, 16, 16), {**cfg, "random_background": False})
+    assert len(set(random_losses)) == 4 and len(set(fixed)) == 1 and fixed[0] > 0.1
 
 
 @pytest.mark.parametrize("make", [random_neural, random_gaussians])
