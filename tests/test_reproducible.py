@@ -79,7 +79,7 @@ def test_pipeline_on_the_objects_scene_and_the_same_command_gives_the_same_model
     for run_dir in runs:
         code, out, err = cli("reconstruct", objects, "-o", run_dir, "-q", *FAST)
         assert code == 0, err
-        assert "stages: sfm not applicable, data ran, envelope ran, tetra ran, init ran, train ran, bake ran, eval ran" in out
+        assert "stages: sfm not applicable, data ran, envelope ran, tetra ran, init ran, train ran, bind ran, bake ran, eval ran" in out
         assert "warning" not in err  # no fallback on this scene
     run_dir = runs[0]
     envelope = figures(run_dir, "envelope")
