@@ -110,7 +110,10 @@ def launch(nproc: int, cfg: dict, run_dir: Path) -> None:
     finally:
         elastic.setLevel(level)
         for key, value in saved.items():
-            os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 def failure_line(failures: dict, run_dir: Path) -> str:
@@ -119,8 +122,9 @@ def failure_line(failures: dict, run_dir: Path) -> str:
     ranked = sorted(failures.items())
     killed = [(rank, f) for rank, f in ranked if f.exitcode < 0]
     # SIGTERM is what the agent sends the survivors when it tears the job down: the last resort
-    for rank, failure in [k for k in killed if k[1].exitcode != -signal.SIGTERM]:
-        return _killed(rank, failure, run_dir)
+    signalled = [(rank, f) for rank, f in killed if f.exitcode != -signal.SIGTERM]
+    if signalled:
+        return _killed(*signalled[0], run_dir)
     for rank, failure in ranked:
         message = failure.message.get("message") if isinstance(failure.message, dict) else None
         if isinstance(message, str) and message.startswith("radfield: error: "):
