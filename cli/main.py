@@ -187,10 +187,10 @@ app.command("bench-dist")(bench_dist_cli.bench_dist)
 
 @app.command("demo-scene")
 def demo_scene(
-    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture), objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull) or glossy (glossy and matte objects with moving specular highlights; 100 + 20 views).")],
+    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture), objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull), glossy (glossy and matte objects with moving specular highlights; 100 + 20 views) or studio (glossy's objects rendered like a path tracer: 8x8 jittered rays per pixel, soft shadows, moderate highlights; 100 + 20 views).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create (must not exist or be empty).")],
-    train_views: Annotated[Optional[int], typer.Option(help="Training views (default: the scene's own, 40; glossy 100).")] = None,
-    test_views: Annotated[Optional[int], typer.Option(help="Held-out test views (default: the scene's own, 8; glossy 20).")] = None,
+    train_views: Annotated[Optional[int], typer.Option(help="Training views (default: the scene's own, 40; glossy and studio 100).")] = None,
+    test_views: Annotated[Optional[int], typer.Option(help="Held-out test views (default: the scene's own, 8; glossy and studio 20).")] = None,
     size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
     seed: Annotated[int, typer.Option(help="Turns the camera spiral.")] = 0,
     exist_ok: Annotated[bool, typer.Option("--exist-ok", help="Do nothing if OUTPUT already holds this scene (same name and seed).")] = False,

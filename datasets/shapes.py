@@ -2,9 +2,10 @@
 procedural albedo, and a triangulation for the ground-truth mesh.
 
 Every shape has a `bounding_sphere` (centre (3,), radius) for culling rays, and `intersect(o, d)`
-takes rays from one origin o (3,) (a camera centre) in unit directions d (R, 3) (float64) and
-returns the distance to the first hit in front of the origin (R,) (inf on a miss) and the outward
-unit normal there (R, 3). The origin is assumed outside every shape.
+takes rays from origins o, one (3,) (a camera centre) or one per ray (R, 3) (shadow rays from
+surface points), in unit directions d (R, 3) (float64) and returns the distance to the first hit
+in front of the origin (R,) (inf on a miss) and the outward unit normal there (R, 3). The origin
+is assumed outside every shape.
 """
 
 from __future__ import annotations
@@ -55,6 +56,11 @@ def _miss(t: np.ndarray, hit: np.ndarray) -> np.ndarray:
     return np.where(hit, t, np.inf)
 
 
+def _rows(o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The origin of every ray (R, 3), from one origin (3,) or one per ray."""
+    return np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
+
+
 @dataclass(frozen=True)
 class Sphere:
     center: tuple[float, float, float]
@@ -66,9 +72,9 @@ class Sphere:
         return np.asarray(self.center), self.radius
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        oc = o - np.asarray(self.center)
-        b = d @ oc
-        disc = b * b - oc @ oc + self.radius**2
+        oc = _rows(o, d) - np.asarray(self.center)
+        b = _dot(d, oc)
+        disc = b * b - _dot(oc, oc) + self.radius**2
         t = -b - np.sqrt(np.maximum(disc, 0.0))
         t = _miss(t, (disc >= 0) & (t > _EPS))
         hit_t = np.where(np.isfinite(t), t, 0.0)
@@ -102,7 +108,7 @@ class Box:
     def intersect(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # Slab test in the box frame (row vectors: x @ R is R^T x).
         R, h = self.rotation, np.asarray(self.half_size)
-        o_local, d_local = (o - np.asarray(self.center)) @ R, d @ R  # (3,), (R, 3)
+        o_local, d_local = (_rows(o, d) - np.asarray(self.center)) @ R, d @ R  # (R, 3) each
         with np.errstate(divide="ignore", invalid="ignore"):
             t1, t2 = (-h - o_local) / d_local, (h - o_local) / d_local
         t_min, t_max = np.minimum(t1, t2), np.maximum(t1, t2)
@@ -141,10 +147,10 @@ class Cylinder:
         length = np.linalg.norm(b - a)
         u = (b - a) / length
         # Split origin and direction along the axis and across it.
-        oa = o - a
+        oa = _rows(o, d) - a
         o_z, d_z = oa @ u, d @ u
-        o_p, d_p = oa - o_z * u, d - d_z[:, None] * u
-        qa, qb, qc = _dot(d_p, d_p), d_p @ o_p, o_p @ o_p - self.radius**2
+        o_p, d_p = oa - o_z[:, None] * u, d - d_z[:, None] * u
+        qa, qb, qc = _dot(d_p, d_p), _dot(d_p, o_p), _dot(o_p, o_p) - self.radius**2
         disc = qb * qb - qa * qc
         # Rays parallel to the axis or to the caps divide by zero; those terms come out as misses.
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -200,12 +206,12 @@ class Torus:
         # a quartic in t (|d| = 1), solved as the eigenvalues of its companion matrix.
         F = self.frame
         R, r = self.major, self.minor
-        o_l, d_l = (o - np.asarray(self.center)) @ F, d @ F
-        b, k = d_l @ o_l, o_l @ o_l + R * R - r * r
+        o_l, d_l = (_rows(o, d) - np.asarray(self.center)) @ F, d @ F
+        b, k = _dot(d_l, o_l), _dot(o_l, o_l) + R * R - r * r
         c3 = 4 * b
         c2 = 4 * b * b + 2 * k - 4 * R * R * (d_l[:, 0] ** 2 + d_l[:, 1] ** 2)
-        c1 = 4 * b * k - 8 * R * R * (o_l[0] * d_l[:, 0] + o_l[1] * d_l[:, 1])
-        c0 = np.full(len(d), k * k - 4 * R * R * (o_l[0] ** 2 + o_l[1] ** 2))
+        c1 = 4 * b * k - 8 * R * R * (o_l[:, 0] * d_l[:, 0] + o_l[:, 1] * d_l[:, 1])
+        c0 = k * k - 4 * R * R * (o_l[:, 0] ** 2 + o_l[:, 1] ** 2)
         companion = np.zeros((len(d), 4, 4))
         companion[:, 0] = -np.stack([c3, c2, c1, c0], 1)
         companion[:, [1, 2, 3], [0, 1, 2]] = 1.0

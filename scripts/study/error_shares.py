@@ -1,0 +1,144 @@
+"""Where the held-out error of a generated scene comes from: each test pixel's squared error (summed
+over RGB, on the white background) split into silhouette / occlusion edges, specular highlights
+and the rest, from the analytic scene (datasets.synthetic), with two floors that no view-consistent
+model can beat:
+
+- edge: the pixel's K x K regular sub-samples do not all hit the same shape (or all miss);
+- highlight: not an edge, and the specular term averaged over the sub-samples exceeds TAU;
+- rest: everything else (flat-shaded interiors, background).
+
+`sampling floor` = the dataset's own pixels against the scene rendered with 16 x 16 regular rays
+per pixel (nearly the pixel's exact area average, what one 3D scene gives consistently in every
+view); `SH-3 floor` = at the centre point of every test highlight pixel, the error of the best
+degree-3 SH fit (least squares) of its specular radiance towards the training cameras that see it,
+predicted towards the test camera (the view dependence a per-primitive SH-3 colour cannot follow).
+
+    usage: .venv/bin/python scripts/study/error_shares.py DATASET RENDERS... [--val-every 10]
+    (RENDERS: folders of `radfield render RUN --split test` PNGs, one per run)
+"""
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from radfield.core.sh import sh_basis
+from radfield.datasets.images import read_image
+from radfield.datasets.synthetic import get_scene, intersect, orbit_cameras, render_view, shade
+
+TAU = 0.02  # specular level that counts as a highlight (about 5 of 255)
+
+
+def sub_rays(camera, k):
+    """Rays of a k x k regular grid in every pixel: directions (H*W*k*k, 3), origin (3,)."""
+    g = (np.arange(k) + 0.5) / k
+    off = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    i = np.arange(camera.height)[:, None, None] + off[None, None, :, 0]
+    j = np.arange(camera.width)[None, :, None] + off[None, None, :, 1]
+    i, j = np.broadcast_arrays(i, j)
+    d = np.stack([(j - camera.cx) / camera.fx, (i - camera.cy) / camera.fy, np.ones_like(i)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    c2w = camera.c2w.numpy()
+    return d.reshape(-1, 3) @ c2w[:3, :3].T, c2w[:3, 3]
+
+
+def classify(scene, camera, k=8):
+    d, o = sub_rays(camera, k)
+    t, n, index = intersect(scene, o, d)
+    _, spec = shade(scene, o, d, t, n, index)
+    index, spec = index.reshape(camera.height, camera.width, -1), spec.reshape(camera.height, camera.width, -1)
+    edge = (index != index[..., :1]).any(-1)
+    highlight = ~edge & (spec.mean(-1) > TAU)
+    return np.where(edge, 0, np.where(highlight, 1, 2))
+
+
+def sh3_floor(scene, camera, train_cams, mask):
+    """Squared error (summed over RGB) of the SH-3 prediction of the specular term at the centre
+    ray of each pixel in `mask` (see the module docstring)."""
+    d, o = sub_rays(camera, 1)
+    d = d[mask.ravel()]
+    t, n, index = intersect(scene, o, d)
+    x = o + t[:, None] * d
+    light = np.asarray(scene.lighting.direction)
+    eyes = np.stack([c.c2w.numpy()[:3, 3] for c in train_cams])
+    err = np.zeros(len(d))
+    for p in range(len(d)):
+        material = scene.primitives[index[p]].material
+        to_x = x[p] - eyes
+        dist = np.linalg.norm(to_x, axis=1)
+        dirs = to_x / dist[:, None]
+        t_v, _, i_v = intersect(scene, eyes, dirs)  # origins per ray
+        seen = (i_v == index[p]) & (np.abs(t_v - dist) < 1e-4) & (dirs @ n[p] < 0)
+
+        def spec(v):  # v: ray directions towards the point
+            h = light - v
+            h /= np.linalg.norm(h, axis=-1, keepdims=True)
+            return material.specular * np.clip(h @ n[p], 0, None) ** material.shininess * (n[p] @ light > 0)
+
+        basis = sh_basis(torch.from_numpy(-dirs[seen]), 3).numpy()  # SH of the direction towards the eye
+        if seen.sum() < 4:
+            continue
+        coef = np.linalg.solve(basis.T @ basis + 1e-3 * np.eye(16), basis.T @ spec(dirs[seen]))
+        pred = sh_basis(torch.from_numpy(-d[p][None]), 3).numpy() @ coef
+        err[p] = 3 * (pred[0] - spec(d[p][None])[0]) ** 2
+    return err
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("renders", type=Path, nargs="*")
+    ap.add_argument("--val-every", type=int, default=10)
+    ap.add_argument("--no-sh", action="store_true")
+    a = ap.parse_args()
+    meta = json.loads((a.dataset / "scene.json").read_text())
+    scene = get_scene(meta["name"])
+    n_train = len(json.loads((a.dataset / "transforms_train.json").read_text())["frames"])
+    n_test = len(json.loads((a.dataset / "transforms_test.json").read_text())["frames"])
+    size = read_image(a.dataset / "test" / "r_0.png").shape[0]
+    train, test = orbit_cameras(n_train, n_test, size, meta["seed"])
+    fit_cams = [c for k, c in enumerate(train) if (k + 1) % a.val_every]
+    names = ["edge", "highlight", "rest"]
+    se = {r: np.zeros(3) for r in a.renders}
+    floor, sh_floor, count = np.zeros(3), 0.0, np.zeros(3)
+    for camera in test:
+        cls = classify(scene, camera)
+        gt = read_image(a.dataset / "test" / f"{camera.name}.png")
+        gt = gt[..., :3] + 1 - gt[..., 3:]
+        exact = render_view(scene, camera, samples=16)[0]
+        exact = exact[..., :3] + 1 - exact[..., 3:]
+        for c in range(3):
+            count[c] += (cls == c).sum()
+            floor[c] += ((gt - exact) ** 2).sum(-1)[cls == c].sum()
+        for r in a.renders:
+            err = ((read_image(r / f"{camera.name}.png")[..., :3] - gt) ** 2).sum(-1)
+            for c in range(3):
+                se[r][c] += err[cls == c].sum()
+        if not a.no_sh and meta["name"] != "blobs":
+            sh_floor += sh3_floor(scene, camera, fit_cams, cls == 1).sum()
+    pixels = count.sum()
+
+    def psnr(total, n):
+        return -10 * math.log10(total / (3 * n)) if total > 0 else float("inf")
+
+    print(f"{a.dataset}: {len(test)} test views, {int(pixels)} pixels; classes from 8x8 sub-rays, highlight: "
+          f"specular > {TAU}")
+    print("| source | PSNR (all) | " + " | ".join(f"{n}: share of SE (PSNR in class)" for n in names) + " |")
+    print("|---|---|" + "---|" * 3)
+    print("| pixels | | " + " | ".join(f"{count[c] / pixels:.1%}" for c in range(3)) + " |")
+    for r in a.renders:
+        tot = se[r].sum()
+        print(f"| {r.name} | {psnr(tot, pixels):.2f} | "
+              + " | ".join(f"{se[r][c] / tot:.1%} ({psnr(se[r][c], count[c]):.2f})" for c in range(3)) + " |")
+    tot = floor.sum()
+    print(f"| sampling floor (dataset vs 16x16) | {psnr(tot, pixels):.2f} | "
+          + " | ".join(f"{floor[c] / tot:.1%} ({psnr(floor[c], count[c]):.2f})" for c in range(3)) + " |")
+    if not a.no_sh:
+        print(f"| SH-3 floor (highlights only) | {psnr(sh_floor, pixels):.2f} | | "
+              f"({psnr(sh_floor, count[1]):.2f}) | |")
+
+
+if __name__ == "__main__":
+    main()
