@@ -5,13 +5,17 @@ parameter count.
 
 Every (kind, budget) is a `radfield reconstruct` in OUT/runs/<kind>-<budget>/ (a cached run: asking
 again reuses finished runs and resumes killed ones), run as a subprocess with OMP_NUM_THREADS=1, `jobs`
-at a time (two busy OpenMP pools on two cores slow each other down badly). Densification runs from
-min(500, iterations / 5) to 3/4 of the iterations, so short benchmarks still densify, and Gaussians'
-opacities are reset every iterations / 3 steps (twice inside that window, as 3DGS's reset every 3000 of
-30000 steps fires inside its densification window).
+at a time (two busy OpenMP pools on two cores slow each other down badly). A budgeted run starts from
+exactly `budget` primitives and does not densify (the paper's protocol; train.max_primitives, see
+core/strategy.py); an unbudgeted one densifies without a cap. The densification schedule
+(train.densify.start, .stop and the Gaussians' .gaussian.opacity_reset_every) is the defaults'
+(pipeline.yaml) scaled by iterations / train.iterations, so at the default iteration count every
+unbudgeted run is a default run and shorter benchmarks still densify and reset inside their window.
 
 OUT/bench.json   [{"kind", "budget" (int or null), "run", "psnr", "ssim", "lpips", "primitives",
-                   "params", "size_bytes", "fps", "train_seconds", "train_psnr"} or {"kind", "budget", "run", "error"}]
+                   "params", "size_bytes", "fps", "train_seconds", "train_psnr", "stage_seconds"
+                   ({stage: seconds} of the run's stages), "pipeline_seconds" (their sum)}
+                  or {"kind", "budget", "run", "error"}]
 OUT/bench.md     the table
 OUT/psnr_vs_params.png   PSNR (dB) against parameters (log scale), one line per kind
 """
@@ -57,13 +61,30 @@ def run_name(kind: str, budget: int | None) -> str:
     return f"{kind}-{'none' if budget is None else budget}"
 
 
+def default_iterations() -> int:
+    from radfield.stages.config import load_defaults
+
+    return int(load_defaults()["train"]["iterations"])
+
+
+def schedule(iterations: int) -> dict[str, int]:
+    """The defaults' densification schedule scaled from train.iterations to `iterations` steps
+    (the defaults themselves at the default iteration count)."""
+    from radfield.stages.config import load_defaults
+
+    train = load_defaults()["train"]
+    densify, scale = train["densify"], iterations / train["iterations"]
+    return {"train.densify.start": round(densify["start"] * scale),
+            "train.densify.stop": round(densify["stop"] * scale),
+            "train.densify.gaussian.opacity_reset_every": max(round(densify["gaussian"]["opacity_reset_every"] * scale), 1)}
+
+
 def reconstruct_args(dataset: Path, run: Path, kind: str, budget: int | None, iterations: int,
                      sets: Sequence[str]) -> list[str]:
     args = [sys.executable, "-m", "radfield", "reconstruct", str(dataset), "-o", str(run), "--primitive", kind,
-            "--iterations", str(iterations), "--quiet",
-            "--set", f"train.densify.start={min(500, iterations // 5)}",
-            "--set", f"train.densify.stop={int(iterations * 0.75)}",
-            "--set", f"train.densify.gaussian.opacity_reset_every={max(iterations // 3, 1)}"]
+            "--iterations", str(iterations), "--quiet"]
+    for key, value in schedule(iterations).items():
+        args += ["--set", f"{key}={value}"]
     if budget is not None:
         args += ["--max-primitives", str(budget)]
     for item in sets:
@@ -82,11 +103,14 @@ def run_one(dataset: Path, out: Path, kind: str, budget: int | None, iterations:
         lines = proc.stderr.strip().splitlines()
         return {**row, "error": lines[-1] if lines else f"exit code {proc.returncode}"}
     metrics = json.loads((run / "eval" / "metrics.json").read_text())
-    train = run_info(run)["stages"].get("train", {})
+    stages = run_info(run)["stages"]
+    train = stages.get("train", {})
+    seconds = {name: info["seconds"] for name, info in stages.items() if info.get("seconds") is not None}
     return {**row, "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
             "primitives": metrics["num_primitives"], "params": metrics["num_params"],
             "size_bytes": metrics["file_size_bytes"], "fps": metrics["fps"], "train_seconds": train.get("seconds"),
-            "train_psnr": train.get("train_psnr")}
+            "train_psnr": train.get("train_psnr"), "stage_seconds": seconds,
+            "pipeline_seconds": sum(seconds.values())}
 
 
 def bench_quality(dataset: Path, out: Path, *, budgets: Sequence[int | None], kinds: Sequence[str], iterations: int,
@@ -115,18 +139,20 @@ def bench_quality(dataset: Path, out: Path, *, budgets: Sequence[int | None], ki
 
 def table(rows: Sequence[dict], *, dataset: Path, iterations: int) -> str:
     lines = [f"# Quality at equal primitive budgets: {dataset} ({iterations} iterations)", "",
-             "| budget | kind | PSNR (dB) | train PSNR | SSIM | LPIPS | primitives | parameters | size | FPS | train time |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| budget | kind | PSNR (dB) | train PSNR | SSIM | LPIPS | primitives | parameters | size | FPS | train time "
+             "| all stages |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         budget = "none" if r["budget"] is None else str(r["budget"])
         if "error" in r:
-            lines.append(f"| {budget} | {r['kind']} | failed: {r['error']} | | | | | | | | |")
+            lines.append(f"| {budget} | {r['kind']} | failed: {r['error']} | | | | | | | | | |")
             continue
         lp = "–" if r["lpips"] is None else f"{r['lpips']:.4f}"
         seconds = "–" if r["train_seconds"] is None else f"{r['train_seconds']:.0f} s"
         fit = "–" if r.get("train_psnr") is None else f"{r['train_psnr']:.2f}"
+        total = "–" if r.get("pipeline_seconds") is None else f"{r['pipeline_seconds']:.0f} s"
         lines.append(f"| {budget} | {r['kind']} | {r['psnr']:.2f} | {fit} | {r['ssim']:.4f} | {lp} | {r['primitives']} | "
-                     f"{r['params']} | {human_bytes(r['size_bytes'])} | {r['fps']:.2f} | {seconds} |")
+                     f"{r['params']} | {human_bytes(r['size_bytes'])} | {r['fps']:.2f} | {seconds} | {total} |")
     return "\n".join(lines) + "\n"
 
 
