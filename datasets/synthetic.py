@@ -167,12 +167,12 @@ SCENES: dict[str, Scene] = {
         ),
         Scene(
             "studio",
-            "the glossy scene's objects on a pedestal, rendered like a path tracer (8x8 jittered rays per pixel, soft shadows "
+            "the glossy scene's objects on a round plinth, rendered like a path tracer (8x8 jittered rays per pixel, soft shadows "
             "of a disc light, sky light, moderate highlights), 100 + 20 views: the issue-11 kind of scene",
             (
-                # A pedestal, not glossy's 0.12-thick slab: its sides (0.32 high) span >= 2 pixels at
-                # 64x64 from every camera, so no face of the scene is a sub-pixel strip.
-                Box((0.0, 0.0, -0.55), (0.8, 0.8, 0.16), _solid(0.8, 0.78, 0.72)),
+                # A round plinth instead of glossy's thin square slab: a smooth silhouette without
+                # corners, sides (0.3 high) of >= 2 pixels at 64x64 from every camera.
+                Cylinder((0.0, 0.0, -0.69), (0.0, 0.0, -0.39), 0.85, _solid(0.8, 0.78, 0.72)),
                 Sphere((-0.35, -0.3, -0.07), 0.32, Material((0.8, 0.12, 0.1), specular=0.5, shininess=20.0)),
                 Sphere((0.45, 0.35, -0.17), 0.22, Material((0.15, 0.3, 0.85), specular=0.4, shininess=30.0)),
                 Box((0.4, -0.4, -0.21), (0.18, 0.18, 0.18), _solid(0.2, 0.7, 0.3), yaw=30.0),
@@ -185,7 +185,9 @@ SCENES: dict[str, Scene] = {
             test_views=20,
             samples=8,
             jitter=True,
-            lighting=Lighting(shadows=True, radius=0.1, sky=0.5),
+            # ambient 0.5: a white world light of half the sun's strength, as a path tracer lit by
+            # the white surroundings the images are shown on (the other scenes: 0.35)
+            lighting=Lighting(ambient=0.5, shadows=True, radius=0.1, sky=0.5),
         ),
     )
 }

@@ -14,7 +14,8 @@ unbudgeted run is a default run and shorter benchmarks still densify and reset i
 
 OUT/bench.json   [{"kind", "budget" (int or null), "run", "psnr", "ssim", "lpips", "primitives",
                    "params", "size_bytes", "fps", "train_seconds", "train_psnr", "stage_seconds"
-                   ({stage: seconds} of the run's stages), "pipeline_seconds" (their sum)}
+                   ({stage: seconds} of the run's stages), "pipeline_seconds" (their sum), "wall_seconds"
+                   (of the reconstruct process this time, start-up included; small for a cached run)}
                   or {"kind", "budget", "run", "error"}]
 OUT/bench.md     the table
 OUT/psnr_vs_params.png   PSNR (dB) against parameters (log scale), one line per kind
@@ -26,6 +27,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -97,8 +99,10 @@ def run_one(dataset: Path, out: Path, kind: str, budget: int | None, iterations:
 
     run = out / RUNS / run_name(kind, budget)
     row: dict[str, Any] = {"kind": kind, "budget": budget, "run": str(run)}
+    start = time.perf_counter()
     proc = subprocess.run(reconstruct_args(dataset, run, kind, budget, iterations, sets), capture_output=True,
                           text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    wall = time.perf_counter() - start
     if proc.returncode != 0:
         lines = proc.stderr.strip().splitlines()
         return {**row, "error": lines[-1] if lines else f"exit code {proc.returncode}"}
@@ -110,7 +114,7 @@ def run_one(dataset: Path, out: Path, kind: str, budget: int | None, iterations:
             "primitives": metrics["num_primitives"], "params": metrics["num_params"],
             "size_bytes": metrics["file_size_bytes"], "fps": metrics["fps"], "train_seconds": train.get("seconds"),
             "train_psnr": train.get("train_psnr"), "stage_seconds": seconds,
-            "pipeline_seconds": sum(seconds.values())}
+            "pipeline_seconds": sum(seconds.values()), "wall_seconds": wall}
 
 
 def bench_quality(dataset: Path, out: Path, *, budgets: Sequence[int | None], kinds: Sequence[str], iterations: int,

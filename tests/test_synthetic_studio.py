@@ -88,7 +88,7 @@ def test_soft_shadow_and_sky_light_on_the_floor():
     (sky) light; a floor point in the open gets the sun too. Exact colours, from the shading rule."""
     floor, sphere = STUDIO.primitives[0], STUDIO.primitives[1]
     light = np.asarray(STUDIO.lighting.direction)
-    top = floor.center[2] + floor.half_size[2]
+    top = max(floor.start[2], floor.end[2])  # the plinth's top cap
     s = (sphere.center[2] - top) / light[2]
     umbra = np.asarray(sphere.center) - s * light
     open_floor = np.array([0.75, -0.1, top])
