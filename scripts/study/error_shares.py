@@ -1,17 +1,20 @@
 """Where the held-out error of a generated scene comes from: each test pixel's squared error (summed
 over RGB, on the white background) split into silhouette / occlusion edges, specular highlights
-and the rest, from the analytic scene (datasets.synthetic), with two floors that no view-consistent
-model can beat:
+and the rest, from the analytic scene (datasets.synthetic), with two reference errors:
 
-- edge: the pixel's K x K regular sub-samples do not all hit the same shape (or all miss);
-- highlight: not an edge, and the specular term averaged over the sub-samples exceeds TAU;
+- silhouette: some of the pixel's 8 x 8 regular sub-rays miss the scene and some hit it;
+- occlusion edge: they all hit, but not all the same shape;
+- highlight: neither, and the specular term averaged over the sub-rays exceeds TAU;
 - rest: everything else (flat-shaded interiors, background).
 
 `sampling floor` = the dataset's own pixels against the scene rendered with 16 x 16 regular rays
 per pixel (nearly the pixel's exact area average, what one 3D scene gives consistently in every
-view); `SH-3 floor` = at the centre point of every test highlight pixel, the error of the best
-degree-3 SH fit (least squares) of its specular radiance towards the training cameras that see it,
-predicted towards the test camera (the view dependence a per-primitive SH-3 colour cannot follow).
+view): the part of the pixels no view-consistent model can fit; `SH-3 fit` = at the centre point
+of every test highlight pixel, the error of the degree-3 SH least-squares fit of its specular
+radiance towards the training cameras that see it, predicted towards the test camera: how much of
+a highlight one SH-3 colour per surface point cannot follow (not a strict floor: a model may also
+change which primitives a ray sees from view to view). PSNR (all) pools the squared error of all
+views (the eval stage averages per-view PSNRs, a few tenths of a dB higher).
 
     usage: .venv/bin/python scripts/study/error_shares.py DATASET RENDERS... [--val-every 10]
     (RENDERS: folders of `radfield render RUN --split test` PNGs, one per run)
@@ -50,8 +53,9 @@ def classify(scene, camera, k=8):
     _, spec = shade(scene, o, d, t, n, index)
     index, spec = index.reshape(camera.height, camera.width, -1), spec.reshape(camera.height, camera.width, -1)
     edge = (index != index[..., :1]).any(-1)
+    silhouette = edge & (index < 0).any(-1)
     highlight = ~edge & (spec.mean(-1) > TAU)
-    return np.where(edge, 0, np.where(highlight, 1, 2))
+    return np.select([silhouette, edge, highlight], [0, 1, 2], 3)
 
 
 def sh3_floor(scene, camera, train_cams, mask):
@@ -100,44 +104,47 @@ def main():
     size = read_image(a.dataset / "test" / "r_0.png").shape[0]
     train, test = orbit_cameras(n_train, n_test, size, meta["seed"])
     fit_cams = [c for k, c in enumerate(train) if (k + 1) % a.val_every]
-    names = ["edge", "highlight", "rest"]
-    se = {r: np.zeros(3) for r in a.renders}
-    floor, sh_floor, count = np.zeros(3), 0.0, np.zeros(3)
+    names = ["silhouette", "occlusion edge", "highlight", "rest"]
+    classes = range(len(names))
+    se = {r: np.zeros(len(names)) for r in a.renders}
+    floor, sh_floor, count = np.zeros(len(names)), 0.0, np.zeros(len(names))
     for camera in test:
         cls = classify(scene, camera)
         gt = read_image(a.dataset / "test" / f"{camera.name}.png")
         gt = gt[..., :3] + 1 - gt[..., 3:]
         exact = render_view(scene, camera, samples=16)[0]
         exact = exact[..., :3] + 1 - exact[..., 3:]
-        for c in range(3):
+        for c in classes:
             count[c] += (cls == c).sum()
             floor[c] += ((gt - exact) ** 2).sum(-1)[cls == c].sum()
         for r in a.renders:
             err = ((read_image(r / f"{camera.name}.png")[..., :3] - gt) ** 2).sum(-1)
-            for c in range(3):
+            for c in classes:
                 se[r][c] += err[cls == c].sum()
-        if not a.no_sh and meta["name"] != "blobs":
-            sh_floor += sh3_floor(scene, camera, fit_cams, cls == 1).sum()
+        if not a.no_sh:
+            sh_floor += sh3_floor(scene, camera, fit_cams, cls == 2).sum()
     pixels = count.sum()
 
     def psnr(total, n):
         return -10 * math.log10(total / (3 * n)) if total > 0 else float("inf")
 
     print(f"{a.dataset}: {len(test)} test views, {int(pixels)} pixels; classes from 8x8 sub-rays, highlight: "
-          f"specular > {TAU}")
-    print("| source | PSNR (all) | " + " | ".join(f"{n}: share of SE (PSNR in class)" for n in names) + " |")
-    print("|---|---|" + "---|" * 3)
-    print("| pixels | | " + " | ".join(f"{count[c] / pixels:.1%}" for c in range(3)) + " |")
+          f"specular > {TAU}; share of the squared error (PSNR within the class)")
+    print("| source | PSNR (all) | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    print("| pixels | | " + " | ".join(f"{count[c] / pixels:.1%}" for c in classes) + " |")
+
+    def row(label, errors):
+        tot = errors.sum()
+        print(f"| {label} | {psnr(tot, pixels):.2f} | "
+              + " | ".join(f"{errors[c] / tot:.1%} ({psnr(errors[c], count[c]):.2f})" for c in classes) + " |")
+
     for r in a.renders:
-        tot = se[r].sum()
-        print(f"| {r.name} | {psnr(tot, pixels):.2f} | "
-              + " | ".join(f"{se[r][c] / tot:.1%} ({psnr(se[r][c], count[c]):.2f})" for c in range(3)) + " |")
-    tot = floor.sum()
-    print(f"| sampling floor (dataset vs 16x16) | {psnr(tot, pixels):.2f} | "
-          + " | ".join(f"{floor[c] / tot:.1%} ({psnr(floor[c], count[c]):.2f})" for c in range(3)) + " |")
+        row(r.parent.name if r.name == "renders" else r.name, se[r])
+    row("sampling floor (dataset vs 16x16)", floor)
     if not a.no_sh:
-        print(f"| SH-3 floor (highlights only) | {psnr(sh_floor, pixels):.2f} | | "
-              f"({psnr(sh_floor, count[1]):.2f}) | |")
+        print(f"| SH-3 fit (highlights only) | {psnr(sh_floor, pixels):.2f} | | | "
+              f"({psnr(sh_floor, count[2]):.2f}) | |")
 
 
 if __name__ == "__main__":
