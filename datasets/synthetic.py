@@ -19,7 +19,7 @@ that moves over the surface with the viewing direction d (what SH colour must fi
 pixel (edge pixels hold nearly their exact area coverage, consistently across views, where the 2x2
 grid of the other scenes quantises it into five levels that differ from view to view), a disc light
 of angular radius 0.1 rad sampled once per ray with a shadow ray (soft shadows), a sky-dome ambient
-term, and highlights of shininess 12-30 (view-space lobe width 2/sqrt(p) = 21-33 degrees, within
+term of strength 0.5 (a white world light), a round plinth instead of glossy's thin slab, and highlights of shininess 12-30 (view-space lobe width 2/sqrt(p) = 21-33 degrees, within
 reach of SH degree 3, against glossy's 80: 13 degrees). The jitter of every view is drawn from
 (seed, split, view index), so the scene is reproducible.
 Cameras sit on a sphere around the origin, looking at it:

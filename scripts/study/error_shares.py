@@ -140,7 +140,7 @@ def main():
               + " | ".join(f"{errors[c] / tot:.1%} ({psnr(errors[c], count[c]):.2f})" for c in classes) + " |")
 
     for r in a.renders:
-        row(r.parent.name if r.name == "renders" else r.name, se[r])
+        row(r.parent.parent.name if r.name == "renders" else r.name, se[r])  # RUN/eval/renders: RUN
     row("sampling floor (dataset vs 16x16)", floor)
     if not a.no_sh:
         print(f"| SH-3 fit (highlights only) | {psnr(sh_floor, pixels):.2f} | | | "
