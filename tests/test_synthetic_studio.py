@@ -124,3 +124,14 @@ def test_studio_highlights_are_moderate_and_follow_the_view():
         t, n, index = intersect(STUDIO, eye, d)
         colours.append(shade(STUDIO, eye, d, t, n, index)[1][0])
     assert colours[0] == pytest.approx(sphere.material.specular, rel=1e-3) and colours[1] < 0.05
+
+
+def test_glossy_is_unchanged():
+    """The study scene's images are as before `studio` (README "Quality" was measured on them):
+    2x2 regular rays, no shadows, constant ambient, and one view's figures as recorded then."""
+    glossy = SCENES["glossy"]
+    assert glossy.samples == 2 and not glossy.jitter and not glossy.lighting.shadows and glossy.lighting.sky == 0
+    camera = orbit_cameras(100, 20, 24)[0][7]
+    rgba, depth = render_view(glossy, camera)
+    assert np.allclose(rgba.reshape(-1, 4).mean(0), [0.093429, 0.092071, 0.083812, 0.192274], atol=2e-6)
+    assert depth.sum() == pytest.approx(408.10797, abs=1e-3)
