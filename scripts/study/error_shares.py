@@ -16,7 +16,7 @@ a highlight one SH-3 colour per surface point cannot follow (not a strict floor:
 change which primitives a ray sees from view to view). PSNR (all) pools the squared error of all
 views (the eval stage averages per-view PSNRs, a few tenths of a dB higher).
 
-    usage: .venv/bin/python scripts/study/error_shares.py DATASET RENDERS... [--val-every 10]
+    usage: .venv/bin/python scripts/study/error_shares.py DATASET RENDERS... [--val-every 10 (runs of the study protocol)]
     (RENDERS: folders of `radfield render RUN --split test` PNGs, one per run)
 """
 import argparse
@@ -94,7 +94,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("dataset", type=Path)
     ap.add_argument("renders", type=Path, nargs="*")
-    ap.add_argument("--val-every", type=int, default=10)
+    ap.add_argument("--val-every", type=int, default=0, help="the runs' data.val_every (10 in the study protocol)")
     ap.add_argument("--no-sh", action="store_true")
     a = ap.parse_args()
     meta = json.loads((a.dataset / "scene.json").read_text())
@@ -103,7 +103,7 @@ def main():
     n_test = len(json.loads((a.dataset / "transforms_test.json").read_text())["frames"])
     size = read_image(a.dataset / "test" / "r_0.png").shape[0]
     train, test = orbit_cameras(n_train, n_test, size, meta["seed"])
-    fit_cams = [c for k, c in enumerate(train) if (k + 1) % a.val_every]
+    fit_cams = [c for k, c in enumerate(train) if a.val_every == 0 or (k + 1) % a.val_every]
     names = ["silhouette", "occlusion edge", "highlight", "rest"]
     classes = range(len(names))
     se = {r: np.zeros(len(names)) for r in a.renders}
