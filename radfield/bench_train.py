@@ -95,7 +95,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = time.perf_counter()
         (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
         t = clock("loss", t)
-        before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
+        before = {n: None if params[n].grad is None else params[n].grad.clone() for n in strategy.grad_names}
         t = clock("population", t)
         out = render(trainer.assemble(params, state.kind, state.omega0), cams[view], background=bg, sh_degree=degree)
         t = clock("forward", t)
@@ -106,7 +106,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = clock("loss", t)
         out.color.backward(image.grad)
         t = clock("backward", t)
-        grads = {n: params[n].grad - before[n] for n in strategy.grad_names}
+        grads = {n: trainer.own_gradient(params[n].grad, before[n], 1) for n in strategy.grad_names}
         strategy.accumulate(accumulators, params, grads, cams[view], step + 1)
         t = clock("population", t)
         optimizer.step()

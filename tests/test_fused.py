@@ -521,3 +521,34 @@ def test_gaussian_prep_matches_torch_twin_and_finite_differences():
     keep = [t[:6].clone().requires_grad_(True) for t in (means_cam, prims.log_scales, prims.quats)]
     assert torch.autograd.gradcheck(
         lambda m, l, q: fused.gaussian_prep(m, l, q, w2c[:3, :3], intrinsics, W, H, near)[:2], keep, eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_depth_order_is_a_stable_sort_of_signed_depths(dtype):
+    """The C++ depth order (a radix sort of the depths' bit keys) equals torch's stable argsort on
+    depths of both signs with many ties, including 0.0 and −0.0 (equal, so index order): huge
+    neural primitives around the camera straddle the near plane and are all visible."""
+    g = torch.Generator().manual_seed(3)
+    n = 3000
+    depth = torch.round(torch.randn(n, generator=g, dtype=torch.float64) * 20) / 4   # ties
+    depth[::7] = 0.0
+    depth[3::11] = -0.0
+    means_cam = torch.cat([torch.randn(n, 2, generator=g, dtype=torch.float64), depth[:, None]], 1).to(dtype)
+    log_scales = torch.full((n, 3), math.log(50.0), dtype=dtype)
+    quats = torch.tensor([1.0, 0, 0, 0], dtype=dtype).expand(n, 4).contiguous()
+    intrinsics = torch.tensor([30.0, 30.0, 16.0, 16.0, 0.01], dtype=dtype)
+    _, order = fused.neural_bounds(means_cam, log_scales, quats, torch.eye(3, dtype=dtype), intrinsics, 32, 32, 0.01)
+    assert len(order) == n
+    assert torch.equal(order, torch.argsort(means_cam[:, 2], stable=True))
+
+
+def test_view_kernel_rejects_an_order_that_repeats_a_primitive():
+    prims, cam = _render_scene("gaussian", torch.float64)
+    bounds = torch.tensor([[0, 0, 3, 3]] * len(prims))
+    order = torch.tensor([0, 1, 1])
+    colors, depth = torch.rand(len(prims), 3, dtype=torch.float64), torch.rand(len(prims), dtype=torch.float64)
+    mean2d = torch.rand(len(prims), 2, dtype=torch.float64)
+    conic = torch.tensor([[1.0, 0.0, 1.0]] * len(prims), dtype=torch.float64)
+    with pytest.raises(RuntimeError, match="twice"):
+        fused.gaussian_view(bounds, order, cam.height, cam.width, 1e-4, colors, depth, mean2d, conic,
+                            torch.full((len(prims),), 0.5, dtype=torch.float64))
