@@ -296,20 +296,42 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
   out.counters[0] = pairs, out.counters[1] = composited, out.counters[2] = terminated;
 }
 
+// Per-thread double sums of the gradients of the per-primitive inputs: thread th's sums of
+// primitive v are at sums[(th · P + v) · width], valid where touched[th · P + v] (a slot is zeroed
+// when its thread first reaches the primitive, so untouched slots are never written nor read).
+struct GradSums {
+  int threads;
+  int64_t P, width;
+  double* sums;
+  std::vector<uint8_t> touched;
+};
+
+// The buffer behind GradSums, kept by the calling thread from one backward to the next: at 10k
+// neural primitives it is 5 MB a thread, which as a fresh allocation every view cost more in page
+// faults and zeroing than the tiles' own work at 64×64.
+inline double* grad_buffer(size_t doubles) {
+  static thread_local std::vector<double> buffer;
+  if (buffer.size() < doubles) buffer.resize(doubles);
+  return buffer.data();
+}
+
 // Gradients of the per-primitive inputs: colors (P, 3), depth (P,), and the kind's parameters
-// (stride doubles per primitive, in the layout of Kind::backward's acc), as double sums.
+// (stride doubles per primitive, in the layout of Kind::backward's acc), as per-thread double sums.
 template <typename T, typename MakeKind>
-std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, const int32_t* entries,
-                                  const T* g_color, const T* g_depth, const T* g_trans, const double* trans64,
-                                  const int32_t* last_in, int64_t stride, MakeKind&& make_kind) {
+GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_t* entries,
+                       const T* g_color, const T* g_depth, const T* g_trans, const double* trans64,
+                       const int32_t* last_in, int64_t stride, MakeKind&& make_kind) {
   const Grid& g = view.grid;
   const int64_t width = stride + 4;  // + colour (3) + depth
   const int threads = at::get_num_threads();
-  std::vector<double> sums(size_t(threads) * view.P * width, 0.0);
+  GradSums out{threads, view.P, width, grad_buffer(size_t(threads) * view.P * width),
+               std::vector<uint8_t>(size_t(threads) * view.P, 0)};
 #pragma omp parallel num_threads(threads)
   {
     auto kind = make_kind(/*backward=*/true);
-    double* mine = sums.data() + size_t(omp_get_thread_num()) * view.P * width;
+    const int th = omp_get_thread_num();
+    double* mine = out.sums + size_t(th) * view.P * width;
+    uint8_t* touched = out.touched.data() + size_t(th) * view.P;
     std::array<double, kPixels> tr, suffix, gr, gg, gb, gz;
     std::array<int32_t, kPixels> last;
 #pragma omp for schedule(dynamic, 1)
@@ -335,6 +357,7 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
         const double cr = view.colors[3 * p], cg = view.colors[3 * p + 1], cb = view.colors[3 * p + 2];
         const double zp = view.depth[p];
         double* acc = mine + p * width;
+        if (!touched[p]) std::fill(acc, acc + width, 0.0), touched[p] = 1;
         double* acc_view = acc + stride;  // colour, depth
         auto grad_of = [&](int64_t j, T alpha) -> T {
           const int32_t i = batch.local[j];
@@ -353,23 +376,14 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
       }
     }
   }
-  // reduce the threads' buffers into the first
-  const int64_t n = view.P * width;
-  for (int th = 1; th < threads; ++th) {
-    const double* theirs = sums.data() + size_t(th) * n;
-    at::parallel_for(0, n, 4096, [&](int64_t b, int64_t e) {
-      for (int64_t i = b; i < e; ++i) sums[i] += theirs[i];
-    });
-  }
-  sums.resize(n);
-  return sums;
+  return out;
 }
 
 // Copy the double sums of the V drawn primitives (in depth order) into gradient tensors shaped as
 // `like` (all P primitives), row order[v] from sums row v, zero elsewhere: colors, depth, then the
 // kind's fields, whose per-primitive sizes add up to stride.
 template <typename T>
-std::vector<at::Tensor> unpack_grads(const std::vector<double>& sums, const at::Tensor& order, int64_t stride,
+std::vector<at::Tensor> unpack_grads(const GradSums& grad, const at::Tensor& order, int64_t stride,
                                      const std::vector<at::Tensor>& like) {
   const int64_t P = like[0].size(0), V = order.numel();
   const int64_t* ids = order.data_ptr<int64_t>();
@@ -383,9 +397,16 @@ std::vector<at::Tensor> unpack_grads(const std::vector<double>& sums, const at::
   }
   const int64_t width = stride + 4;
   at::parallel_for(0, V, 1024, [&](int64_t v0, int64_t v1) {
+    std::vector<double> total(width);
     for (int64_t v = v0; v < v1; ++v) {
       const int64_t p = ids[v];
-      const double* s = sums.data() + v * width;
+      std::fill(total.begin(), total.end(), 0.0);   // the threads' sums, in thread order
+      for (int th = 0; th < grad.threads; ++th) {
+        if (!grad.touched[size_t(th) * V + v]) continue;
+        const double* theirs = grad.sums + (size_t(th) * V + v) * width;
+        for (int64_t e = 0; e < width; ++e) total[e] += theirs[e];
+      }
+      const double* s = total.data();
       T* gc = dst[0] + 3 * p;
       gc[0] = T(s[stride]), gc[1] = T(s[stride + 1]), gc[2] = T(s[stride + 2]);
       dst[1][p] = T(s[stride + 3]);
@@ -429,10 +450,33 @@ void check_order(const at::Tensor& order, const at::Tensor& bounds, int64_t heig
   }
 }
 
+// Rows order[v] of a contiguous (P, ...) tensor of 4- or 8-byte elements, copied as bits: a
+// loop per row (index_select pays a memcpy call per row of a few bytes).
+template <typename Bits>
+void copy_rows(const at::Tensor& from, at::Tensor& to, const int64_t* ids, int64_t V, int64_t row) {
+  const Bits* src = static_cast<const Bits*>(from.data_ptr());
+  Bits* dst = static_cast<Bits*>(to.data_ptr());
+  for (int64_t v = 0; v < V; ++v) {
+    const Bits* r = src + ids[v] * row;
+    for (int64_t e = 0; e < row; ++e) dst[v * row + e] = r[e];
+  }
+}
+
 // The per-primitive tensors (P, ...) gathered into depth order (V, ...): what the tiles read.
 std::vector<at::Tensor> in_order(const std::vector<at::Tensor>& tensors, const at::Tensor& order) {
+  const int64_t V = order.numel();
+  const int64_t* ids = order.data_ptr<int64_t>();
   std::vector<at::Tensor> out;
-  for (const at::Tensor& t : tensors) out.push_back(t.index_select(0, order));
+  for (const at::Tensor& t : tensors) {
+    std::vector<int64_t> sizes = t.sizes().vec();
+    const int64_t row = sizes[0] > 0 ? t.numel() / sizes[0] : 0;
+    sizes[0] = V;
+    at::Tensor rows = at::empty(sizes, t.options());
+    TORCH_CHECK(t.is_contiguous() && (t.element_size() == 4 || t.element_size() == 8), "in_order: contiguous 4- or 8-byte tensors");
+    if (t.element_size() == 4) copy_rows<uint32_t>(t, rows, ids, V, row);
+    else copy_rows<uint64_t>(t, rows, ids, V, row);
+    out.push_back(rows);
+  }
   return out;
 }
 
@@ -523,7 +567,7 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
     const View<T> view{Grid(height, width), v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(),
                        v[2].data_ptr<T>()};
     const int64_t stride = NeuralKind<T>::stride(prm.N);
-    const std::vector<double> sums = view_backward<T>(
+    const GradSums sums = view_backward<T>(
         view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(), g_depth.data_ptr<T>(),
         g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride,
         [&](bool backward) { return NeuralKind<T>(prm, k, backward); });
@@ -576,7 +620,7 @@ std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const 
     const View<T> view{Grid(height, width), v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(),
                        v[2].data_ptr<T>()};
     const int64_t stride = GaussianKind<T>::stride(0);
-    const std::vector<double> sums = view_backward<T>(
+    const GradSums sums = view_backward<T>(
         view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(), g_depth.data_ptr<T>(),
         g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride, [&](bool) {
           return GaussianKind<T>(v[3].data_ptr<T>(), v[4].data_ptr<T>(), v[5].data_ptr<T>());
