@@ -250,10 +250,10 @@ def test_gaussian_block_gradcheck():
     assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def _render_scene(kind, dtype):
+def _render_scene(kind, dtype, hidden=8):
     eye = torch.tensor([0.3, -3.0, 0.5])
     if kind == "neural":
-        prims = random_neural(14, sh_degree=1, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
+        prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
         prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
         prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
         prims.b2[2] = 40.0
@@ -294,6 +294,22 @@ def test_render_fused_equals_torch(kind, dtype, monkeypatch):
     for name, gs in grads_slow.items():
         scale = gs.abs().max().clamp_min(1.0)
         torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **tol, msg=lambda m: f"d/d{name}: {m}")
+
+
+def test_render_fused_equals_torch_at_another_width(monkeypatch):
+    """The view kernels unroll the default 8 hidden units; any other width takes the run-time
+    loop, which must agree with the torch twin as well (images and every gradient, float64)."""
+    prims, cam = _render_scene("neural", torch.float64, hidden=5)
+    assert prims.hidden == 5
+    fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
+    slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
+    assert slow.meta["contributing_pairs"] > 100
+    for name in ("color", "alpha", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-9, atol=1e-10)
+    for name, gs in grads_slow.items():
+        scale = gs.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, rtol=1e-9, atol=1e-10,
+                                   msg=lambda m: f"d/d{name}: {m}")
 
 
 def test_render_uses_fused_kernels(monkeypatch):

@@ -223,10 +223,13 @@ inline NeuralGradRefs neural_grad_refs(double* base, int64_t units) {
 }
 
 // Per-thread scratch for a batch of one primitive's pixels, one array entry per pixel j (structure
-// of arrays, so that the loops over j run in SIMD). `chords` fills it for every pixel of the
+// of arrays, so that the loops over j run in SIMD). kUnits > 0 fixes the number of hidden units at
+// compile time (the default 8 of pipeline.yaml: the loops over units then unroll into one 8-lane
+// vector each, which matters when a batch has one or two pixels, the usual case at 64×64); 0 takes
+// it at run time. `chords` fills it for every pixel of the
 // batch, then keeps the n pixels whose chord is not empty (hit and Δ > 0): the others have α = 0
 // and no gradient.
-template <typename T>
+template <typename T, int kUnits = 0>
 struct ChordTile {
   int64_t cap, n = 0;
   std::vector<int64_t> pixel;            // index of the pixel in the batch
@@ -343,7 +346,8 @@ struct ChordTile {
   // with `backward`, also sin of the phase and sinc's slope. Then eq. 9:
   // expm1_neg = expm1(−max(I, 0)), α = alpha_from_expm1(expm1_neg).
   void optical_depth(const NeuralParams<T>& q, bool backward) {
-    const int64_t N = units, L = n * N;
+    if (n == 0) return;   // every pixel missed: nothing to evaluate
+    const int64_t N = kUnits > 0 ? kUnits : units, L = n * N;
     T *wx = w_t.data(), *wy = wx + N, *wz = wy + N;
     for (int64_t k = 0; k < N; ++k) wx[k] = q.w_cam[3 * k], wy[k] = q.w_cam[3 * k + 1], wz[k] = q.w_cam[3 * k + 2];
     const T* c = q.c;
@@ -388,7 +392,7 @@ struct ChordTile {
   // Step 2 backward (kernels.py: _CosMLPIntegral.backward), + b2 Δ: from g_I to g_tau and
   // g_delta, and the sums for c, w2, w_cam and b2.
   void optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
-    const int64_t N = units;
+    const int64_t N = kUnits > 0 ? kUnits : units;
     for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
     double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
     const T* w2 = q.w2;

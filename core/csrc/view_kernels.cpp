@@ -103,11 +103,11 @@ struct TileBatch {
 
 // --- the two primitive kinds: α of a batch, and its backward ---------------------------------
 
-template <typename T>
+template <typename T, int kUnits = 0>  // kUnits: ChordTile's compile-time hidden units (0: run time)
 struct NeuralKind {
   NeuralTensors<T> prm;
   Intrinsics<T> k;
-  ChordTile<T> tile;
+  ChordTile<T, kUnits> tile;
   std::array<T, kPixels> dx, dy, dz, near;  // the current tile's pixel directions and near planes
   static int64_t stride(int64_t units) { return neural_grad_stride(units); }
 
@@ -119,7 +119,7 @@ struct NeuralKind {
     std::array<T, kPixels> u, v;
     for (int64_t y = 0; y < kSide; ++y)
       for (int64_t x = 0; x < kSide; ++x) u[y * kSide + x] = T(b.x0 + x) + T(0.5), v[y * kSide + x] = T(b.y0 + y) + T(0.5);
-    ChordTile<T>::directions(u.data(), v.data(), kPixels, k, dx.data(), dy.data(), dz.data(), near.data());
+    ChordTile<T, kUnits>::directions(u.data(), v.data(), kPixels, k, dx.data(), dy.data(), dz.data(), near.data());
   }
 
   void load(const TileBatch<T>& b) {
@@ -538,7 +538,10 @@ std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::
     const Intrinsics<T> k = read_intrinsics<T>(intrinsics);
     result = forward_outputs(colors, v[0], height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
       const View<T> view{g, v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(), v[2].data_ptr<T>()};
-      view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T>(prm, k, backward); }, out);
+      if (prm.N == 8)   // the default width, unrolled
+        view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T, 8>(prm, k, backward); }, out);
+      else
+        view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T>(prm, k, backward); }, out);
     });
   });
   return result;
@@ -567,10 +570,14 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
     const View<T> view{Grid(height, width), v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(),
                        v[2].data_ptr<T>()};
     const int64_t stride = NeuralKind<T>::stride(prm.N);
-    const GradSums sums = view_backward<T>(
-        view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(), g_depth.data_ptr<T>(),
-        g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride,
-        [&](bool backward) { return NeuralKind<T>(prm, k, backward); });
+    const auto run = [&](auto make_kind) {
+      return view_backward<T>(view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(),
+                              g_depth.data_ptr<T>(), g_trans.data_ptr<T>(), trans64.data_ptr<double>(),
+                              last.data_ptr<int32_t>(), stride, make_kind);
+    };
+    const GradSums sums = prm.N == 8   // the default width, unrolled
+        ? run([&](bool backward) { return NeuralKind<T, 8>(prm, k, backward); })
+        : run([&](bool backward) { return NeuralKind<T>(prm, k, backward); });
     grads = unpack_grads<T>(sums, order, stride, {colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax});
   });
   return grads;
