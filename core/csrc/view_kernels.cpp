@@ -17,14 +17,17 @@
 //   w_i = α_i T_i,  T_{i+1} = T_i (1 − α_i),
 // skipping α = 0 (below 1/255, a miss) and stopping at the first pair that would take T below
 // t_min (3DGS: that pair is not composited, and the pixel is done). The pixel keeps its final T
-// (double) and `last`, the list position after its last composited pair.
+// (double) and `last`, the list position after its last composited pair; every list entry keeps
+// whether it composited any pixel (`used`).
 //
 // Backward, per tile: each pixel starts from its final T and walks the list back to front from
 // `last`, recovering T_i = T_{i+1} / (1 − α_i) and the suffix
 //   S_i = Σ_{j>i} (g_C·c_j + g_D z_j) α_j T_j + g_T T_final,
 // so that ∂L/∂α_i = (g_C·c_i + g_D z_i) T_i − S_i / (1 − α_i), ∂L/∂c_i = g_C α_i T_i and
 // ∂L/∂z_i = g_D α_i T_i; the pair kernel's backward turns ∂L/∂α_i into the primitive's
-// parameter gradients. Each thread sums into its own buffer (double), reduced at the end.
+// parameter gradients. An entry that composited no pixel (all misses, α below 1/255, or pixels
+// already done) has no gradient and is skipped before its pixels are gathered. Each thread sums
+// into its own buffer (double), reduced at the end.
 //
 // Outputs are the raw sums Σ w_i c_i, Σ w_i z_i and T; the background, α = 1 − T and the mean
 // depth are formed in torch (core/fused.py), which also differentiates them.
@@ -228,6 +231,7 @@ struct ForwardOut {
   void* trans;              // (H, W) T
   double* trans64;          // (H, W)
   int32_t* last;            // (H, W)
+  uint8_t* used;            // (entries,) zero-initialised
   int64_t counters[4] = {0, 0, 0, 0};  // evaluated pairs, composited pairs, terminated pixels, candidate pairs
 };
 
@@ -263,6 +267,7 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
         kind.alpha(p, batch, alpha.data());
         const double cr = view.colors[3 * p], cg = view.colors[3 * p + 1], cb = view.colors[3 * p + 2];
         const double zp = view.depth[p];
+        bool any = false;
         for (int64_t j = 0; j < batch.m; ++j) {
           const double a = alpha[j];
           if (a == 0.0) continue;  // below 1/255, or a miss
@@ -280,7 +285,9 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
           tr[i] = next;
           last[i] = int32_t(li - offsets[t] + 1);
           ++composited;
+          any = true;
         }
+        out.used[li] = uint8_t(any);
       }
       for (int64_t y = 0; y < batch.h; ++y)
         for (int64_t x = 0; x < batch.w; ++x) {
@@ -318,7 +325,7 @@ inline double* grad_buffer(size_t doubles) {
 // Gradients of the per-primitive inputs: colors (P, 3), depth (P,), and the kind's parameters
 // (stride doubles per primitive, in the layout of Kind::backward's acc), as per-thread double sums.
 template <typename T, typename MakeKind>
-GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_t* entries,
+GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_t* entries, const uint8_t* used,
                        const T* g_color, const T* g_depth, const T* g_trans, const double* trans64,
                        const int32_t* last_in, int64_t stride, MakeKind&& make_kind) {
   const Grid& g = view.grid;
@@ -351,6 +358,7 @@ GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_
           longest = std::max(longest, last[i]);
         }
       for (int64_t pos = longest - 1; pos >= 0; --pos) {  // back to front
+        if (!used[offsets[t] + pos]) continue;
         const int64_t p = entries[offsets[t] + pos];
         batch.gather(view.bounds + 4 * p, [&](int32_t i) { return pos < last[i]; });
         if (batch.m == 0) continue;
@@ -481,7 +489,7 @@ std::vector<at::Tensor> in_order(const std::vector<at::Tensor>& tensors, const a
 }
 
 // Runs the forward on the gathered tensors (bounds (V, 4) first); returns acc_color, acc_depth, T,
-// T (float64), last, offsets, entries, counters.
+// T (float64), last, offsets, entries, used, counters.
 template <typename Run>
 std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tensor& bounds, int64_t height,
                                         int64_t width, Run&& run) {
@@ -496,19 +504,21 @@ std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tens
   at::Tensor trans = at::empty({height, width}, colors.options());
   at::Tensor trans64 = at::empty({height, width}, colors.options().dtype(at::kDouble));
   at::Tensor last = at::empty({height, width}, colors.options().dtype(at::kInt));
+  at::Tensor used = at::zeros({entries.numel()}, colors.options().dtype(at::kByte));
   ForwardOut out;
   out.acc_color = acc_color.data_ptr(), out.acc_depth = acc_depth.data_ptr(), out.trans = trans.data_ptr();
-  out.trans64 = trans64.data_ptr<double>(), out.last = last.data_ptr<int32_t>();
+  out.trans64 = trans64.data_ptr<double>(), out.last = last.data_ptr<int32_t>(), out.used = used.data_ptr<uint8_t>();
   run(g, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), out);
   out.counters[3] = candidates;
   at::Tensor counters = at::empty({4}, bounds.options());
   std::copy(out.counters, out.counters + 4, counters.data_ptr<int64_t>());
-  return {acc_color, acc_depth, trans, trans64, last, offsets, entries, counters};
+  return {acc_color, acc_depth, trans, trans64, last, offsets, entries, used, counters};
 }
 
 void check_backward(const at::Tensor& g_color, const at::Tensor& g_depth, const at::Tensor& g_trans,
                     const at::Tensor& trans64, const at::Tensor& last, const at::Tensor& offsets,
-                    const at::Tensor& entries, const at::Tensor& order, int64_t height, int64_t width) {
+                    const at::Tensor& entries, const at::Tensor& used, const at::Tensor& order, int64_t height,
+                    int64_t width) {
   check_params({g_color, g_depth, g_trans});
   TORCH_CHECK(g_color.sizes() == at::IntArrayRef({height, width, 3}) && g_depth.sizes() == at::IntArrayRef({height, width}) &&
                   g_trans.sizes() == at::IntArrayRef({height, width}),
@@ -520,6 +530,8 @@ void check_backward(const at::Tensor& g_color, const at::Tensor& g_depth, const 
                   order.is_contiguous(),
               "saved forward state must be contiguous");
   TORCH_CHECK(offsets.numel() == Grid(height, width).tiles() + 1, "offsets do not match the view");
+  TORCH_CHECK(used.scalar_type() == at::kByte && used.is_contiguous() && used.numel() == entries.numel(),
+              "used must be uint8 (entries,)");
 }
 
 std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::Tensor& order, const at::Tensor& intrinsics,
@@ -556,11 +568,11 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
                                              const at::Tensor& b2, const at::Tensor& inv_smax,
                                              const at::Tensor& trans64, const at::Tensor& last,
                                              const at::Tensor& offsets, const at::Tensor& entries,
-                                             const at::Tensor& order) {
+                                             const at::Tensor& used, const at::Tensor& order) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, g_color});
   check_view(bounds, colors, depth, height, width);
-  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, order, height, width);
+  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, used, order, height, width);
   const std::vector<at::Tensor> v = in_order({bounds, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax}, order);
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "neural_view_backward", [&] {
@@ -571,7 +583,8 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
                        v[2].data_ptr<T>()};
     const int64_t stride = NeuralKind<T>::stride(prm.N);
     const auto run = [&](auto make_kind) {
-      return view_backward<T>(view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(),
+      return view_backward<T>(view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), used.data_ptr<uint8_t>(),
+                              g_color.data_ptr<T>(),
                               g_depth.data_ptr<T>(), g_trans.data_ptr<T>(), trans64.data_ptr<double>(),
                               last.data_ptr<int32_t>(), stride, make_kind);
     };
@@ -615,11 +628,12 @@ std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const 
                                                const at::Tensor& mean2d, const at::Tensor& conic,
                                                const at::Tensor& opacity, const at::Tensor& trans64,
                                                const at::Tensor& last, const at::Tensor& offsets,
-                                               const at::Tensor& entries, const at::Tensor& order) {
+                                               const at::Tensor& entries, const at::Tensor& used,
+                                               const at::Tensor& order) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, mean2d, conic, opacity, g_color});
   check_view(bounds, colors, depth, height, width);
-  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, order, height, width);
+  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, used, order, height, width);
   const std::vector<at::Tensor> v = in_order({bounds, colors, depth, mean2d, conic, opacity}, order);
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "gaussian_view_backward", [&] {
@@ -628,8 +642,8 @@ std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const 
                        v[2].data_ptr<T>()};
     const int64_t stride = GaussianKind<T>::stride(0);
     const GradSums sums = view_backward<T>(
-        view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(), g_depth.data_ptr<T>(),
-        g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride, [&](bool) {
+        view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), used.data_ptr<uint8_t>(), g_color.data_ptr<T>(),
+        g_depth.data_ptr<T>(), g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride, [&](bool) {
           return GaussianKind<T>(v[3].data_ptr<T>(), v[4].data_ptr<T>(), v[5].data_ptr<T>());
         });
     grads = unpack_grads<T>(sums, order, stride, {colors, depth, mean2d, conic, opacity});
