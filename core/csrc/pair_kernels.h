@@ -157,24 +157,6 @@ inline T alpha_slope_from_expm1(T expm1_neg_depth) {
   return passes ? expm1_neg_depth + T(1) : T(0);
 }
 
-// Σ_j x_j y_j, accumulated in double
-template <typename T>
-double dot(const T* x, const T* y, int64_t n) {
-  double sum = 0;
-#pragma omp simd reduction(+ : sum)
-  for (int64_t j = 0; j < n; ++j) sum += double(x[j] * y[j]);
-  return sum;
-}
-
-// Σ_j x_j, accumulated in double
-template <typename T>
-double total(const T* x, int64_t n) {
-  double sum = 0;
-#pragma omp simd reduction(+ : sum)
-  for (int64_t j = 0; j < n; ++j) sum += double(x[j]);
-  return sum;
-}
-
 // =============================================================================================
 // Neural primitive: rays through one bounding ellipsoid (DESIGN.md "Splattable neural primitive").
 
@@ -251,8 +233,8 @@ struct ChordTile {
   std::vector<double> sum_c, sum_w2, sum_wx, sum_wy, sum_wz;  // backward: per-unit gradient sums
   std::vector<T> integral;               // I
   std::vector<T> neg_depth, expm1_neg;   // −max(I, 0) and expm1 of it (eq. 9)
-  // backward: ∂L/∂I, ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂p_r, ∂L/∂ℓ* / A, ∂L/∂A, ∂L/∂d'_r
-  std::vector<T> g_I, g_tau, g_delta, g_p0, g_p1, g_p2, g_mid, g_A, g_e;
+  // backward: ∂L/∂I, ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂p_r, ∂L/∂ℓ* / A, ∂L/∂A
+  std::vector<T> g_I, g_tau, g_delta, g_p0, g_p1, g_p2, g_mid, g_A;
 
   ChordTile(int64_t n_units, int64_t capacity, bool backward) : cap(capacity), units(n_units) {
     for (auto* buf : chord_fields()) buf->resize(cap);
@@ -263,7 +245,7 @@ struct ChordTile {
     if (backward) {
       for (auto* buf : {&sin_p, &cos_x, &slope}) buf->resize(cap * units);
       for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) buf->resize(units);
-      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_e}) buf->resize(cap);
+      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A}) buf->resize(cap);
     }
   }
 
@@ -457,23 +439,23 @@ struct ChordTile {
       g_A[j] = -g_s * (half[j] * half[j]) / A[j] - g_mid[j] * l_mid[j];
     }
     *acc.inv_smax += sum_inv_smax;
+    // one pass over the pixels for the 12 sums (a batch holds one or two pixels at 64×64, where
+    // a reduction loop per sum cost more than the sums)
     const T* d[3] = {d0.data(), d1.data(), d2.data()};
     const T* e[3] = {e0.data(), e1.data(), e2.data()};
     const T* gp[3] = {g_p0.data(), g_p1.data(), g_p2.data()};
-    for (int r = 0; r < 3; ++r) {
-      const T* er = e[r];
-      const T* gpr = gp[r];
-      const T* lm = l_mid.data();
-      const T* gm = g_mid.data();
-      const T* ga = g_A.data();
-      T* ge = g_e.data();
-      // ∂L/∂d'_r: through p (ℓ* p_r), ℓ* (−o'_r/A) and A (2 d'_r)
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j) ge[j] = lm[j] * gpr[j] - gm[j] * o[r] + T(2) * ga[j] * er[j];
-      for (int f = 0; f < 3; ++f) acc.m_cam[3 * r + f] += dot(ge, d[f], n);
-      // ∂L/∂o'_r: through p (1) and ℓ* (−d'_r/A)
-      acc.o_ell[r] += total(gpr, n) - dot(gm, er, n);
+    double sum_m[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, sum_o[3] = {0, 0, 0};
+    for (int64_t j = 0; j < n; ++j) {
+      for (int r = 0; r < 3; ++r) {
+        // ∂L/∂d'_r: through p (ℓ* p_r), ℓ* (−o'_r/A) and A (2 d'_r)
+        const T ge = l_mid[j] * gp[r][j] - g_mid[j] * o[r] + T(2) * g_A[j] * e[r][j];
+        for (int f = 0; f < 3; ++f) sum_m[3 * r + f] += double(ge * d[f][j]);
+        // ∂L/∂o'_r: through p (1) and ℓ* (−d'_r/A)
+        sum_o[r] += double(gp[r][j]) - double(g_mid[j] * e[r][j]);
+      }
     }
+    for (int i = 0; i < 9; ++i) acc.m_cam[i] += sum_m[i];
+    for (int r = 0; r < 3; ++r) acc.o_ell[r] += sum_o[r];
   }
 };
 

@@ -120,7 +120,8 @@ std::vector<at::Tensor> sh_color_backward(const at::Tensor& grad, const at::Tens
                                           int64_t degree) {
   check_params({grad, sh, v});
   const int64_t P = sh.size(0), K = sh.size(1);
-  at::Tensor g_sh = at::zeros_like(sh), g_v = at::empty_like(v);
+  // the coefficients above the degree get zeros, the others are written: no zero pass over all
+  at::Tensor g_sh = at::empty_like(sh), g_v = at::empty_like(v);
   AT_DISPATCH_FLOATING_TYPES(sh.scalar_type(), "sh_color_backward", [&] {
     using T = scalar_t;
     const T *s = sh.data_ptr<T>(), *vp = v.data_ptr<T>(), *g = grad.data_ptr<T>();
@@ -137,6 +138,7 @@ std::vector<at::Tensor> sh_color_backward(const at::Tensor& grad, const at::Tens
           g_raw[ch] = raw + T(0.5) >= T(0) ? g[3 * p + ch] : T(0);  // clamp_min passes at equality
         }
         T g_d[3] = {0, 0, 0};
+        std::fill(gs + (p * K + n) * 3, gs + (p + 1) * K * 3, T(0));
         for (int k = 0; k < n; ++k) {
           const T* sk = s + (p * K + k) * 3;
           T* gsk = gs + (p * K + k) * 3;
