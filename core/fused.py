@@ -178,22 +178,23 @@ class _View(torch.autograd.Function):
         inputs = [t.contiguous() for t in (colors, depth, *params)]
         bounds, order = bounds.contiguous(), order.contiguous()
         lead = (bounds, intrinsics.contiguous()) if kind == "neural" else (bounds,)
-        acc_color, acc_depth, trans, trans64, last, offsets, entries, used, counters = getattr(
+        acc_color, acc_depth, trans, trans64, last, offsets, entries, used, counters, *gathered = getattr(
             _ops(), f"{kind}_view_forward")(bounds, order, *lead[1:], *inputs, height, width, t_min)
-        ctx.kind, ctx.lead = kind, lead
-        ctx.save_for_backward(*inputs, trans64, last, offsets, entries, used, order)
+        # gathered: bounds and the per-primitive inputs in depth order, which the backward reads
+        ctx.kind, ctx.intrinsics, ctx.count = kind, lead[1:], bounds.shape[0]
+        ctx.save_for_backward(*gathered, trans64, last, offsets, entries, used, order)
         ctx.mark_non_differentiable(counters)
         return acc_color, acc_depth, trans, counters
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_color, g_depth, g_trans, _):
-        *inputs, trans64, last, offsets, entries, used, order = ctx.saved_tensors
+        bounds, *inputs, trans64, last, offsets, entries, used, order = ctx.saved_tensors
         dtype = inputs[0].dtype
         grads = [torch.zeros(s, dtype=dtype) if g is None else g.contiguous()
                  for g, s in zip((g_color, g_depth, g_trans), (last.shape + (3,), last.shape, last.shape))]
-        out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, *ctx.lead, *inputs, trans64, last, offsets, entries,
-                                                            used, order)
+        out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, bounds, *ctx.intrinsics, *inputs, trans64, last,
+                                                            offsets, entries, used, order, ctx.count)
         return None, None, None, None, None, None, None, *out
 
 

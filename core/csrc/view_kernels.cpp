@@ -196,6 +196,7 @@ struct GaussianKind {
     splat(p, u, v, m);
     const T* q = conic + 3 * p;
     const T mx = mean2d[2 * p], my = mean2d[2 * p + 1];
+    double s[6] = {0, 0, 0, 0, 0, 0};   // this entry's sums, added to acc once
     for (int64_t j = 0; j < m; ++j) {
       const T value = opacity[p] * e[j];
       const T a = gaussian_alpha(power[j], std::min(T(kAlphaMax), value));
@@ -204,13 +205,14 @@ struct GaussianKind {
       if (!gaussian_passes(power[j], value)) continue;  // clamped at 0.99: no gradient
       const T dx = u[j] - mx, dy = v[j] - my;
       const T g_power = g_alpha * value;  // (exp)' = exp; clamp_max(power, 0) passes at power ≤ 0
-      acc[0] -= double(g_power * (-q[0] * dx - q[1] * dy));  // ∂dx/∂mean_x = −1
-      acc[1] -= double(g_power * (-q[2] * dy - q[1] * dx));
-      acc[2] += double(T(-0.5) * g_power * dx * dx);
-      acc[3] += double(-g_power * dx * dy);
-      acc[4] += double(T(-0.5) * g_power * dy * dy);
-      acc[5] += double(g_alpha * e[j]);
+      s[0] -= double(g_power * (-q[0] * dx - q[1] * dy));  // ∂dx/∂mean_x = −1
+      s[1] -= double(g_power * (-q[2] * dy - q[1] * dx));
+      s[2] += double(T(-0.5) * g_power * dx * dx);
+      s[3] += double(-g_power * dx * dy);
+      s[4] += double(T(-0.5) * g_power * dy * dy);
+      s[5] += double(g_alpha * e[j]);
     }
+    for (int k = 0; k < 6; ++k) acc[k] += s[k];
   }
 };
 
@@ -366,7 +368,8 @@ GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_
         const double zp = view.depth[p];
         double* acc = mine + p * width;
         if (!touched[p]) std::fill(acc, acc + width, 0.0), touched[p] = 1;
-        double* acc_view = acc + stride;  // colour, depth
+        // this entry's colour and depth sums, in locals (registers) rather than through acc
+        double s_r = 0, s_g = 0, s_b = 0, s_z = 0;
         auto grad_of = [&](int64_t j, T alpha) -> T {
           const int32_t i = batch.local[j];
           const double a = alpha, keep = 1.0 - a;
@@ -376,45 +379,57 @@ GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_
           const double w = a * before;
           suffix[i] += wgt * w;
           tr[i] = before;
-          acc_view[0] += gr[i] * w, acc_view[1] += gg[i] * w, acc_view[2] += gb[i] * w;
-          acc_view[3] += gz[i] * w;
+          s_r += gr[i] * w, s_g += gg[i] * w, s_b += gb[i] * w, s_z += gz[i] * w;
           return T(g_alpha);
         };
         kind.backward(p, batch, grad_of, acc);
+        double* acc_view = acc + stride;  // colour, depth
+        acc_view[0] += s_r, acc_view[1] += s_g, acc_view[2] += s_b, acc_view[3] += s_z;
       }
     }
   }
   return out;
 }
 
-// Copy the double sums of the V drawn primitives (in depth order) into gradient tensors shaped as
-// `like` (all P primitives), row order[v] from sums row v, zero elsewhere: colors, depth, then the
-// kind's fields, whose per-primitive sizes add up to stride.
+// Copy the double sums of the V drawn primitives (in depth order) into gradient tensors for all P
+// primitives shaped as `like` (V rows), row order[v] from sums row v, zero elsewhere: colors,
+// depth, then the kind's fields, whose per-primitive sizes add up to stride.
 template <typename T>
 std::vector<at::Tensor> unpack_grads(const GradSums& grad, const at::Tensor& order, int64_t stride,
-                                     const std::vector<at::Tensor>& like) {
-  const int64_t P = like[0].size(0), V = order.numel();
+                                     const std::vector<at::Tensor>& like, int64_t P) {
+  const int64_t V = order.numel();
   const int64_t* ids = order.data_ptr<int64_t>();
   std::vector<at::Tensor> out;
   std::vector<T*> dst;
   std::vector<int64_t> size;
   for (const at::Tensor& t : like) {
-    out.push_back(V == P ? at::empty_like(t) : at::zeros_like(t));   // V == P: every row is written
+    std::vector<int64_t> sizes = t.sizes().vec();
+    sizes[0] = P;
+    // V == P: every row is written (order holds each primitive once)
+    out.push_back(V == P ? at::empty(sizes, t.options()) : at::zeros(sizes, t.options()));
     dst.push_back(out.back().data_ptr<T>());
-    size.push_back(P > 0 ? t.numel() / P : 0);
+    int64_t row = 1;
+    for (size_t d = 1; d < sizes.size(); ++d) row *= sizes[d];
+    size.push_back(row);
   }
   const int64_t width = stride + 4;
+  const std::vector<double> zeros(width, 0.0);
   at::parallel_for(0, V, 1024, [&](int64_t v0, int64_t v1) {
     std::vector<double> total(width);
     for (int64_t v = v0; v < v1; ++v) {
       const int64_t p = ids[v];
-      std::fill(total.begin(), total.end(), 0.0);   // the threads' sums, in thread order
-      for (int th = 0; th < grad.threads; ++th) {
-        if (!grad.touched[size_t(th) * V + v]) continue;
-        const double* theirs = grad.sums + (size_t(th) * V + v) * width;
-        for (int64_t e = 0; e < width; ++e) total[e] += theirs[e];
+      const double* s = zeros.data();
+      if (grad.threads == 1) {
+        if (grad.touched[v]) s = grad.sums + v * width;
+      } else {
+        std::fill(total.begin(), total.end(), 0.0);   // the threads' sums, in thread order
+        for (int th = 0; th < grad.threads; ++th) {
+          if (!grad.touched[size_t(th) * V + v]) continue;
+          const double* theirs = grad.sums + (size_t(th) * V + v) * width;
+          for (int64_t e = 0; e < width; ++e) total[e] += theirs[e];
+        }
+        s = total.data();
       }
-      const double* s = total.data();
       T* gc = dst[0] + 3 * p;
       gc[0] = T(s[stride]), gc[1] = T(s[stride + 1]), gc[2] = T(s[stride + 2]);
       dst[1][p] = T(s[stride + 3]);
@@ -460,13 +475,31 @@ void check_order(const at::Tensor& order, const at::Tensor& bounds, int64_t heig
 
 // Rows order[v] of a contiguous (P, ...) tensor of 4- or 8-byte elements, copied as bits: a
 // loop per row (index_select pays a memcpy call per row of a few bytes).
-template <typename Bits>
+// kRow > 0: the row length fixed at compile time (the short rows of the view's tensors).
+template <typename Bits, int kRow>
 void copy_rows(const at::Tensor& from, at::Tensor& to, const int64_t* ids, int64_t V, int64_t row) {
   const Bits* src = static_cast<const Bits*>(from.data_ptr());
   Bits* dst = static_cast<Bits*>(to.data_ptr());
-  for (int64_t v = 0; v < V; ++v) {
-    const Bits* r = src + ids[v] * row;
-    for (int64_t e = 0; e < row; ++e) dst[v * row + e] = r[e];
+  const int64_t n = kRow > 0 ? kRow : row;
+  at::parallel_for(0, V, 4096, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      const Bits* r = src + ids[v] * n;
+      for (int64_t e = 0; e < n; ++e) dst[v * n + e] = r[e];
+    }
+  });
+}
+
+template <typename Bits>
+void copy_rows(const at::Tensor& from, at::Tensor& to, const int64_t* ids, int64_t V, int64_t row) {
+  switch (row) {
+    case 1: return copy_rows<Bits, 1>(from, to, ids, V, row);
+    case 2: return copy_rows<Bits, 2>(from, to, ids, V, row);
+    case 3: return copy_rows<Bits, 3>(from, to, ids, V, row);
+    case 4: return copy_rows<Bits, 4>(from, to, ids, V, row);
+    case 8: return copy_rows<Bits, 8>(from, to, ids, V, row);
+    case 9: return copy_rows<Bits, 9>(from, to, ids, V, row);
+    case 24: return copy_rows<Bits, 24>(from, to, ids, V, row);
+    default: return copy_rows<Bits, 0>(from, to, ids, V, row);
   }
 }
 
@@ -489,7 +522,8 @@ std::vector<at::Tensor> in_order(const std::vector<at::Tensor>& tensors, const a
 }
 
 // Runs the forward on the gathered tensors (bounds (V, 4) first); returns acc_color, acc_depth, T,
-// T (float64), last, offsets, entries, used, counters.
+// T (float64), last, offsets, entries, used, counters (the caller appends the gathered tensors,
+// which the backward takes instead of gathering again).
 template <typename Run>
 std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tensor& bounds, int64_t height,
                                         int64_t width, Run&& run) {
@@ -532,6 +566,7 @@ void check_backward(const at::Tensor& g_color, const at::Tensor& g_depth, const 
   TORCH_CHECK(offsets.numel() == Grid(height, width).tiles() + 1, "offsets do not match the view");
   TORCH_CHECK(used.scalar_type() == at::kByte && used.is_contiguous() && used.numel() == entries.numel(),
               "used must be uint8 (entries,)");
+  TORCH_CHECK(order.dim() == 1, "order must be (V,)");
 }
 
 std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::Tensor& order, const at::Tensor& intrinsics,
@@ -556,10 +591,12 @@ std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::
         view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T>(prm, k, backward); }, out);
     });
   });
+  result.insert(result.end(), v.begin(), v.end());
   return result;
 }
 
-// Gradients for (colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax).
+// Gradients for (colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax) of all `count` primitives,
+// from the forward's tensors in depth order (bounds … inv_smax: its gathered outputs).
 std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at::Tensor& g_depth,
                                              const at::Tensor& g_trans, const at::Tensor& bounds,
                                              const at::Tensor& intrinsics, const at::Tensor& colors,
@@ -568,12 +605,12 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
                                              const at::Tensor& b2, const at::Tensor& inv_smax,
                                              const at::Tensor& trans64, const at::Tensor& last,
                                              const at::Tensor& offsets, const at::Tensor& entries,
-                                             const at::Tensor& used, const at::Tensor& order) {
+                                             const at::Tensor& used, const at::Tensor& order, int64_t count) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, g_color});
   check_view(bounds, colors, depth, height, width);
   check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, used, order, height, width);
-  const std::vector<at::Tensor> v = in_order({bounds, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax}, order);
+  const std::vector<at::Tensor> v = {bounds, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax};
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "neural_view_backward", [&] {
     using T = scalar_t;
@@ -591,7 +628,7 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
     const GradSums sums = prm.N == 8   // the default width, unrolled
         ? run([&](bool backward) { return NeuralKind<T, 8>(prm, k, backward); })
         : run([&](bool backward) { return NeuralKind<T>(prm, k, backward); });
-    grads = unpack_grads<T>(sums, order, stride, {colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax});
+    grads = unpack_grads<T>(sums, order, stride, {colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax}, count);
   });
   return grads;
 }
@@ -618,10 +655,12 @@ std::vector<at::Tensor> gaussian_view_forward(const at::Tensor& bounds, const at
       }, out);
     });
   });
+  result.insert(result.end(), v.begin(), v.end());
   return result;
 }
 
-// Gradients for (colors, depth, mean2d, conic, opacity).
+// Gradients for (colors, depth, mean2d, conic, opacity) of all `count` primitives, from the
+// forward's tensors in depth order (bounds … opacity: its gathered outputs).
 std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const at::Tensor& g_depth,
                                                const at::Tensor& g_trans, const at::Tensor& bounds,
                                                const at::Tensor& colors, const at::Tensor& depth,
@@ -629,12 +668,12 @@ std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const 
                                                const at::Tensor& opacity, const at::Tensor& trans64,
                                                const at::Tensor& last, const at::Tensor& offsets,
                                                const at::Tensor& entries, const at::Tensor& used,
-                                               const at::Tensor& order) {
+                                               const at::Tensor& order, int64_t count) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, mean2d, conic, opacity, g_color});
   check_view(bounds, colors, depth, height, width);
   check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, used, order, height, width);
-  const std::vector<at::Tensor> v = in_order({bounds, colors, depth, mean2d, conic, opacity}, order);
+  const std::vector<at::Tensor> v = {bounds, colors, depth, mean2d, conic, opacity};
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "gaussian_view_backward", [&] {
     using T = scalar_t;
@@ -646,7 +685,7 @@ std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const 
         g_depth.data_ptr<T>(), g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride, [&](bool) {
           return GaussianKind<T>(v[3].data_ptr<T>(), v[4].data_ptr<T>(), v[5].data_ptr<T>());
         });
-    grads = unpack_grads<T>(sums, order, stride, {colors, depth, mean2d, conic, opacity});
+    grads = unpack_grads<T>(sums, order, stride, {colors, depth, mean2d, conic, opacity}, count);
   });
   return grads;
 }
