@@ -228,8 +228,12 @@ struct ChordTile {
   // of a small splat has few pixels, but every pixel has `units` terms)
   int64_t units;
   std::vector<T> w_t;                    // the primitive's w_cam transposed, (3, N)
-  std::vector<T> a, phase, x;            // a_k = w_cam_k · d̂, a_k τ_m + c_k, a_k Δ/2
-  std::vector<T> cos_p, sin_x, sinc_x, sin_p, cos_x, slope;
+  std::vector<T> a;                      // a_k = w_cam_k · d̂
+  // the phases a_k τ_m + c_k at [0, L) and x = a_k Δ/2 at [L, 2L) of one buffer (L = n · units),
+  // and their sines and cosines: the backward takes both of both in one SIMD sincos pass
+  std::vector<T> px, sin_px, cos_px;
+  T *phase = nullptr, *x = nullptr, *cos_p = nullptr, *sin_x = nullptr, *sin_p = nullptr, *cos_x = nullptr;  // set by optical_depth
+  std::vector<T> sinc_x, slope;
   std::vector<double> sum_c, sum_w2, sum_wx, sum_wy, sum_wz;  // backward: per-unit gradient sums
   std::vector<T> integral;               // I
   std::vector<T> neg_depth, expm1_neg;   // −max(I, 0) and expm1 of it (eq. 9)
@@ -239,11 +243,12 @@ struct ChordTile {
   ChordTile(int64_t n_units, int64_t capacity, bool backward) : cap(capacity), units(n_units) {
     for (auto* buf : chord_fields()) buf->resize(cap);
     for (auto* buf : {&integral, &neg_depth, &expm1_neg, &g_I}) buf->resize(cap);
-    for (auto* buf : {&a, &phase, &x, &cos_p, &sin_x, &sinc_x}) buf->resize(cap * units);
+    for (auto* buf : {&a, &sinc_x}) buf->resize(cap * units);
+    for (auto* buf : {&px, &sin_px, &cos_px}) buf->resize(2 * cap * units);
     w_t.resize(3 * units);
     pixel.resize(cap);
     if (backward) {
-      for (auto* buf : {&sin_p, &cos_x, &slope}) buf->resize(cap * units);
+      slope.resize(cap * units);
       for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) buf->resize(units);
       for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A}) buf->resize(cap);
     }
@@ -333,9 +338,11 @@ struct ChordTile {
     T *wx = w_t.data(), *wy = wx + N, *wz = wy + N;
     for (int64_t k = 0; k < N; ++k) wx[k] = q.w_cam[3 * k], wy[k] = q.w_cam[3 * k + 1], wz[k] = q.w_cam[3 * k + 2];
     const T* c = q.c;
+    phase = px.data(), x = px.data() + L;
+    sin_p = sin_px.data(), sin_x = sin_px.data() + L, cos_p = cos_px.data(), cos_x = cos_px.data() + L;
     for (int64_t j = 0; j < n; ++j) {
       const T dx = d0[j], dy = d1[j], dz = d2[j], tm = tau_m[j], dl = delta[j];
-      T *aj = a.data() + j * N, *pj = phase.data() + j * N, *xj = x.data() + j * N;
+      T *aj = a.data() + j * N, *pj = phase + j * N, *xj = x + j * N;
 #pragma omp simd
       for (int64_t k = 0; k < N; ++k) {
         aj[k] = wx[k] * dx + wy[k] * dy + wz[k] * dz;
@@ -344,18 +351,17 @@ struct ChordTile {
       }
     }
     if (backward) {  // also sin of the phase and cos of x, from the same range reductions
-      simd_sincos(phase.data(), sin_p.data(), cos_p.data(), L);
-      simd_sincos(x.data(), sin_x.data(), cos_x.data(), L);
+      simd_sincos(px.data(), sin_px.data(), cos_px.data(), 2 * L);
     } else {
-      simd_cos(phase.data(), cos_p.data(), L);
-      simd_sin(x.data(), sin_x.data(), L);
+      simd_cos(phase, cos_p, L);
+      simd_sin(x, sin_x, L);
     }
-    const T *xs = x.data(), *sx = sin_x.data();
+    const T *xs = x, *sx = sin_x;
     T* s = sinc_x.data();
 #pragma omp simd
     for (int64_t e = 0; e < L; ++e) s[e] = sinc(xs[e], sx[e]);
     for (int64_t j = 0; j < n; ++j) {
-      const T* cj = cos_p.data() + j * N;
+      const T* cj = cos_p + j * N;
       const T* sj = s + j * N;
       T sum = T(0);
       for (int64_t k = 0; k < N; ++k) sum += q.w2[k] * delta[j] * cj[k] * sj[k];  // in order, as the twin
@@ -364,7 +370,7 @@ struct ChordTile {
     }
     simd_expm1(neg_depth.data(), expm1_neg.data(), n);
     if (backward) {
-      const T* cx = cos_x.data();
+      const T* cx = cos_x;
       T* sl = slope.data();
 #pragma omp simd
       for (int64_t e = 0; e < L; ++e) sl[e] = sinc_slope(xs[e], cx[e], s[e]);
@@ -383,7 +389,7 @@ struct ChordTile {
       const T gI = g_I[j], dl = delta[j], tm = tau_m[j], dx = d0[j], dy = d1[j], dz = d2[j];
       sum_b2 += double(gI * dl);
       const int64_t o = j * N;
-      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p.data() + o, *spj = sin_p.data() + o;
+      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p + o, *spj = sin_p + o;
       const T* slj = slope.data() + o;
       T gt = T(0), gd = gI * q.b2;
 #pragma omp simd reduction(+ : gt, gd)
