@@ -204,9 +204,9 @@ def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, 
     returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
     composited pairs, terminated pixels, candidate pairs)). order (V,) int64: the primitives to
     draw, front to back, each once; bounds (P, 4) int64 inclusive pixel boxes, inside the image
-    for those in `order`; the
-    per-primitive tensors (P, ...) as rasterize._neural_view returns them (gradients are zero for
-    the primitives not in `order`)."""
+    for those in `order`; the per-primitive tensors (P, ...) as rasterize._neural_view returns
+    them (gradients are zero for the primitives not in `order`). The op keeps copies of them in
+    depth order for its backward (memory O(V) per-primitive rows, nothing per pair)."""
     return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, colors, depth,
                        m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
 
