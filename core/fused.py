@@ -170,29 +170,31 @@ def gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> torch.Tensor:
 # --- whole-view rasteriser (core/csrc/view_kernels.cpp) -----------------------------------------
 
 class _View(torch.autograd.Function):
-    """Composited sums of one view: (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (3,)),
+    """Composited sums of one view: (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,)),
     differentiable w.r.t. colors, depth and the kind's per-primitive tensors."""
 
     @staticmethod
     def forward(ctx, kind, bounds, order, intrinsics, height, width, t_min, colors, depth, *params):
         inputs = [t.contiguous() for t in (colors, depth, *params)]
-        bounds = bounds.contiguous()
+        bounds, order = bounds.contiguous(), order.contiguous()
         lead = (bounds, intrinsics.contiguous()) if kind == "neural" else (bounds,)
-        acc_color, acc_depth, trans, trans64, last, offsets, entries, counters = getattr(_ops(), f"{kind}_view_forward")(
-            bounds, order.contiguous(), *lead[1:], *inputs, height, width, t_min)
-        ctx.kind, ctx.lead = kind, lead
-        ctx.save_for_backward(*inputs, trans64, last, offsets, entries)
+        acc_color, acc_depth, trans, trans64, last, offsets, entries, used, counters, *gathered = getattr(
+            _ops(), f"{kind}_view_forward")(bounds, order, *lead[1:], *inputs, height, width, t_min)
+        # gathered: bounds and the per-primitive inputs in depth order, which the backward reads
+        ctx.kind, ctx.intrinsics, ctx.count = kind, lead[1:], bounds.shape[0]
+        ctx.save_for_backward(*gathered, trans64, last, offsets, entries, used, order)
         ctx.mark_non_differentiable(counters)
         return acc_color, acc_depth, trans, counters
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_color, g_depth, g_trans, _):
-        *inputs, trans64, last, offsets, entries = ctx.saved_tensors
+        bounds, *inputs, trans64, last, offsets, entries, used, order = ctx.saved_tensors
         dtype = inputs[0].dtype
         grads = [torch.zeros(s, dtype=dtype) if g is None else g.contiguous()
                  for g, s in zip((g_color, g_depth, g_trans), (last.shape + (3,), last.shape, last.shape))]
-        out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, *ctx.lead, *inputs, trans64, last, offsets, entries)
+        out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, bounds, *ctx.intrinsics, *inputs, trans64, last,
+                                                            offsets, entries, used, order, ctx.count)
         return None, None, None, None, None, None, None, *out
 
 
@@ -200,10 +202,11 @@ def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, 
                 inv_smax):
     """Front-to-back compositing of neural primitives over a whole view in one fused kernel:
     returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
-    composited pairs, terminated pixels)). order (V,) int64: the primitives to draw, front to
-    back; bounds (P, 4) int64 inclusive pixel boxes, inside the image for those in `order`; the
-    per-primitive tensors (P, ...) as rasterize._neural_view returns them (gradients are zero for
-    the primitives not in `order`)."""
+    composited pairs, terminated pixels, candidate pairs)). order (V,) int64: the primitives to
+    draw, front to back, each once; bounds (P, 4) int64 inclusive pixel boxes, inside the image
+    for those in `order`; the per-primitive tensors (P, ...) as rasterize._neural_view returns
+    them (gradients are zero for the primitives not in `order`). The op keeps copies of them in
+    depth order for its backward (memory O(V) per-primitive rows, nothing per pair)."""
     return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, colors, depth,
                        m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
 

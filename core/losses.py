@@ -14,6 +14,8 @@ No gradient reaches an invalid pixel. mask=None is every pixel valid.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -142,9 +144,12 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tenso
     return (values * weight).sum() / weight.sum()
 
 
+@functools.lru_cache(maxsize=8)
 def _gaussian_window(dtype, device) -> torch.Tensor:
-    """Normalised 1D Gaussian taps (11,), the same as scipy's gaussian_filter(sigma=1.5, truncate=3.5)."""
-    x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
-    taps = torch.exp(-x * x / (2 * SSIM_SIGMA**2))
-    return (taps / taps.sum()).to(dtype=dtype, device=device)
+    """Normalised 1D Gaussian taps (11,), the same as scipy's gaussian_filter(sigma=1.5, truncate=3.5).
+    Cached per (dtype, device): building it is five small ops a training step (callers never write to it)."""
+    with torch.inference_mode(False):   # a cached inference tensor could not be saved for a backward
+        x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
+        taps = torch.exp(-x * x / (2 * SSIM_SIGMA**2))
+        return (taps / taps.sum()).to(dtype=dtype, device=device)
 

@@ -94,15 +94,14 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
 
     if use_fused:
         # the whole view in one C++ kernel (core/csrc/view_kernels.cpp): same compositing rules; it
-        # reads every per-primitive tensor through `ids` (the visible primitives front to back),
-        # so nothing is gathered here and the gradients land in place
+        # takes every per-primitive tensor with `ids` (the visible primitives front to back) and
+        # gathers and scatters itself, so no autograd op of a gather is recorded here
         if isinstance(prims, NeuralPrimitives):
             out = fused.neural_view(bounds, ids, intrinsics, height, width, t_min, colors, depth, *view)
         else:
             out = fused.gaussian_view(bounds, ids, height, width, t_min, colors, depth, *view)
         acc_color, acc_depth, transmittance, counters = out
-        n_pairs, n_contrib, n_done = counters.tolist()
-        bounds = bounds[ids]
+        n_pairs, n_contrib, n_done, n_candidates = counters.tolist()
     else:
         ids = torch.nonzero(visible).squeeze(1)
         ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
@@ -110,15 +109,15 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
         kernel = _neural_block if isinstance(prims, NeuralPrimitives) else _gaussian_block
         acc_color, acc_depth, transmittance, (n_pairs, n_contrib, n_done) = _composite(
             kernel, [t[ids] for t in view], bounds, colors[ids], depth[ids], intrinsics, height, width, max_pairs, t_min)
-    x0, y0, x1, y1 = bounds.unbind(-1)
-    counts = (x1 - x0 + 1) * (y1 - y0 + 1)
+        x0, y0, x1, y1 = bounds.unbind(-1)
+        n_candidates = int(((x1 - x0 + 1) * (y1 - y0 + 1)).sum())
 
     bg = torch.as_tensor(background, device=device, dtype=dtype)
     color = acc_color + transmittance[..., None] * bg
     alpha = 1.0 - transmittance
     mean_depth = acc_depth / torch.clamp_min(alpha, 1e-10)
     meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
-            "candidate_pairs": int(counts.sum()), "terminated_pixels": n_done}
+            "candidate_pairs": n_candidates, "terminated_pixels": n_done}
     return Render(color, alpha, mean_depth, meta)
 
 

@@ -147,10 +147,12 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             regulariser.backward()
         loss_sum = psnr_sum = 0.0
         backgrounds = None if alphas is None else torch.rand(batch, 3, generator=generator(seed, _BACKGROUND, step))
-        gathered = sync.gather_into(accumulators, strategy.gathering(step + 1))
+        gathering = strategy.gathering(step + 1)
+        gathered = sync.gather_into(accumulators, gathering)
         # k: the view's place in the whole batch (its random background), the same on every rank
         for k, view in sync.share(list(enumerate(views_for_step(seed, step, batch, len(train_cameras))))):
-            before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
+            tracked = strategy.grad_names if gathering else ()   # accumulate reads nothing otherwise
+            before = {n: None if params[n].grad is None else params[n].grad.clone() for n in tracked}
             view_bg, target = bg, images[view]
             if backgrounds is not None:  # the same RGBA pixels "over" another colour
                 view_bg = backgrounds[k].to(device)
@@ -161,7 +163,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
             (loss / batch).backward()
             # this view's own gradients (unscaled), what the densification statistics measure
-            grads = {n: (params[n].grad - before[n]) * batch for n in strategy.grad_names}
+            grads = {n: own_gradient(params[n].grad, before[n], batch) for n in tracked}
             strategy.accumulate(gathered, params, grads, train_cameras[view], step + 1)
             loss_sum += float(loss.detach())
             psnr_sum += float(psnr(out.color.detach().clamp(0, 1), target, mask))
@@ -180,6 +182,14 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
             checkpoint(snapshot(step + 1, state, params, optimizer, accumulators))
     return snapshot(max(iterations, state.step), state, params, optimizer, accumulators)
+
+
+def own_gradient(total: torch.Tensor, before: torch.Tensor | None, batch: int) -> torch.Tensor:
+    """One view's gradient, unscaled, from the accumulated `total` and the `before` it (None: no
+    gradient yet): (total − before) · batch. Without an earlier gradient and with one view a step
+    that is `total` itself, returned without the two copies (the same values, bit for bit)."""
+    own = total if before is None else total - before
+    return own if batch == 1 else own * batch
 
 
 def regularisers(params: dict[str, torch.Tensor], cfg: dict) -> torch.Tensor | None:

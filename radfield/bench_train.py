@@ -11,8 +11,12 @@ timed part by part (the parts are run in the trainer's order, on its own functio
     population        the strategy's per-view gradient statistics (accumulate) and refine
 
 Population control keeps the primitive count fixed (densification starts after the run), so
-each row measures one count: `refine` then costs its checks only. A last column times the real
-`trainer.train` over the same number of steps, end to end, as a check that the parts add up.
+each row measures one count: `refine` then costs its checks only. The `train()` column times the
+real `trainer.train`, end to end, as a check that the parts add up: one run of warm-up + steps
+steps, clocked by its on_step callback, gives the ms per step of the steps after the warm-up,
+with the SH degree schedule at its last stage from step 3 on (as the parts, which render at the
+full degree); the `setup` column is the rest of the call in ms: its set-up (copies of the
+parameters and images, the optimiser, the strategy) and the warm-up steps, paid once per call.
 
 The scene is bench-render's (primitives over a sphere's surface, orbit cameras); the targets are
 renders of the same scene with its colours shifted, so the loss and its gradients are not zero.
@@ -38,7 +42,8 @@ PARTS = ("forward", "loss", "backward", "optimiser", "population")
 @dataclass
 class StepTiming:
     ms: dict[str, float]   # mean ms per step of each part
-    train_ms: float        # mean ms per step of trainer.train, end to end
+    train_ms: float        # marginal ms per step of trainer.train, end to end
+    setup_ms: float        # trainer.train's cost once per call
     pairs: float           # evaluated pixel-primitive pairs per step
 
     @property
@@ -95,7 +100,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = time.perf_counter()
         (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
         t = clock("loss", t)
-        before = {n: params[n].grad.clone() if params[n].grad is not None else 0.0 for n in strategy.grad_names}
+        before = {n: None if params[n].grad is None else params[n].grad.clone() for n in strategy.grad_names}
         t = clock("population", t)
         out = render(trainer.assemble(params, state.kind, state.omega0), cams[view], background=bg, sh_degree=degree)
         t = clock("forward", t)
@@ -106,7 +111,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = clock("loss", t)
         out.color.backward(image.grad)
         t = clock("backward", t)
-        grads = {n: params[n].grad - before[n] for n in strategy.grad_names}
+        grads = {n: trainer.own_gradient(params[n].grad, before[n], 1) for n in strategy.grad_names}
         strategy.accumulate(accumulators, params, grads, cams[view], step + 1)
         t = clock("population", t)
         optimizer.step()
@@ -119,25 +124,44 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
                 totals[part] += spent[part]
             pairs += out.meta["pairs"]
 
+    train_ms, setup_ms = time_train(prims, cams, images, steps, warmup, dev, sync)
+    return StepTiming({p: 1e3 * v / steps for p, v in totals.items()}, train_ms, setup_ms, pairs / steps)
+
+
+def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tuple[float, float]:
+    """trainer.train's ms per step after `warmup` steps, and the rest of the call (see the module
+    docstring), from one run of warmup + steps steps."""
+    cfg = bench_config(warmup + steps)
+    cfg["sh_increase_every"] = 1   # degree 3 from step 3 on: the parts' colour
+    clock = []   # the time after each step
+
+    def on_step(step, info):
+        sync()
+        clock.append(time.perf_counter())
+
     start = time.perf_counter()
-    trainer.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device=dev)
+    trainer.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device=device,
+                  on_step=on_step)
     sync()
-    train_ms = 1e3 * (time.perf_counter() - start) / steps
-    return StepTiming({p: 1e3 * v / steps for p, v in totals.items()}, train_ms, pairs / steps)
+    total = time.perf_counter() - start
+    warm = clock[warmup - 1] if warmup else start
+    per_step = (clock[-1] - warm) / steps
+    return 1e3 * per_step, 1e3 * (total - steps * per_step)
 
 
 def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neural", "gaussian"), steps: int = 5,
                     warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None,
                     baseline: bool = False) -> dict:
     """Print one row per (kind, count, size): ms per step of each part, their sum, trainer.train's
-    ms per step, and evaluated pairs per second of the render forward. With `baseline`, each row
-    is preceded by the same row on the reference twins (RADFIELD_KERNELS=torch, "torch") and
-    followed by the speed-up of the sum and of train(). Returns the figures."""
+    marginal ms per step and its set-up ms, and evaluated pairs per second of the render forward.
+    With `baseline`, each row is preceded by the same row on the reference twins
+    (RADFIELD_KERNELS=torch, "torch") and followed by the speed-up of the sum and of train().
+    Returns the figures."""
     cfg = bench_config(steps)
     echo(f"bench-train: {steps} timed steps (+{warmup} warm-up) per row, {views} orbit views, device={device}, "
          f"threads={torch.get_num_threads()}; ms per step")
     echo(f"  {'kind':8s} {'count':>6s} {'size':>7s} {'path':>6s} " + " ".join(f"{p:>10s}" for p in PARTS)
-         + f" {'sum':>8s} {'train()':>8s} {'Mpairs/s':>9s}")
+         + f" {'sum':>8s} {'train()':>8s} {'setup':>7s} {'Mpairs/s':>9s}")
     results = {}
     for kind in kinds:
         for count in counts:
@@ -152,8 +176,9 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
                         t = time_steps(prims, cams, images, cfg, steps, warmup, device)
                     rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
                     echo(f"  {kind:8s} {count:6d} {size:3d}x{size:<3d} {path:>6s} "
-                         + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS) + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {rate:9.1f}")
-                    rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "pairs": t.pairs}
+                         + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS)
+                         + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {t.setup_ms:7.1f} {rate:9.1f}")
+                    rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "setup": t.setup_ms, "pairs": t.pairs}
                 if baseline:
                     before, after = rows["torch"], rows["fused"]
                     echo(f"  {'':8s} {'':6s} {'':7s} {'x':>6s} " + " ".join(f"{before[p] / after[p]:10.1f}" for p in PARTS)

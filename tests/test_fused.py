@@ -250,10 +250,10 @@ def test_gaussian_block_gradcheck():
     assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def _render_scene(kind, dtype):
+def _render_scene(kind, dtype, hidden=8):
     eye = torch.tensor([0.3, -3.0, 0.5])
     if kind == "neural":
-        prims = random_neural(14, sh_degree=1, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
+        prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
         prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
         prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
         prims.b2[2] = 40.0
@@ -294,6 +294,22 @@ def test_render_fused_equals_torch(kind, dtype, monkeypatch):
     for name, gs in grads_slow.items():
         scale = gs.abs().max().clamp_min(1.0)
         torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **tol, msg=lambda m: f"d/d{name}: {m}")
+
+
+def test_render_fused_equals_torch_at_another_width(monkeypatch):
+    """The view kernels unroll the default 8 hidden units; any other width takes the run-time
+    loop, which must agree with the torch twin as well (images and every gradient, float64)."""
+    prims, cam = _render_scene("neural", torch.float64, hidden=5)
+    assert prims.hidden == 5
+    fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
+    slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
+    assert slow.meta["contributing_pairs"] > 100
+    for name in ("color", "alpha", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-9, atol=1e-10)
+    for name, gs in grads_slow.items():
+        scale = gs.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, rtol=1e-9, atol=1e-10,
+                                   msg=lambda m: f"d/d{name}: {m}")
 
 
 def test_render_uses_fused_kernels(monkeypatch):
@@ -521,3 +537,60 @@ def test_gaussian_prep_matches_torch_twin_and_finite_differences():
     keep = [t[:6].clone().requires_grad_(True) for t in (means_cam, prims.log_scales, prims.quats)]
     assert torch.autograd.gradcheck(
         lambda m, l, q: fused.gaussian_prep(m, l, q, w2c[:3, :3], intrinsics, W, H, near)[:2], keep, eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_depth_order_is_a_stable_sort_of_signed_depths(dtype):
+    """The C++ depth order (a radix sort of the depths' bit keys) equals torch's stable argsort on
+    depths of both signs with many ties, including 0.0 and −0.0 (equal, so index order): huge
+    neural primitives around the camera straddle the near plane and are all visible."""
+    g = torch.Generator().manual_seed(3)
+    n = 3000
+    depth = torch.round(torch.randn(n, generator=g, dtype=torch.float64) * 20) / 4   # ties
+    depth[::7] = 0.0
+    depth[3::11] = -0.0
+    means_cam = torch.cat([torch.randn(n, 2, generator=g, dtype=torch.float64), depth[:, None]], 1).to(dtype)
+    log_scales = torch.full((n, 3), math.log(50.0), dtype=dtype)
+    quats = torch.tensor([1.0, 0, 0, 0], dtype=dtype).expand(n, 4).contiguous()
+    intrinsics = torch.tensor([30.0, 30.0, 16.0, 16.0, 0.01], dtype=dtype)
+    _, order = fused.neural_bounds(means_cam, log_scales, quats, torch.eye(3, dtype=dtype), intrinsics, 32, 32, 0.01)
+    assert len(order) == n
+    assert torch.equal(order, torch.argsort(means_cam[:, 2], stable=True))
+
+
+def test_view_kernel_rejects_an_order_that_repeats_a_primitive():
+    prims, cam = _render_scene("gaussian", torch.float64)
+    bounds = torch.tensor([[0, 0, 3, 3]] * len(prims))
+    order = torch.tensor([0, 1, 1])
+    colors, depth = torch.rand(len(prims), 3, dtype=torch.float64), torch.rand(len(prims), dtype=torch.float64)
+    mean2d = torch.rand(len(prims), 2, dtype=torch.float64)
+    conic = torch.tensor([[1.0, 0.0, 1.0]] * len(prims), dtype=torch.float64)
+    with pytest.raises(RuntimeError, match="twice"):
+        fused.gaussian_view(bounds, order, cam.height, cam.width, 1e-4, colors, depth, mean2d, conic,
+                            torch.full((len(prims),), 0.5, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_anisotropy_matches_torch_twin_over_many_chunks(dtype):
+    """The fused anisotropy (scales exponentiated in SIMD chunks of 512 primitives) equals the
+    torch twin, value and gradient, over a population spanning several chunks and thread ranges,
+    with isotropic primitives and ties of the minimum; float64 also by finite differences."""
+    from radfield.core import losses
+
+    g = torch.Generator().manual_seed(8)
+    log_scales = (torch.randn(5003, 3, generator=g) * 0.7).to(dtype)
+    log_scales[7] = 0.2
+    log_scales[600, :2] = -0.3
+    log_scales[4097, 1:] = 0.5
+    fast, slow = (log_scales.clone().requires_grad_() for _ in range(2))
+    value_fast, value_slow = fused.anisotropy(fast), losses._anisotropy(slow)
+    (value_fast * 3.0).backward()
+    (value_slow * 3.0).backward()
+    # float32: Sleef's exp may round a scale differently from torch.exp, by an ulp
+    tol = dict(rtol=1e-12, atol=1e-14) if dtype == torch.float64 else dict(rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(value_fast, value_slow, **tol)
+    torch.testing.assert_close(fast.grad, slow.grad, **tol)
+    if dtype == torch.float64:
+        small = log_scales[:6].clone().requires_grad_()
+        small.data[0] = torch.tensor([0.1, 0.4, -0.2], dtype=dtype)   # no ties: differentiable
+        assert torch.autograd.gradcheck(fused.anisotropy, (small[1:5].detach().requires_grad_(),))

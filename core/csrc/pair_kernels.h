@@ -157,24 +157,6 @@ inline T alpha_slope_from_expm1(T expm1_neg_depth) {
   return passes ? expm1_neg_depth + T(1) : T(0);
 }
 
-// Σ_j x_j y_j, accumulated in double
-template <typename T>
-double dot(const T* x, const T* y, int64_t n) {
-  double sum = 0;
-#pragma omp simd reduction(+ : sum)
-  for (int64_t j = 0; j < n; ++j) sum += double(x[j] * y[j]);
-  return sum;
-}
-
-// Σ_j x_j, accumulated in double
-template <typename T>
-double total(const T* x, int64_t n) {
-  double sum = 0;
-#pragma omp simd reduction(+ : sum)
-  for (int64_t j = 0; j < n; ++j) sum += double(x[j]);
-  return sum;
-}
-
 // =============================================================================================
 // Neural primitive: rays through one bounding ellipsoid (DESIGN.md "Splattable neural primitive").
 
@@ -223,10 +205,13 @@ inline NeuralGradRefs neural_grad_refs(double* base, int64_t units) {
 }
 
 // Per-thread scratch for a batch of one primitive's pixels, one array entry per pixel j (structure
-// of arrays, so that the loops over j run in SIMD). `chords` fills it for every pixel of the
+// of arrays, so that the loops over j run in SIMD). kUnits > 0 fixes the number of hidden units at
+// compile time (the default 8 of pipeline.yaml: the loops over units then unroll into one 8-lane
+// vector each, which matters when a batch has one or two pixels, the usual case at 64×64); 0 takes
+// it at run time. `chords` fills it for every pixel of the
 // batch, then keeps the n pixels whose chord is not empty (hit and Δ > 0): the others have α = 0
 // and no gradient.
-template <typename T>
+template <typename T, int kUnits = 0>
 struct ChordTile {
   int64_t cap, n = 0;
   std::vector<int64_t> pixel;            // index of the pixel in the batch
@@ -243,24 +228,29 @@ struct ChordTile {
   // of a small splat has few pixels, but every pixel has `units` terms)
   int64_t units;
   std::vector<T> w_t;                    // the primitive's w_cam transposed, (3, N)
-  std::vector<T> a, phase, x;            // a_k = w_cam_k · d̂, a_k τ_m + c_k, a_k Δ/2
-  std::vector<T> cos_p, sin_x, sinc_x, sin_p, cos_x, slope;
+  std::vector<T> a;                      // a_k = w_cam_k · d̂
+  // the phases a_k τ_m + c_k at [0, L) and x = a_k Δ/2 at [L, 2L) of one buffer (L = n · units),
+  // and their sines and cosines: the backward takes both of both in one SIMD sincos pass
+  std::vector<T> px, sin_px, cos_px;
+  T *phase = nullptr, *x = nullptr, *cos_p = nullptr, *sin_x = nullptr, *sin_p = nullptr, *cos_x = nullptr;  // set by optical_depth
+  std::vector<T> sinc_x, slope;
   std::vector<double> sum_c, sum_w2, sum_wx, sum_wy, sum_wz;  // backward: per-unit gradient sums
   std::vector<T> integral;               // I
   std::vector<T> neg_depth, expm1_neg;   // −max(I, 0) and expm1 of it (eq. 9)
-  // backward: ∂L/∂I, ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂p_r, ∂L/∂ℓ* / A, ∂L/∂A, ∂L/∂d'_r
-  std::vector<T> g_I, g_tau, g_delta, g_p0, g_p1, g_p2, g_mid, g_A, g_e;
+  // backward: ∂L/∂I, ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂p_r, ∂L/∂ℓ* / A, ∂L/∂A
+  std::vector<T> g_I, g_tau, g_delta, g_p0, g_p1, g_p2, g_mid, g_A;
 
   ChordTile(int64_t n_units, int64_t capacity, bool backward) : cap(capacity), units(n_units) {
     for (auto* buf : chord_fields()) buf->resize(cap);
     for (auto* buf : {&integral, &neg_depth, &expm1_neg, &g_I}) buf->resize(cap);
-    for (auto* buf : {&a, &phase, &x, &cos_p, &sin_x, &sinc_x}) buf->resize(cap * units);
+    for (auto* buf : {&a, &sinc_x}) buf->resize(cap * units);
+    for (auto* buf : {&px, &sin_px, &cos_px}) buf->resize(2 * cap * units);
     w_t.resize(3 * units);
     pixel.resize(cap);
     if (backward) {
-      for (auto* buf : {&sin_p, &cos_x, &slope}) buf->resize(cap * units);
+      slope.resize(cap * units);
       for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) buf->resize(units);
-      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_e}) buf->resize(cap);
+      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A}) buf->resize(cap);
     }
   }
 
@@ -343,13 +333,16 @@ struct ChordTile {
   // with `backward`, also sin of the phase and sinc's slope. Then eq. 9:
   // expm1_neg = expm1(−max(I, 0)), α = alpha_from_expm1(expm1_neg).
   void optical_depth(const NeuralParams<T>& q, bool backward) {
-    const int64_t N = units, L = n * N;
+    if (n == 0) return;   // every pixel missed: nothing to evaluate
+    const int64_t N = kUnits > 0 ? kUnits : units, L = n * N;
     T *wx = w_t.data(), *wy = wx + N, *wz = wy + N;
     for (int64_t k = 0; k < N; ++k) wx[k] = q.w_cam[3 * k], wy[k] = q.w_cam[3 * k + 1], wz[k] = q.w_cam[3 * k + 2];
     const T* c = q.c;
+    phase = px.data(), x = px.data() + L;
+    sin_p = sin_px.data(), sin_x = sin_px.data() + L, cos_p = cos_px.data(), cos_x = cos_px.data() + L;
     for (int64_t j = 0; j < n; ++j) {
       const T dx = d0[j], dy = d1[j], dz = d2[j], tm = tau_m[j], dl = delta[j];
-      T *aj = a.data() + j * N, *pj = phase.data() + j * N, *xj = x.data() + j * N;
+      T *aj = a.data() + j * N, *pj = phase + j * N, *xj = x + j * N;
 #pragma omp simd
       for (int64_t k = 0; k < N; ++k) {
         aj[k] = wx[k] * dx + wy[k] * dy + wz[k] * dz;
@@ -358,18 +351,17 @@ struct ChordTile {
       }
     }
     if (backward) {  // also sin of the phase and cos of x, from the same range reductions
-      simd_sincos(phase.data(), sin_p.data(), cos_p.data(), L);
-      simd_sincos(x.data(), sin_x.data(), cos_x.data(), L);
+      simd_sincos(px.data(), sin_px.data(), cos_px.data(), 2 * L);
     } else {
-      simd_cos(phase.data(), cos_p.data(), L);
-      simd_sin(x.data(), sin_x.data(), L);
+      simd_cos(phase, cos_p, L);
+      simd_sin(x, sin_x, L);
     }
-    const T *xs = x.data(), *sx = sin_x.data();
+    const T *xs = x, *sx = sin_x;
     T* s = sinc_x.data();
 #pragma omp simd
     for (int64_t e = 0; e < L; ++e) s[e] = sinc(xs[e], sx[e]);
     for (int64_t j = 0; j < n; ++j) {
-      const T* cj = cos_p.data() + j * N;
+      const T* cj = cos_p + j * N;
       const T* sj = s + j * N;
       T sum = T(0);
       for (int64_t k = 0; k < N; ++k) sum += q.w2[k] * delta[j] * cj[k] * sj[k];  // in order, as the twin
@@ -378,7 +370,7 @@ struct ChordTile {
     }
     simd_expm1(neg_depth.data(), expm1_neg.data(), n);
     if (backward) {
-      const T* cx = cos_x.data();
+      const T* cx = cos_x;
       T* sl = slope.data();
 #pragma omp simd
       for (int64_t e = 0; e < L; ++e) sl[e] = sinc_slope(xs[e], cx[e], s[e]);
@@ -388,7 +380,7 @@ struct ChordTile {
   // Step 2 backward (kernels.py: _CosMLPIntegral.backward), + b2 Δ: from g_I to g_tau and
   // g_delta, and the sums for c, w2, w_cam and b2.
   void optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
-    const int64_t N = units;
+    const int64_t N = kUnits > 0 ? kUnits : units;
     for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
     double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
     const T* w2 = q.w2;
@@ -397,7 +389,7 @@ struct ChordTile {
       const T gI = g_I[j], dl = delta[j], tm = tau_m[j], dx = d0[j], dy = d1[j], dz = d2[j];
       sum_b2 += double(gI * dl);
       const int64_t o = j * N;
-      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p.data() + o, *spj = sin_p.data() + o;
+      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p + o, *spj = sin_p + o;
       const T* slj = slope.data() + o;
       T gt = T(0), gd = gI * q.b2;
 #pragma omp simd reduction(+ : gt, gd)
@@ -453,23 +445,23 @@ struct ChordTile {
       g_A[j] = -g_s * (half[j] * half[j]) / A[j] - g_mid[j] * l_mid[j];
     }
     *acc.inv_smax += sum_inv_smax;
+    // one pass over the pixels for the 12 sums (a batch holds one or two pixels at 64×64, where
+    // a reduction loop per sum cost more than the sums)
     const T* d[3] = {d0.data(), d1.data(), d2.data()};
     const T* e[3] = {e0.data(), e1.data(), e2.data()};
     const T* gp[3] = {g_p0.data(), g_p1.data(), g_p2.data()};
-    for (int r = 0; r < 3; ++r) {
-      const T* er = e[r];
-      const T* gpr = gp[r];
-      const T* lm = l_mid.data();
-      const T* gm = g_mid.data();
-      const T* ga = g_A.data();
-      T* ge = g_e.data();
-      // ∂L/∂d'_r: through p (ℓ* p_r), ℓ* (−o'_r/A) and A (2 d'_r)
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j) ge[j] = lm[j] * gpr[j] - gm[j] * o[r] + T(2) * ga[j] * er[j];
-      for (int f = 0; f < 3; ++f) acc.m_cam[3 * r + f] += dot(ge, d[f], n);
-      // ∂L/∂o'_r: through p (1) and ℓ* (−d'_r/A)
-      acc.o_ell[r] += total(gpr, n) - dot(gm, er, n);
+    double sum_m[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, sum_o[3] = {0, 0, 0};
+    for (int64_t j = 0; j < n; ++j) {
+      for (int r = 0; r < 3; ++r) {
+        // ∂L/∂d'_r: through p (ℓ* p_r), ℓ* (−o'_r/A) and A (2 d'_r)
+        const T ge = l_mid[j] * gp[r][j] - g_mid[j] * o[r] + T(2) * g_A[j] * e[r][j];
+        for (int f = 0; f < 3; ++f) sum_m[3 * r + f] += double(ge * d[f][j]);
+        // ∂L/∂o'_r: through p (1) and ℓ* (−d'_r/A)
+        sum_o[r] += double(gp[r][j]) - double(g_mid[j] * e[r][j]);
+      }
     }
+    for (int i = 0; i < 9; ++i) acc.m_cam[i] += sum_m[i];
+    for (int r = 0; r < 3; ++r) acc.o_ell[r] += sum_o[r];
   }
 };
 

@@ -5,8 +5,11 @@
 //
 // Binning: the image is cut into 16×16 tiles; every tile gets the list of the primitives whose
 // pixel bounds touch it, in the caller's `order` (the visible primitives' indices front to back by
-// centre depth). Every per-primitive tensor is indexed by the primitive itself, so nothing is
-// gathered into depth order and the gradients land in place (zero for the primitives not drawn).
+// centre depth). Every per-primitive tensor is first gathered into that order (one index_select
+// each, in C++), and the lists hold positions in it: a tile then reads the primitives' records in
+// increasing address order instead of at random, which the cache prefetchers follow (at 10k
+// primitives the neural records alone exceed a core's L2). The gradients are summed per position
+// and scattered back to the primitives at the end (zero for the primitives not drawn).
 //
 // Forward, per tile (OpenMP over tiles): for each primitive of the list, the tile's pixels inside
 // its bounds that have not terminated form one batch whose α is evaluated in SIMD
@@ -14,14 +17,17 @@
 //   w_i = α_i T_i,  T_{i+1} = T_i (1 − α_i),
 // skipping α = 0 (below 1/255, a miss) and stopping at the first pair that would take T below
 // t_min (3DGS: that pair is not composited, and the pixel is done). The pixel keeps its final T
-// (double) and `last`, the list position after its last composited pair.
+// (double) and `last`, the list position after its last composited pair; every list entry keeps
+// whether it composited any pixel (`used`).
 //
 // Backward, per tile: each pixel starts from its final T and walks the list back to front from
 // `last`, recovering T_i = T_{i+1} / (1 − α_i) and the suffix
 //   S_i = Σ_{j>i} (g_C·c_j + g_D z_j) α_j T_j + g_T T_final,
 // so that ∂L/∂α_i = (g_C·c_i + g_D z_i) T_i − S_i / (1 − α_i), ∂L/∂c_i = g_C α_i T_i and
 // ∂L/∂z_i = g_D α_i T_i; the pair kernel's backward turns ∂L/∂α_i into the primitive's
-// parameter gradients. Each thread sums into its own buffer (double), reduced at the end.
+// parameter gradients. An entry that composited no pixel (all misses, α below 1/255, or pixels
+// already done) has no gradient and is skipped before its pixels are gathered. Each thread sums
+// into its own buffer (double), reduced at the end.
 //
 // Outputs are the raw sums Σ w_i c_i, Σ w_i z_i and T; the background, α = 1 − T and the mean
 // depth are formed in torch (core/fused.py), which also differentiates them.
@@ -46,13 +52,15 @@ struct Grid {
   int64_t tiles() const { return nx * ny; }
 };
 
-// Tile lists: offsets (tiles + 1) into entries, the primitives of tile t at [offsets[t], offsets[t+1]).
-void bin(const int64_t* bounds, const int64_t* order, int64_t V, const Grid& g, int64_t* offsets,
-         std::vector<int32_t>& entries) {
+// Tile lists of the V primitives (bounds (V, 4) in depth order): offsets (tiles + 1) into entries,
+// the positions of tile t's primitives at [offsets[t], offsets[t+1]). Returns the candidate pairs
+// (pixels inside the bounds).
+int64_t bin(const int64_t* bounds, int64_t V, const Grid& g, int64_t* offsets, std::vector<int32_t>& entries) {
   std::vector<int64_t> count(g.tiles() + 1, 0);
+  int64_t candidates = 0;
   for (int64_t v = 0; v < V; ++v) {
-    const int64_t p = order[v];
-    const int64_t* b = bounds + 4 * p;  // x0, y0, x1, y1 inclusive, inside the image
+    const int64_t* b = bounds + 4 * v;  // x0, y0, x1, y1 inclusive, inside the image
+    candidates += (b[2] - b[0] + 1) * (b[3] - b[1] + 1);
     for (int64_t ty = b[1] / kSide; ty <= b[3] / kSide; ++ty)
       for (int64_t tx = b[0] / kSide; tx <= b[2] / kSide; ++tx) ++count[ty * g.nx + tx + 1];
   }
@@ -61,11 +69,11 @@ void bin(const int64_t* bounds, const int64_t* order, int64_t V, const Grid& g, 
   entries.resize(offsets[g.tiles()]);
   std::vector<int64_t> fill(offsets, offsets + g.tiles());
   for (int64_t v = 0; v < V; ++v) {
-    const int64_t p = order[v];
-    const int64_t* b = bounds + 4 * p;
+    const int64_t* b = bounds + 4 * v;
     for (int64_t ty = b[1] / kSide; ty <= b[3] / kSide; ++ty)
-      for (int64_t tx = b[0] / kSide; tx <= b[2] / kSide; ++tx) entries[fill[ty * g.nx + tx]++] = int32_t(p);
+      for (int64_t tx = b[0] / kSide; tx <= b[2] / kSide; ++tx) entries[fill[ty * g.nx + tx]++] = int32_t(v);
   }
+  return candidates;
 }
 
 // The pixels of tile (tx, ty) and a batch of them for one primitive.
@@ -98,11 +106,11 @@ struct TileBatch {
 
 // --- the two primitive kinds: α of a batch, and its backward ---------------------------------
 
-template <typename T>
+template <typename T, int kUnits = 0>  // kUnits: ChordTile's compile-time hidden units (0: run time)
 struct NeuralKind {
   NeuralTensors<T> prm;
   Intrinsics<T> k;
-  ChordTile<T> tile;
+  ChordTile<T, kUnits> tile;
   std::array<T, kPixels> dx, dy, dz, near;  // the current tile's pixel directions and near planes
   static int64_t stride(int64_t units) { return neural_grad_stride(units); }
 
@@ -114,7 +122,7 @@ struct NeuralKind {
     std::array<T, kPixels> u, v;
     for (int64_t y = 0; y < kSide; ++y)
       for (int64_t x = 0; x < kSide; ++x) u[y * kSide + x] = T(b.x0 + x) + T(0.5), v[y * kSide + x] = T(b.y0 + y) + T(0.5);
-    ChordTile<T>::directions(u.data(), v.data(), kPixels, k, dx.data(), dy.data(), dz.data(), near.data());
+    ChordTile<T, kUnits>::directions(u.data(), v.data(), kPixels, k, dx.data(), dy.data(), dz.data(), near.data());
   }
 
   void load(const TileBatch<T>& b) {
@@ -188,6 +196,7 @@ struct GaussianKind {
     splat(p, u, v, m);
     const T* q = conic + 3 * p;
     const T mx = mean2d[2 * p], my = mean2d[2 * p + 1];
+    double s[6] = {0, 0, 0, 0, 0, 0};   // this entry's sums, added to acc once
     for (int64_t j = 0; j < m; ++j) {
       const T value = opacity[p] * e[j];
       const T a = gaussian_alpha(power[j], std::min(T(kAlphaMax), value));
@@ -196,20 +205,21 @@ struct GaussianKind {
       if (!gaussian_passes(power[j], value)) continue;  // clamped at 0.99: no gradient
       const T dx = u[j] - mx, dy = v[j] - my;
       const T g_power = g_alpha * value;  // (exp)' = exp; clamp_max(power, 0) passes at power ≤ 0
-      acc[0] -= double(g_power * (-q[0] * dx - q[1] * dy));  // ∂dx/∂mean_x = −1
-      acc[1] -= double(g_power * (-q[2] * dy - q[1] * dx));
-      acc[2] += double(T(-0.5) * g_power * dx * dx);
-      acc[3] += double(-g_power * dx * dy);
-      acc[4] += double(T(-0.5) * g_power * dy * dy);
-      acc[5] += double(g_alpha * e[j]);
+      s[0] -= double(g_power * (-q[0] * dx - q[1] * dy));  // ∂dx/∂mean_x = −1
+      s[1] -= double(g_power * (-q[2] * dy - q[1] * dx));
+      s[2] += double(T(-0.5) * g_power * dx * dx);
+      s[3] += double(-g_power * dx * dy);
+      s[4] += double(T(-0.5) * g_power * dy * dy);
+      s[5] += double(g_alpha * e[j]);
     }
+    for (int k = 0; k < 6; ++k) acc[k] += s[k];
   }
 };
 
 // --- forward and backward over the tiles ------------------------------------------------------
 
 template <typename T>
-struct View {
+struct View {  // the drawn primitives, in depth order
   Grid grid;
   int64_t P;
   const int64_t* bounds;  // (P, 4)
@@ -223,7 +233,8 @@ struct ForwardOut {
   void* trans;              // (H, W) T
   double* trans64;          // (H, W)
   int32_t* last;            // (H, W)
-  int64_t counters[3] = {0, 0, 0};  // evaluated pairs, composited pairs, terminated pixels
+  uint8_t* used;            // (entries,) zero-initialised
+  int64_t counters[4] = {0, 0, 0, 0};  // evaluated pairs, composited pairs, terminated pixels, candidate pairs
 };
 
 template <typename T, typename MakeKind>
@@ -258,6 +269,7 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
         kind.alpha(p, batch, alpha.data());
         const double cr = view.colors[3 * p], cg = view.colors[3 * p + 1], cb = view.colors[3 * p + 2];
         const double zp = view.depth[p];
+        bool any = false;
         for (int64_t j = 0; j < batch.m; ++j) {
           const double a = alpha[j];
           if (a == 0.0) continue;  // below 1/255, or a miss
@@ -275,7 +287,9 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
           tr[i] = next;
           last[i] = int32_t(li - offsets[t] + 1);
           ++composited;
+          any = true;
         }
+        out.used[li] = uint8_t(any);
       }
       for (int64_t y = 0; y < batch.h; ++y)
         for (int64_t x = 0; x < batch.w; ++x) {
@@ -291,20 +305,42 @@ void view_forward(const View<T>& view, const int64_t* offsets, const int32_t* en
   out.counters[0] = pairs, out.counters[1] = composited, out.counters[2] = terminated;
 }
 
+// Per-thread double sums of the gradients of the per-primitive inputs: thread th's sums of
+// primitive v are at sums[(th · P + v) · width], valid where touched[th · P + v] (a slot is zeroed
+// when its thread first reaches the primitive, so untouched slots are never written nor read).
+struct GradSums {
+  int threads;
+  int64_t P, width;
+  double* sums;
+  std::vector<uint8_t> touched;
+};
+
+// The buffer behind GradSums, kept by the calling thread from one backward to the next: at 10k
+// neural primitives it is 5 MB a thread, which as a fresh allocation every view cost more in page
+// faults and zeroing than the tiles' own work at 64×64.
+inline double* grad_buffer(size_t doubles) {
+  static thread_local std::vector<double> buffer;
+  if (buffer.size() < doubles) buffer.resize(doubles);
+  return buffer.data();
+}
+
 // Gradients of the per-primitive inputs: colors (P, 3), depth (P,), and the kind's parameters
-// (stride doubles per primitive, in the layout of Kind::backward's acc), as double sums.
+// (stride doubles per primitive, in the layout of Kind::backward's acc), as per-thread double sums.
 template <typename T, typename MakeKind>
-std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, const int32_t* entries,
-                                  const T* g_color, const T* g_depth, const T* g_trans, const double* trans64,
-                                  const int32_t* last_in, int64_t stride, MakeKind&& make_kind) {
+GradSums view_backward(const View<T>& view, const int64_t* offsets, const int32_t* entries, const uint8_t* used,
+                       const T* g_color, const T* g_depth, const T* g_trans, const double* trans64,
+                       const int32_t* last_in, int64_t stride, MakeKind&& make_kind) {
   const Grid& g = view.grid;
   const int64_t width = stride + 4;  // + colour (3) + depth
   const int threads = at::get_num_threads();
-  std::vector<double> sums(size_t(threads) * view.P * width, 0.0);
+  GradSums out{threads, view.P, width, grad_buffer(size_t(threads) * view.P * width),
+               std::vector<uint8_t>(size_t(threads) * view.P, 0)};
 #pragma omp parallel num_threads(threads)
   {
     auto kind = make_kind(/*backward=*/true);
-    double* mine = sums.data() + size_t(omp_get_thread_num()) * view.P * width;
+    const int th = omp_get_thread_num();
+    double* mine = out.sums + size_t(th) * view.P * width;
+    uint8_t* touched = out.touched.data() + size_t(th) * view.P;
     std::array<double, kPixels> tr, suffix, gr, gg, gb, gz;
     std::array<int32_t, kPixels> last;
 #pragma omp for schedule(dynamic, 1)
@@ -324,13 +360,16 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
           longest = std::max(longest, last[i]);
         }
       for (int64_t pos = longest - 1; pos >= 0; --pos) {  // back to front
+        if (!used[offsets[t] + pos]) continue;
         const int64_t p = entries[offsets[t] + pos];
         batch.gather(view.bounds + 4 * p, [&](int32_t i) { return pos < last[i]; });
         if (batch.m == 0) continue;
         const double cr = view.colors[3 * p], cg = view.colors[3 * p + 1], cb = view.colors[3 * p + 2];
         const double zp = view.depth[p];
         double* acc = mine + p * width;
-        double* acc_view = acc + stride;  // colour, depth
+        if (!touched[p]) std::fill(acc, acc + width, 0.0), touched[p] = 1;
+        // this entry's colour and depth sums, in locals (registers) rather than through acc
+        double s_r = 0, s_g = 0, s_b = 0, s_z = 0;
         auto grad_of = [&](int64_t j, T alpha) -> T {
           const int32_t i = batch.local[j];
           const double a = alpha, keep = 1.0 - a;
@@ -340,43 +379,57 @@ std::vector<double> view_backward(const View<T>& view, const int64_t* offsets, c
           const double w = a * before;
           suffix[i] += wgt * w;
           tr[i] = before;
-          acc_view[0] += gr[i] * w, acc_view[1] += gg[i] * w, acc_view[2] += gb[i] * w;
-          acc_view[3] += gz[i] * w;
+          s_r += gr[i] * w, s_g += gg[i] * w, s_b += gb[i] * w, s_z += gz[i] * w;
           return T(g_alpha);
         };
         kind.backward(p, batch, grad_of, acc);
+        double* acc_view = acc + stride;  // colour, depth
+        acc_view[0] += s_r, acc_view[1] += s_g, acc_view[2] += s_b, acc_view[3] += s_z;
       }
     }
   }
-  // reduce the threads' buffers into the first
-  const int64_t n = view.P * width;
-  for (int th = 1; th < threads; ++th) {
-    const double* theirs = sums.data() + size_t(th) * n;
-    at::parallel_for(0, n, 4096, [&](int64_t b, int64_t e) {
-      for (int64_t i = b; i < e; ++i) sums[i] += theirs[i];
-    });
-  }
-  sums.resize(n);
-  return sums;
+  return out;
 }
 
-// Copy the double sums into gradient tensors: colors, depth, then the kind's fields, whose
-// per-primitive sizes add up to stride.
+// Copy the double sums of the V drawn primitives (in depth order) into gradient tensors for all P
+// primitives shaped as `like` (V rows), row order[v] from sums row v, zero elsewhere: colors,
+// depth, then the kind's fields, whose per-primitive sizes add up to stride.
 template <typename T>
-std::vector<at::Tensor> unpack_grads(const std::vector<double>& sums, int64_t P, int64_t stride,
-                                     const std::vector<at::Tensor>& like) {
+std::vector<at::Tensor> unpack_grads(const GradSums& grad, const at::Tensor& order, int64_t stride,
+                                     const std::vector<at::Tensor>& like, int64_t P) {
+  const int64_t V = order.numel();
+  const int64_t* ids = order.data_ptr<int64_t>();
   std::vector<at::Tensor> out;
   std::vector<T*> dst;
   std::vector<int64_t> size;
   for (const at::Tensor& t : like) {
-    out.push_back(at::empty_like(t));
+    std::vector<int64_t> sizes = t.sizes().vec();
+    sizes[0] = P;
+    // V == P: every row is written (order holds each primitive once)
+    out.push_back(V == P ? at::empty(sizes, t.options()) : at::zeros(sizes, t.options()));
     dst.push_back(out.back().data_ptr<T>());
-    size.push_back(P > 0 ? t.numel() / P : 0);
+    int64_t row = 1;
+    for (size_t d = 1; d < sizes.size(); ++d) row *= sizes[d];
+    size.push_back(row);
   }
   const int64_t width = stride + 4;
-  at::parallel_for(0, P, 1024, [&](int64_t p0, int64_t p1) {
-    for (int64_t p = p0; p < p1; ++p) {
-      const double* s = sums.data() + p * width;
+  const std::vector<double> zeros(width, 0.0);
+  at::parallel_for(0, V, 1024, [&](int64_t v0, int64_t v1) {
+    std::vector<double> total(width);
+    for (int64_t v = v0; v < v1; ++v) {
+      const int64_t p = ids[v];
+      const double* s = zeros.data();
+      if (grad.threads == 1) {
+        if (grad.touched[v]) s = grad.sums + v * width;
+      } else {
+        std::fill(total.begin(), total.end(), 0.0);   // the threads' sums, in thread order
+        for (int th = 0; th < grad.threads; ++th) {
+          if (!grad.touched[size_t(th) * V + v]) continue;
+          const double* theirs = grad.sums + (size_t(th) * V + v) * width;
+          for (int64_t e = 0; e < width; ++e) total[e] += theirs[e];
+        }
+        s = total.data();
+      }
       T* gc = dst[0] + 3 * p;
       gc[0] = T(s[stride]), gc[1] = T(s[stride + 1]), gc[2] = T(s[stride + 2]);
       dst[1][p] = T(s[stride + 3]);
@@ -402,68 +455,118 @@ void check_view(const at::Tensor& bounds, const at::Tensor& colors, const at::Te
   TORCH_CHECK(height > 0 && width > 0, "the view needs pixels");
 }
 
-// the drawn primitives: valid indices whose bounds are non-empty and inside the image
+// the drawn primitives: valid, distinct indices whose bounds are non-empty and inside the image
 void check_order(const at::Tensor& order, const at::Tensor& bounds, int64_t height, int64_t width) {
   const int64_t P = bounds.size(0);
   TORCH_CHECK(order.scalar_type() == at::kLong && order.is_contiguous() && order.dim() == 1, "order must be int64 (V,)");
   const int64_t* b = bounds.data_ptr<int64_t>();
   const int64_t* o = order.data_ptr<int64_t>();
+  std::vector<uint8_t> seen(P, 0);
   for (int64_t v = 0; v < order.numel(); ++v) {
     const int64_t p = o[v];
     TORCH_CHECK(0 <= p && p < P, "order holds a primitive index out of range");
+    TORCH_CHECK(!seen[p], "order holds a primitive twice");
+    seen[p] = 1;
     TORCH_CHECK(0 <= b[4 * p] && b[4 * p] <= b[4 * p + 2] && b[4 * p + 2] < width && 0 <= b[4 * p + 1] &&
                     b[4 * p + 1] <= b[4 * p + 3] && b[4 * p + 3] < height,
                 "bounds must be non-empty and inside the image");
   }
 }
 
-struct Binned {
-  at::Tensor offsets, entries;
-};
-
-Binned bin_view(const at::Tensor& bounds, const at::Tensor& order, const Grid& g) {
-  at::Tensor offsets = at::empty({g.tiles() + 1}, bounds.options());
-  std::vector<int32_t> entries;
-  bin(bounds.data_ptr<int64_t>(), order.data_ptr<int64_t>(), order.numel(), g, offsets.data_ptr<int64_t>(), entries);
-  at::Tensor list = at::empty({int64_t(entries.size())}, bounds.options().dtype(at::kInt));
-  std::copy(entries.begin(), entries.end(), list.data_ptr<int32_t>());
-  return {offsets, list};
+// Rows order[v] of a contiguous (P, ...) tensor of 4- or 8-byte elements, copied as bits: a
+// loop per row (index_select pays a memcpy call per row of a few bytes).
+// kRow > 0: the row length fixed at compile time (the short rows of the view's tensors).
+template <typename Bits, int kRow>
+void copy_rows(const at::Tensor& from, at::Tensor& to, const int64_t* ids, int64_t V, int64_t row) {
+  const Bits* src = static_cast<const Bits*>(from.data_ptr());
+  Bits* dst = static_cast<Bits*>(to.data_ptr());
+  const int64_t n = kRow > 0 ? kRow : row;
+  at::parallel_for(0, V, 4096, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      const Bits* r = src + ids[v] * n;
+      for (int64_t e = 0; e < n; ++e) dst[v * n + e] = r[e];
+    }
+  });
 }
 
-// Runs the forward; returns acc_color, acc_depth, T, T (float64), last, offsets, entries, counters.
+template <typename Bits>
+void copy_rows(const at::Tensor& from, at::Tensor& to, const int64_t* ids, int64_t V, int64_t row) {
+  switch (row) {
+    case 1: return copy_rows<Bits, 1>(from, to, ids, V, row);
+    case 2: return copy_rows<Bits, 2>(from, to, ids, V, row);
+    case 3: return copy_rows<Bits, 3>(from, to, ids, V, row);
+    case 4: return copy_rows<Bits, 4>(from, to, ids, V, row);
+    case 8: return copy_rows<Bits, 8>(from, to, ids, V, row);
+    case 9: return copy_rows<Bits, 9>(from, to, ids, V, row);
+    case 24: return copy_rows<Bits, 24>(from, to, ids, V, row);
+    default: return copy_rows<Bits, 0>(from, to, ids, V, row);
+  }
+}
+
+// The per-primitive tensors (P, ...) gathered into depth order (V, ...): what the tiles read.
+std::vector<at::Tensor> in_order(const std::vector<at::Tensor>& tensors, const at::Tensor& order) {
+  const int64_t V = order.numel();
+  const int64_t* ids = order.data_ptr<int64_t>();
+  std::vector<at::Tensor> out;
+  for (const at::Tensor& t : tensors) {
+    std::vector<int64_t> sizes = t.sizes().vec();
+    const int64_t row = sizes[0] > 0 ? t.numel() / sizes[0] : 0;
+    sizes[0] = V;
+    at::Tensor rows = at::empty(sizes, t.options());
+    TORCH_CHECK(t.is_contiguous() && (t.element_size() == 4 || t.element_size() == 8), "in_order: contiguous 4- or 8-byte tensors");
+    if (t.element_size() == 4) copy_rows<uint32_t>(t, rows, ids, V, row);
+    else copy_rows<uint64_t>(t, rows, ids, V, row);
+    out.push_back(rows);
+  }
+  return out;
+}
+
+// Runs the forward on the gathered tensors (bounds (V, 4) first); returns acc_color, acc_depth, T,
+// T (float64), last, offsets, entries, used, counters (the caller appends the gathered tensors,
+// which the backward takes instead of gathering again).
 template <typename Run>
-std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tensor& bounds, const at::Tensor& order,
-                                        int64_t height, int64_t width, Run&& run) {
+std::vector<at::Tensor> forward_outputs(const at::Tensor& colors, const at::Tensor& bounds, int64_t height,
+                                        int64_t width, Run&& run) {
   const Grid g(height, width);
-  check_order(order, bounds, height, width);
-  Binned binned = bin_view(bounds, order, g);
+  at::Tensor offsets = at::empty({g.tiles() + 1}, bounds.options());
+  std::vector<int32_t> list;
+  const int64_t candidates = bin(bounds.data_ptr<int64_t>(), bounds.size(0), g, offsets.data_ptr<int64_t>(), list);
+  at::Tensor entries = at::empty({int64_t(list.size())}, bounds.options().dtype(at::kInt));
+  std::copy(list.begin(), list.end(), entries.data_ptr<int32_t>());
   at::Tensor acc_color = at::empty({height, width, 3}, colors.options());
   at::Tensor acc_depth = at::empty({height, width}, colors.options());
   at::Tensor trans = at::empty({height, width}, colors.options());
   at::Tensor trans64 = at::empty({height, width}, colors.options().dtype(at::kDouble));
   at::Tensor last = at::empty({height, width}, colors.options().dtype(at::kInt));
+  at::Tensor used = at::zeros({entries.numel()}, colors.options().dtype(at::kByte));
   ForwardOut out;
   out.acc_color = acc_color.data_ptr(), out.acc_depth = acc_depth.data_ptr(), out.trans = trans.data_ptr();
-  out.trans64 = trans64.data_ptr<double>(), out.last = last.data_ptr<int32_t>();
-  run(g, binned.offsets.data_ptr<int64_t>(), binned.entries.data_ptr<int32_t>(), out);
-  at::Tensor counters = at::empty({3}, bounds.options());
-  std::copy(out.counters, out.counters + 3, counters.data_ptr<int64_t>());
-  return {acc_color, acc_depth, trans, trans64, last, binned.offsets, binned.entries, counters};
+  out.trans64 = trans64.data_ptr<double>(), out.last = last.data_ptr<int32_t>(), out.used = used.data_ptr<uint8_t>();
+  run(g, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), out);
+  out.counters[3] = candidates;
+  at::Tensor counters = at::empty({4}, bounds.options());
+  std::copy(out.counters, out.counters + 4, counters.data_ptr<int64_t>());
+  return {acc_color, acc_depth, trans, trans64, last, offsets, entries, used, counters};
 }
 
 void check_backward(const at::Tensor& g_color, const at::Tensor& g_depth, const at::Tensor& g_trans,
                     const at::Tensor& trans64, const at::Tensor& last, const at::Tensor& offsets,
-                    const at::Tensor& entries, int64_t height, int64_t width) {
+                    const at::Tensor& entries, const at::Tensor& used, const at::Tensor& order, int64_t height,
+                    int64_t width) {
   check_params({g_color, g_depth, g_trans});
   TORCH_CHECK(g_color.sizes() == at::IntArrayRef({height, width, 3}) && g_depth.sizes() == at::IntArrayRef({height, width}) &&
                   g_trans.sizes() == at::IntArrayRef({height, width}),
               "gradients must match the view's outputs");
   TORCH_CHECK(trans64.scalar_type() == at::kDouble && last.scalar_type() == at::kInt && offsets.scalar_type() == at::kLong &&
-                  entries.scalar_type() == at::kInt,
+                  entries.scalar_type() == at::kInt && order.scalar_type() == at::kLong,
               "saved forward state has the wrong dtypes");
-  TORCH_CHECK(trans64.is_contiguous() && last.is_contiguous() && offsets.is_contiguous() && entries.is_contiguous(),
+  TORCH_CHECK(trans64.is_contiguous() && last.is_contiguous() && offsets.is_contiguous() && entries.is_contiguous() &&
+                  order.is_contiguous(),
               "saved forward state must be contiguous");
   TORCH_CHECK(offsets.numel() == Grid(height, width).tiles() + 1, "offsets do not match the view");
+  TORCH_CHECK(used.scalar_type() == at::kByte && used.is_contiguous() && used.numel() == entries.numel(),
+              "used must be uint8 (entries,)");
+  TORCH_CHECK(order.dim() == 1, "order must be (V,)");
 }
 
 std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::Tensor& order, const at::Tensor& intrinsics,
@@ -473,20 +576,27 @@ std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::
                                             const at::Tensor& inv_smax, int64_t height, int64_t width, double t_min) {
   check_params({colors, depth, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax});
   check_view(bounds, colors, depth, height, width);
+  check_order(order, bounds, height, width);
+  const std::vector<at::Tensor> v = in_order({bounds, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax}, order);
   std::vector<at::Tensor> result;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "neural_view_forward", [&] {
     using T = scalar_t;
-    const NeuralTensors<T> prm = neural_tensors<T>(m_cam, o_ell, w_cam, c, w2, b2, inv_smax);
+    const NeuralTensors<T> prm = neural_tensors<T>(v[3], v[4], v[5], v[6], v[7], v[8], v[9]);
     const Intrinsics<T> k = read_intrinsics<T>(intrinsics);
-    result = forward_outputs(colors, bounds, order, height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
-      const View<T> view{g, bounds.size(0), bounds.data_ptr<int64_t>(), colors.data_ptr<T>(), depth.data_ptr<T>()};
-      view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T>(prm, k, backward); }, out);
+    result = forward_outputs(colors, v[0], height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
+      const View<T> view{g, v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(), v[2].data_ptr<T>()};
+      if (prm.N == 8)   // the default width, unrolled
+        view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T, 8>(prm, k, backward); }, out);
+      else
+        view_forward<T>(view, off, ent, t_min, [&](bool backward) { return NeuralKind<T>(prm, k, backward); }, out);
     });
   });
+  result.insert(result.end(), v.begin(), v.end());
   return result;
 }
 
-// Gradients for (colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax).
+// Gradients for (colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax) of all `count` primitives,
+// from the forward's tensors in depth order (bounds … inv_smax: its gathered outputs).
 std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at::Tensor& g_depth,
                                              const at::Tensor& g_trans, const at::Tensor& bounds,
                                              const at::Tensor& intrinsics, const at::Tensor& colors,
@@ -494,24 +604,31 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
                                              const at::Tensor& w_cam, const at::Tensor& c, const at::Tensor& w2,
                                              const at::Tensor& b2, const at::Tensor& inv_smax,
                                              const at::Tensor& trans64, const at::Tensor& last,
-                                             const at::Tensor& offsets, const at::Tensor& entries) {
+                                             const at::Tensor& offsets, const at::Tensor& entries,
+                                             const at::Tensor& used, const at::Tensor& order, int64_t count) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, g_color});
   check_view(bounds, colors, depth, height, width);
-  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, height, width);
+  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, used, order, height, width);
+  const std::vector<at::Tensor> v = {bounds, colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax};
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "neural_view_backward", [&] {
     using T = scalar_t;
-    const NeuralTensors<T> prm = neural_tensors<T>(m_cam, o_ell, w_cam, c, w2, b2, inv_smax);
+    const NeuralTensors<T> prm = neural_tensors<T>(v[3], v[4], v[5], v[6], v[7], v[8], v[9]);
     const Intrinsics<T> k = read_intrinsics<T>(intrinsics);
-    const View<T> view{Grid(height, width), bounds.size(0), bounds.data_ptr<int64_t>(), colors.data_ptr<T>(),
-                       depth.data_ptr<T>()};
+    const View<T> view{Grid(height, width), v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(),
+                       v[2].data_ptr<T>()};
     const int64_t stride = NeuralKind<T>::stride(prm.N);
-    const std::vector<double> sums = view_backward<T>(
-        view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(), g_depth.data_ptr<T>(),
-        g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride,
-        [&](bool backward) { return NeuralKind<T>(prm, k, backward); });
-    grads = unpack_grads<T>(sums, view.P, stride, {colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax});
+    const auto run = [&](auto make_kind) {
+      return view_backward<T>(view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), used.data_ptr<uint8_t>(),
+                              g_color.data_ptr<T>(),
+                              g_depth.data_ptr<T>(), g_trans.data_ptr<T>(), trans64.data_ptr<double>(),
+                              last.data_ptr<int32_t>(), stride, make_kind);
+    };
+    const GradSums sums = prm.N == 8   // the default width, unrolled
+        ? run([&](bool backward) { return NeuralKind<T, 8>(prm, k, backward); })
+        : run([&](bool backward) { return NeuralKind<T>(prm, k, backward); });
+    grads = unpack_grads<T>(sums, order, stride, {colors, depth, m_cam, o_ell, w_cam, c, w2, b2, inv_smax}, count);
   });
   return grads;
 }
@@ -526,43 +643,49 @@ std::vector<at::Tensor> gaussian_view_forward(const at::Tensor& bounds, const at
   TORCH_CHECK(mean2d.sizes() == at::IntArrayRef({P, 2}) && conic.sizes() == at::IntArrayRef({P, 3}) &&
                   opacity.sizes() == at::IntArrayRef({P}),
               "mean2d, conic, opacity must be (P, 2), (P, 3), (P,)");
+  check_order(order, bounds, height, width);
+  const std::vector<at::Tensor> v = in_order({bounds, colors, depth, mean2d, conic, opacity}, order);
   std::vector<at::Tensor> result;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "gaussian_view_forward", [&] {
     using T = scalar_t;
-    result = forward_outputs(colors, bounds, order, height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
-      const View<T> view{g, P, bounds.data_ptr<int64_t>(), colors.data_ptr<T>(), depth.data_ptr<T>()};
+    result = forward_outputs(colors, v[0], height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
+      const View<T> view{g, v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(), v[2].data_ptr<T>()};
       view_forward<T>(view, off, ent, t_min, [&](bool) {
-        return GaussianKind<T>(mean2d.data_ptr<T>(), conic.data_ptr<T>(), opacity.data_ptr<T>());
+        return GaussianKind<T>(v[3].data_ptr<T>(), v[4].data_ptr<T>(), v[5].data_ptr<T>());
       }, out);
     });
   });
+  result.insert(result.end(), v.begin(), v.end());
   return result;
 }
 
-// Gradients for (colors, depth, mean2d, conic, opacity).
+// Gradients for (colors, depth, mean2d, conic, opacity) of all `count` primitives, from the
+// forward's tensors in depth order (bounds … opacity: its gathered outputs).
 std::vector<at::Tensor> gaussian_view_backward(const at::Tensor& g_color, const at::Tensor& g_depth,
                                                const at::Tensor& g_trans, const at::Tensor& bounds,
                                                const at::Tensor& colors, const at::Tensor& depth,
                                                const at::Tensor& mean2d, const at::Tensor& conic,
                                                const at::Tensor& opacity, const at::Tensor& trans64,
                                                const at::Tensor& last, const at::Tensor& offsets,
-                                               const at::Tensor& entries) {
+                                               const at::Tensor& entries, const at::Tensor& used,
+                                               const at::Tensor& order, int64_t count) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, mean2d, conic, opacity, g_color});
   check_view(bounds, colors, depth, height, width);
-  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, height, width);
+  check_backward(g_color, g_depth, g_trans, trans64, last, offsets, entries, used, order, height, width);
+  const std::vector<at::Tensor> v = {bounds, colors, depth, mean2d, conic, opacity};
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "gaussian_view_backward", [&] {
     using T = scalar_t;
-    const View<T> view{Grid(height, width), bounds.size(0), bounds.data_ptr<int64_t>(), colors.data_ptr<T>(),
-                       depth.data_ptr<T>()};
+    const View<T> view{Grid(height, width), v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(),
+                       v[2].data_ptr<T>()};
     const int64_t stride = GaussianKind<T>::stride(0);
-    const std::vector<double> sums = view_backward<T>(
-        view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), g_color.data_ptr<T>(), g_depth.data_ptr<T>(),
-        g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride, [&](bool) {
-          return GaussianKind<T>(mean2d.data_ptr<T>(), conic.data_ptr<T>(), opacity.data_ptr<T>());
+    const GradSums sums = view_backward<T>(
+        view, offsets.data_ptr<int64_t>(), entries.data_ptr<int32_t>(), used.data_ptr<uint8_t>(), g_color.data_ptr<T>(),
+        g_depth.data_ptr<T>(), g_trans.data_ptr<T>(), trans64.data_ptr<double>(), last.data_ptr<int32_t>(), stride, [&](bool) {
+          return GaussianKind<T>(v[3].data_ptr<T>(), v[4].data_ptr<T>(), v[5].data_ptr<T>());
         });
-    grads = unpack_grads<T>(sums, view.P, stride, {colors, depth, mean2d, conic, opacity});
+    grads = unpack_grads<T>(sums, order, stride, {colors, depth, mean2d, conic, opacity}, count);
   });
   return grads;
 }
