@@ -7,7 +7,8 @@ Per step (3DGS's recipe with Splat the Net's regulariser, §3.3 and appendix A):
 over `batch_views` training views (each view's photometric loss weighted 1/batch_views); Adam
 with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
-`sh_increase_every` steps; population control by radfield.core.strategy after the step.
+`sh_increase_every` steps; population control by radfield.core.strategy after the step, then
+(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows.
 
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
 loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
