@@ -19,12 +19,15 @@ of the camera and inside the image (grown by ρ); the cap is
 
     k_n ≤ c · ρ_max,   c = train.frequency_cap  (c = π: the Nyquist limit; 0 = no cap)    (1)
 
+(the default c = 2, a period of at least π pixels, was chosen on validation views: README "Quality")
+
 enforced after every optimiser step by a projection (projected Adam):
 
     W1_n ← W1_n · min(1, c ρ_max / (ω0 ‖W1_n‖)).                                              (2)
 
 So the usable frequency follows each primitive's footprint: on 64×64 views a primitive covers a
-few pixels and gets only low frequencies, whatever ω0 is; on 223×398 photos, or when it is close
+few pixels and gets only low frequencies, whatever ω0 is (ω0 still scales the MLP-gradient
+statistic that densification thresholds, so it is not free: README); on 223×398 photos, or close
 to a camera, the same primitive may be as detailed as the pixels show. ρ_max depends on the
 means and scales only, so it is recomputed every `every` steps, not every step (P × views
 projections); `for_training` takes the greatest common divisor of the densification interval,
