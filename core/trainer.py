@@ -7,7 +7,8 @@ Per step (3DGS's recipe with Splat the Net's regulariser, §3.3 and appendix A):
 over `batch_views` training views (each view's photometric loss weighted 1/batch_views); Adam
 with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
-`sh_increase_every` steps; population control by radfield.core.strategy after the step.
+`sh_increase_every` steps; population control by radfield.core.strategy after the step, then
+(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows.
 
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
 loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
@@ -49,6 +50,7 @@ from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.distributed import StepSync, World
 from radfield.core.errors import RadfieldError
+from radfield.core.frequency import FrequencyCap
 from radfield.core.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.rasterize import render
@@ -138,6 +140,9 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     means_lr = cfg["lr"]["means"] * extent
     sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
     sync.check(params, state.step, first=True)
+    # neural: each W1 row's frequency stays below the primitive's pixel footprint (core/frequency.py)
+    cap = FrequencyCap.for_training(train_cameras, cfg, omega0=state.omega0, near=near)
+    cap.apply(params, state.step)
 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
@@ -171,6 +176,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
+        cap.apply(params, step + 1)
         sync.check(params, step + 1)
         info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
         every = cfg["eval_every"]

@@ -102,6 +102,7 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
         if value is not None and value < 1:
             raise RadfieldError(f"config key {key} must be at least 1, got {value}")
     require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
+    require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
 

@@ -1,9 +1,13 @@
 """Budget table of the study: neural against Gaussian per scene and primitive budget, from run
 folders named by the queue (STUDY/runs/NAME). Held-out = the test split (train log's last
 test_psnr); val where the run has a val split (eval.split=val), else –.
-    usage: STUDY=/work/q .venv/bin/python scripts/study/budget_table.py"""
+    usage: STUDY=/work/q .venv/bin/python scripts/study/budget_table.py [ROWS]
+ROWS: a file of lines "scene | budget | neural run | Gaussian run" replacing the rows below; a run
+given as an absolute path is read from there instead of STUDY/runs (e.g. Gaussian runs of an
+earlier study that nothing since has changed)."""
 import json
 import os
+import sys
 from pathlib import Path
 
 study = Path(os.environ.get("STUDY", "/work/q")) / "runs"
@@ -15,9 +19,13 @@ ROWS = [("glossy (90 train / 10 val / 20 test, 64×64)", "500", "b_neural_500", 
         ("fern (--downscale 8: 63×47; 17 train / 3 test, no val)", "none", "f_neural", "f_gauss"),
         ("fox_small photos (SfM, --downscale 4: 56×100; 39 / 4 / 7)", "none", "x_neural", "x_gauss")]
 
+if len(sys.argv) > 1:
+    ROWS = [tuple(x.strip() for x in line.split("|")) for line in Path(sys.argv[1]).read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+
 
 def figures(name):
-    run = study / name
+    run = study / name  # an absolute name stays as it is
     try:
         metrics = json.loads((run / "eval" / "metrics.json").read_text())
         train = json.loads((run / "train" / "manifest.json").read_text())["figures"]
