@@ -197,6 +197,24 @@ void scales_of(const T* l, int64_t p0, int64_t p1, T* s) {
 
 constexpr int64_t kScaleChunk = 512;   // primitives whose scales are exponentiated at once
 
+// One primitive's ratios r = s / m (m = min s), their mean and their Bessel-corrected std, what
+// the forward sums and the backward differentiates.
+template <typename T>
+struct RatioStats {
+  T m, r[3], mean, sd;
+};
+
+template <typename T>
+RatioStats<T> ratio_stats(const T* s) {
+  RatioStats<T> st;
+  st.m = std::min({s[0], s[1], s[2]});
+  for (int i = 0; i < 3; ++i) st.r[i] = s[i] / st.m;
+  st.mean = (st.r[0] + st.r[1] + st.r[2]) / T(3);
+  const T d0 = st.r[0] - st.mean, d1 = st.r[1] - st.mean, d2 = st.r[2] - st.mean;
+  st.sd = std::sqrt((d0 * d0 + d1 * d1 + d2 * d2) / T(2));
+  return st;
+}
+
 // mean over primitives of std(s / min(s)) (Bessel-corrected, as torch.std)
 at::Tensor anisotropy_forward(const at::Tensor& log_scales) {
   check_params({log_scales});
@@ -211,11 +229,7 @@ at::Tensor anisotropy_forward(const at::Tensor& log_scales) {
       for (int64_t p = p0; p < p1; ++p) {
         if ((p - p0) % kScaleChunk == 0) scales_of(l, p, std::min(p + kScaleChunk, p1), scales);
         const T* s = scales + 3 * ((p - p0) % kScaleChunk);
-        const T m = std::min({s[0], s[1], s[2]});
-        const T r[3] = {s[0] / m, s[1] / m, s[2] / m};
-        const T mean = (r[0] + r[1] + r[2]) / T(3);
-        const T var = ((r[0] - mean) * (r[0] - mean) + (r[1] - mean) * (r[1] - mean) + (r[2] - mean) * (r[2] - mean)) / T(2);
-        sum += double(std::sqrt(var));
+        sum += double(ratio_stats(s).sd);
       }
       return sum;
     }, std::plus<double>());
@@ -239,10 +253,9 @@ at::Tensor anisotropy_backward(const at::Tensor& grad, const at::Tensor& log_sca
       for (int64_t p = p0; p < p1; ++p) {
         if ((p - p0) % kScaleChunk == 0) scales_of(l, p, std::min(p + kScaleChunk, p1), scales);
         const T* s = scales + 3 * ((p - p0) % kScaleChunk);
-        const T m = std::min({s[0], s[1], s[2]});
-        const T r[3] = {s[0] / m, s[1] / m, s[2] / m};
-        const T mean = (r[0] + r[1] + r[2]) / T(3);
-        const T sd = std::sqrt(((r[0] - mean) * (r[0] - mean) + (r[1] - mean) * (r[1] - mean) + (r[2] - mean) * (r[2] - mean)) / T(2));
+        const RatioStats<T> st = ratio_stats(s);
+        const T m = st.m, mean = st.mean, sd = st.sd;
+        const T* r = st.r;
         // ∂std/∂r_i = (r_i − mean) / (2 std) (Bessel: n − 1 = 2); torch gives 0 at std = 0? it
         // divides: std = 0 only when all r are equal, where every (r_i − mean) = 0 as well
         T g_r[3];
