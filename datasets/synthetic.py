@@ -266,11 +266,17 @@ def trace(scene: Scene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.nd
     return shade(scene, o, d, t, normal, index)[0], t
 
 
+def strata(side: int) -> np.ndarray:
+    """The cells (side², 2) of a side × side grid over the unit square, as integer (row, column)
+    corners, row-major: what stratified sampling draws one point in each of."""
+    return np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2)
+
+
 def pixel_offsets(samples: int, jitter: bool, pixels: int, rng: np.random.Generator | None) -> np.ndarray:
     """Sample positions inside each pixel (pixels, samples², 2) in [0, 1)²: the centres of a
     samples × samples grid, or with `jitter` one uniform point in each of its cells (stratified
     sampling, as a path tracer's pixel sampler)."""
-    grid = np.stack(np.meshgrid(np.arange(samples), np.arange(samples), indexing="ij"), -1).reshape(-1, 2)
+    grid = strata(samples)
     if not jitter:
         return np.broadcast_to((grid + 0.5) / samples, (pixels, samples * samples, 2))
     return (grid + rng.random((pixels, samples * samples, 2))) / samples
@@ -282,8 +288,7 @@ def light_samples(lighting: Lighting, count: int, pixels: int, rng: np.random.Ge
     over the disc (concentric map), in a random order, so the pixel's samples pair with the light's
     strata at random (soft shadows with little noise)."""
     side = math.isqrt(count)
-    cells = np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2)
-    uv = (cells + rng.random((pixels, count, 2))) / side
+    uv = (strata(side) + rng.random((pixels, count, 2))) / side
     order = np.argsort(rng.random((pixels, count)), axis=1)
     uv = np.take_along_axis(uv, order[..., None], axis=1)
     # Shirley-Chiu concentric map of the unit square onto the unit disc (equal area)
