@@ -5,6 +5,8 @@
     neural_bounds(...), gaussian_bounds(...) -> (bounds, order)   pixel bounds and depth order
     gaussian_prep(means_cam, log_scales, quats, ...) -> mean2d, conic, cov   EWA projection
     sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
+    sh_color_parts(sh_dc, sh_rest, means, campos, degree)          the colour from the trainer's SH tensors
+    gaussian_accumulate(...), neural_accumulate(...)               the densification statistics of a view
     ssim_map(x, y, taps, pad, c1, c2), anisotropy(log_scales)      the loss (core/losses.py)
     neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
     available(device=None, dtype=None) -> bool, build_error() -> str | None
@@ -32,7 +34,7 @@ import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
-            _CSRC / "loss_kernels.cpp"]
+            _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
@@ -275,6 +277,29 @@ def sh_color(sh, v, degree: int) -> torch.Tensor:
     return _SHColor.apply(sh, v, degree)
 
 
+class _SHColorParts(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sh_dc, sh_rest, means, campos, degree):
+        args = [t.contiguous() for t in (sh_dc, sh_rest, means, campos)]
+        ctx.degree = degree
+        ctx.save_for_backward(*args)
+        return _ops().sh_parts_color_forward(*args, degree)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        g_dc, g_rest, g_means = _ops().sh_parts_color_backward(grad.contiguous(), *ctx.saved_tensors, ctx.degree)
+        g_campos = -g_means.sum(0) if ctx.needs_input_grad[3] else None   # v = μ − o
+        return g_dc, g_rest, g_means, g_campos, None
+
+
+def sh_color_parts(sh_dc, sh_rest, means, campos, degree: int) -> torch.Tensor:
+    """sh_color(cat([sh_dc, sh_rest], 1), means − campos, degree) in one fused op that reads the
+    two SH tensors (P, 1, 3), (P, K − 1, 3) where they are: no concatenation and no v tensor,
+    forward or backward (the gradients of sh_dc, sh_rest and the means are written directly)."""
+    return _SHColorParts.apply(sh_dc, sh_rest, means, campos, degree)
+
+
 def neural_prep(prims, campos, cam_rot) -> tuple:
     """The ellipsoid frame and MLP phases of rasterize._neural_view in one fused op:
     (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from rasterize._density_weights."""
@@ -348,3 +373,22 @@ def gaussian_prep(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int,
     cov (P, 3) = the 2D covariance's (a, b, c) with the blur, not differentiable), from the
     camera-space means (P, 3); differentiable w.r.t. means_cam, log_scales and quats."""
     return _GaussianPrep.apply(means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near)
+
+
+# --- population control (core/csrc/strategy_kernels.cpp) ----------------------------------------
+
+def gaussian_accumulate(grad, count, means, log_scales, grad_means, w2c, normals, radius_scale: float, near: float,
+                        fx: float, fy: float, width: int, height: int) -> None:
+    """strategy._Strategy.accumulate for Gaussians in one op, in place on the accumulators grad
+    and count (P,): the frustum test (w2c (3, 4), the side planes' unit normals (4, 3)) and the
+    screen-space gradient signal of grad_means (P, 3). No gradient."""
+    args = [t.detach().contiguous() for t in (means, log_scales, grad_means, w2c, normals)]
+    _ops().gaussian_accumulate(grad, count, *args, float(radius_scale), float(near), float(fx), float(fy),
+                               float(width), float(height))
+
+
+def neural_accumulate(grad, count, means, log_scales, g_w1, g_b1, g_w2, g_b2, w2c, normals, radius_scale: float,
+                      near: float) -> None:
+    """As gaussian_accumulate, with the MLP-gradient signal of neural primitives."""
+    args = [t.detach().contiguous() for t in (means, log_scales, g_w1, g_b1, g_w2, g_b2, w2c, normals)]
+    _ops().neural_accumulate(grad, count, *args, float(radius_scale), float(near))

@@ -28,7 +28,7 @@ from radfield.core import fused
 from radfield.core.cameras import Camera
 from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, gaussian_alpha, neural_optical_depth, ray_ellipsoid
 from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat
-from radfield.core.sh import sh_to_color
+from radfield.core.sh import sh_parts, sh_to_color
 
 T_MIN = 1e-4            # 3DGS early termination threshold on transmittance
 EWA_BLUR = 0.3          # 3DGS low-pass filter added to the 2D covariance (pixels²)
@@ -65,7 +65,10 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     depth = means_cam[:, 2]
     degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
     use_fused = fused.available(device, dtype)
-    if use_fused:   # the same per-primitive quantities from fused C++ ops (core/csrc/prepare_kernels.cpp)
+    parts = sh_parts(prims.sh)   # the trainer's (sh_dc, sh_rest), read in place by the fused op
+    if use_fused and parts is not None:
+        colors = fused.sh_color_parts(*parts, prims.means, campos, degree)
+    elif use_fused:   # the same per-primitive quantities from fused C++ ops (core/csrc/prepare_kernels.cpp)
         colors = fused.sh_color(prims.sh, prims.means - campos, degree)
     else:
         colors = sh_to_color(prims.sh, torch.nn.functional.normalize(prims.means - campos, dim=-1), degree)

@@ -86,6 +86,24 @@ def rotate_sh(coeffs: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
     return out.to(dtype)
 
 
+def join_sh(sh_dc: torch.Tensor, sh_rest: torch.Tensor) -> torch.Tensor:
+    """The coefficients (P, K, 3) = cat([sh_dc (P, 1, 3), sh_rest (P, K − 1, 3)], 1), as the
+    trainer assembles them from its two parameters. The result remembers its two parts
+    (`sh_parts`): the fused CPU renderer evaluates the colour from them directly
+    (fused.sh_color_parts), so on that path the concatenation is no part of the colour's autograd
+    graph and its backward (two copies of the gradient) never runs. Any other use of the tensor
+    differentiates through the concatenation as usual; copies of it (`.detach()`, `.to()`) are
+    plain tensors."""
+    sh = torch.cat([sh_dc, sh_rest], 1)
+    sh.sh_parts = (sh_dc, sh_rest)
+    return sh
+
+
+def sh_parts(sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The (sh_dc, sh_rest) that `join_sh` concatenated into `sh`, or None."""
+    return getattr(sh, "sh_parts", None)
+
+
 def sh_to_color(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """3DGS colour convention: SH value + 0.5, clamped at 0 (no upper clamp)."""
     return torch.clamp_min(eval_sh(coeffs, dirs, degree) + 0.5, 0.0)

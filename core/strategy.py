@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import torch
 
+from radfield.core import fused
 from radfield.core.cameras import Camera
 from radfield.core.kernels import ALPHA_MIN
 from radfield.core.primitives import quat_to_rotmat
@@ -103,6 +104,9 @@ class _Strategy:
         optimiser step `step` (counted from 1)."""
         if not self.gathering(step):
             return
+        if _fused_statistics(state, params, grads):   # one C++ pass (core/csrc/strategy_kernels.cpp)
+            self._accumulate_fused(state, params, grads, camera)
+            return
         visible = in_frustum(params["means"], self._radius(params), camera, self.near)
         state["grad"] += torch.where(visible, self._signal(params, grads, camera), 0.0)
         state["count"] += visible
@@ -165,6 +169,12 @@ class NeuralStrategy(_Strategy):
         super().__init__(schedule, **kwargs)
         self.prune_threshold = prune_threshold
 
+    def _accumulate_fused(self, state: dict, params: Params, grads: Params, camera: Camera) -> None:
+        means = params["means"]
+        fused.neural_accumulate(state["grad"], state["count"], means, params["log_scales"],
+                                *(grads[n] for n in MLP_NAMES), camera.w2c.to(means)[:3], side_normals(camera, means),
+                                1.0, self.near)
+
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
         # the authors' statistic: the sum of the per-tensor gradient norms of the MLP
         return (grads["w1"].flatten(1).norm(dim=-1) + grads["b1"].norm(dim=-1)
@@ -193,6 +203,12 @@ class GaussianStrategy(_Strategy):
 
     def _radius(self, params: Params) -> torch.Tensor:
         return GAUSSIAN_RADIUS_SIGMAS * self._max_scale(params)
+
+    def _accumulate_fused(self, state: dict, params: Params, grads: Params, camera: Camera) -> None:
+        means = params["means"]
+        fused.gaussian_accumulate(state["grad"], state["count"], means, params["log_scales"], grads["means"],
+                                  camera.w2c.to(means)[:3], side_normals(camera, means), GAUSSIAN_RADIUS_SIGMAS,
+                                  self.near, camera.fx, camera.fy, camera.width, camera.height)
 
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
         w2c = camera.w2c.to(params["means"])
@@ -243,12 +259,25 @@ def in_frustum(means: torch.Tensor, radius: torch.Tensor, camera: Camera, near: 
     only touches a frustum corner region counts as visible."""
     w2c = camera.w2c.to(means)
     p = means.detach() @ w2c[:3, :3].T + w2c[:3, 3]
-    # inward normals of the side planes through the camera centre: u ≥ 0, u ≤ W, v ≥ 0, v ≤ H
-    normals = torch.tensor([[camera.fx, 0.0, camera.cx], [-camera.fx, 0.0, camera.width - camera.cx],
-                            [0.0, camera.fy, camera.cy], [0.0, -camera.fy, camera.height - camera.cy]]).to(means)
-    normals = torch.nn.functional.normalize(normals, dim=-1)
-    inside = (p @ normals.T).amin(-1) >= -radius   # all four planes: the nearest one (cheaper than .all)
+    inside = (p @ side_normals(camera, means).T).amin(-1) >= -radius   # all four planes: the nearest one
     return inside & (p[:, 2] + radius > near)
+
+
+def side_normals(camera: Camera, like: torch.Tensor) -> torch.Tensor:
+    """The unit inward normals (4, 3) of the side planes of the view frustum, in camera space,
+    through the camera centre: u ≥ 0, u ≤ W, v ≥ 0, v ≤ H (dtype and device of `like`)."""
+    normals = torch.tensor([[camera.fx, 0.0, camera.cx], [-camera.fx, 0.0, camera.width - camera.cx],
+                            [0.0, camera.fy, camera.cy], [0.0, -camera.fy, camera.height - camera.cy]]).to(like)
+    return torch.nn.functional.normalize(normals, dim=-1)
+
+
+def _fused_statistics(state: dict, params: Params, grads: Params) -> bool:
+    """Whether a view's statistics can go through the fused C++ op: CPU tensors of one float
+    dtype (float32/float64) with the kernels built; otherwise the torch twin of `accumulate`."""
+    means = params["means"]
+    tensors = (state["grad"], state["count"], params["log_scales"], *grads.values())
+    return fused.available(means.device, means.dtype) and all(
+        t is not None and t.device == means.device and t.dtype == means.dtype for t in tensors)
 
 
 def negligible_density(w2: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:

@@ -54,7 +54,7 @@ from radfield.core.frequency import FrequencyCap
 from radfield.core.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.rasterize import render
-from radfield.core.sh import num_sh_coeffs
+from radfield.core.sh import join_sh, num_sh_coeffs
 from radfield.core.strategy import make_strategy
 
 CHECKPOINT_FORMAT = "radfield-checkpoint"
@@ -229,7 +229,7 @@ def initial_state(prims: NeuralPrimitives | Gaussians, sh_degree: int) -> TrainS
 def assemble(params: dict[str, torch.Tensor], kind: str, omega0: float | None) -> NeuralPrimitives | Gaussians:
     """Primitives built from the parameter tensors (differentiable: no copies)."""
     tensors = {n: t for n, t in params.items() if n not in ("sh_dc", "sh_rest")}
-    sh = torch.cat([params["sh_dc"], params["sh_rest"]], 1)
+    sh = join_sh(params["sh_dc"], params["sh_rest"])   # the fused renderer reads the two parts (core/sh.py)
     return NeuralPrimitives(**tensors, sh=sh, omega0=omega0) if kind == "neural" else Gaussians(**tensors, sh=sh)
 
 

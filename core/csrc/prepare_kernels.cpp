@@ -23,6 +23,7 @@
 #include <array>
 #include <cmath>
 #include <cstring>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -153,6 +154,122 @@ std::vector<at::Tensor> sh_color_backward(const at::Tensor& grad, const at::Tens
     });
   });
   return {g_sh, g_v};
+}
+
+// The same colour from the two SH tensors the trainer optimises, (dc (P, 1, 3), rest (P, K − 1, 3)),
+// and from the means and the camera centre (v = μ − o): no concatenation of the coefficients
+// and no v tensor, forward or backward (the backward writes the gradients of dc, rest and μ
+// directly). The degree is a template constant, so the basis and the sums over it unroll.
+template <typename T>
+struct SHParts {
+  const T *dc, *rest, *means, *campos;
+  int64_t rest_rows;  // K − 1
+  const T* coef(int64_t p, int k) const { return k == 0 ? dc + 3 * p : rest + (p * rest_rows + k - 1) * 3; }
+};
+
+template <typename T, int kDegree>
+void sh_parts_forward(const SHParts<T>& in, T* out, int64_t P) {
+  constexpr int n = (kDegree + 1) * (kDegree + 1);
+  at::parallel_for(0, P, 512, [&](int64_t p0, int64_t p1) {
+    T b[16], d[3], v[3];
+    for (int64_t p = p0; p < p1; ++p) {
+      for (int r = 0; r < 3; ++r) v[r] = in.means[3 * p + r] - in.campos[r];
+      unit(v, d);
+      sh_basis<T>(kDegree, d[0], d[1], d[2], b, nullptr);
+      T raw[3] = {0, 0, 0};   // the order of sh_color_forward: k = 0, 1, … per channel
+      for (int k = 0; k < n; ++k) {
+        const T* s = in.coef(p, k);
+        for (int ch = 0; ch < 3; ++ch) raw[ch] += b[k] * s[ch];
+      }
+      for (int ch = 0; ch < 3; ++ch) out[3 * p + ch] = std::max(raw[ch] + T(0.5), T(0));
+    }
+  });
+}
+
+template <typename T, int kDegree>
+void sh_parts_backward(const SHParts<T>& in, const T* g, T* g_dc, T* g_rest, T* g_means, int64_t P) {
+  constexpr int n = (kDegree + 1) * (kDegree + 1);
+  at::parallel_for(0, P, 512, [&](int64_t p0, int64_t p1) {
+    T b[16], db[16][3], d[3], v[3];
+    for (int64_t p = p0; p < p1; ++p) {
+      for (int r = 0; r < 3; ++r) v[r] = in.means[3 * p + r] - in.campos[r];
+      const T norm = unit(v, d);
+      sh_basis<T>(kDegree, d[0], d[1], d[2], b, db);
+      T raw[3] = {0, 0, 0};
+      for (int k = 0; k < n; ++k) {
+        const T* s = in.coef(p, k);
+        for (int ch = 0; ch < 3; ++ch) raw[ch] += b[k] * s[ch];
+      }
+      T g_raw[3];
+      for (int ch = 0; ch < 3; ++ch) g_raw[ch] = raw[ch] + T(0.5) >= T(0) ? g[3 * p + ch] : T(0);  // clamp_min passes at equality
+      T g_d[3] = {0, 0, 0};
+      T* gr = g_rest + p * in.rest_rows * 3;
+      std::fill(gr + (n - 1) * 3, gr + in.rest_rows * 3, T(0));   // the bands above the degree
+      for (int k = 0; k < n; ++k) {
+        const T* s = in.coef(p, k);
+        T* gs = k == 0 ? g_dc + 3 * p : gr + (k - 1) * 3;
+        for (int ch = 0; ch < 3; ++ch) gs[ch] = b[k] * g_raw[ch];
+        const T g_b = s[0] * g_raw[0] + s[1] * g_raw[1] + s[2] * g_raw[2];
+        for (int r = 0; r < 3; ++r) g_d[r] += g_b * db[k][r];
+      }
+      // d̂ = v/|v|: ∂/∂v = (g − d̂ (d̂·g)) / |v|, and ∂v/∂μ = I
+      const T dot = d[0] * g_d[0] + d[1] * g_d[1] + d[2] * g_d[2];
+      for (int r = 0; r < 3; ++r) g_means[3 * p + r] = (g_d[r] - d[r] * dot) / norm;
+    }
+  });
+}
+
+template <typename T, typename Run>
+void with_degree(int64_t degree, Run&& run) {
+  switch (degree) {
+    case 0: return run(std::integral_constant<int, 0>());
+    case 1: return run(std::integral_constant<int, 1>());
+    case 2: return run(std::integral_constant<int, 2>());
+    default: return run(std::integral_constant<int, 3>());
+  }
+}
+
+void check_sh_parts(const at::Tensor& dc, const at::Tensor& rest, const at::Tensor& means, const at::Tensor& campos,
+                    int64_t degree) {
+  check_params({dc, rest, means, campos});
+  const int64_t P = dc.size(0);
+  TORCH_CHECK(dc.dim() == 3 && dc.size(1) == 1 && dc.size(2) == 3, "sh_dc must be (P, 1, 3)");
+  TORCH_CHECK(rest.dim() == 3 && rest.size(0) == P && rest.size(2) == 3, "sh_rest must be (P, K − 1, 3)");
+  TORCH_CHECK(degree >= 0 && degree <= 3 && (degree + 1) * (degree + 1) <= rest.size(1) + 1,
+              "the degree needs (degree + 1)² ≤ K coefficients, degree in 0..3");
+  TORCH_CHECK(means.sizes() == at::IntArrayRef({P, 3}) && campos.numel() == 3, "means must be (P, 3), campos (3,)");
+}
+
+at::Tensor sh_parts_color_forward(const at::Tensor& dc, const at::Tensor& rest, const at::Tensor& means,
+                                  const at::Tensor& campos, int64_t degree) {
+  check_sh_parts(dc, rest, means, campos, degree);
+  const int64_t P = dc.size(0);
+  at::Tensor out = at::empty({P, 3}, dc.options());
+  AT_DISPATCH_FLOATING_TYPES(dc.scalar_type(), "sh_parts_color_forward", [&] {
+    using T = scalar_t;
+    const SHParts<T> in{dc.data_ptr<T>(), rest.data_ptr<T>(), means.data_ptr<T>(), campos.data_ptr<T>(), rest.size(1)};
+    with_degree<T>(degree, [&](auto d) { sh_parts_forward<T, decltype(d)::value>(in, out.data_ptr<T>(), P); });
+  });
+  return out;
+}
+
+// Gradients for (dc, rest, means); the camera centre's is −Σ_p ∂L/∂μ_p (core/fused.py).
+std::vector<at::Tensor> sh_parts_color_backward(const at::Tensor& grad, const at::Tensor& dc, const at::Tensor& rest,
+                                                const at::Tensor& means, const at::Tensor& campos, int64_t degree) {
+  check_sh_parts(dc, rest, means, campos, degree);
+  check_params({grad, dc});
+  const int64_t P = dc.size(0);
+  TORCH_CHECK(grad.sizes() == at::IntArrayRef({P, 3}), "grad must be (P, 3)");
+  at::Tensor g_dc = at::empty_like(dc), g_rest = at::empty_like(rest), g_means = at::empty_like(means);
+  AT_DISPATCH_FLOATING_TYPES(dc.scalar_type(), "sh_parts_color_backward", [&] {
+    using T = scalar_t;
+    const SHParts<T> in{dc.data_ptr<T>(), rest.data_ptr<T>(), means.data_ptr<T>(), campos.data_ptr<T>(), rest.size(1)};
+    with_degree<T>(degree, [&](auto d) {
+      sh_parts_backward<T, decltype(d)::value>(in, grad.data_ptr<T>(), g_dc.data_ptr<T>(), g_rest.data_ptr<T>(),
+                                               g_means.data_ptr<T>(), P);
+    });
+  });
+  return {g_dc, g_rest, g_means};
 }
 
 // --- neural primitives: ellipsoid frame and MLP phases ----------------------------------------
@@ -641,6 +758,8 @@ std::vector<at::Tensor> gaussian_bounds(const at::Tensor& mean2d, const at::Tens
 TORCH_LIBRARY_FRAGMENT(radfield, m) {
   m.def("sh_color_forward", &sh_color_forward);
   m.def("sh_color_backward", &sh_color_backward);
+  m.def("sh_parts_color_forward", &sh_parts_color_forward);
+  m.def("sh_parts_color_backward", &sh_parts_color_backward);
   m.def("neural_prep_forward", &neural_prep_forward);
   m.def("neural_prep_backward", &neural_prep_backward);
   m.def("gaussian_prep_forward", &gaussian_prep_forward);
