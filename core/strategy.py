@@ -89,6 +89,7 @@ class _Strategy:
         self.max_primitives = max_primitives
         # a population that starts at the budget is left as it is (paper §4.2)
         self.enabled = max_primitives is None or initial_count < max_primitives
+        self._frames = {}   # camera -> its frustum for the fused statistics (_camera_frame)
 
     def init_state(self, num: int, device) -> dict[str, torch.Tensor]:
         """grad: summed per-view gradient signal; count: views in which the primitive was visible."""
@@ -110,6 +111,16 @@ class _Strategy:
         visible = in_frustum(params["means"], self._radius(params), camera, self.near)
         state["grad"] += torch.where(visible, self._signal(params, grads, camera), 0.0)
         state["count"] += visible
+
+    def _camera_frame(self, camera: Camera, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(w2c rows (3, 4), side_normals (4, 3)) of a camera in like's dtype and device, for the
+        fused statistics: kept per camera object (a training view comes back every epoch, and its
+        4×4 inverse and normals cost more than the op itself)."""
+        key = (id(camera), like.dtype, like.device)
+        frame = self._frames.get(key)
+        if frame is None or frame[0] is not camera:   # `is`: an id can be reused by a new camera
+            frame = self._frames[key] = (camera, camera.w2c.to(like)[:3].contiguous(), side_normals(camera, like))
+        return frame[1], frame[2]
 
     def _grow_and_prune(self, state: dict, params: Params, optimizer, prune: torch.Tensor,
                         generator: torch.Generator) -> dict[str, int]:
@@ -172,8 +183,7 @@ class NeuralStrategy(_Strategy):
     def _accumulate_fused(self, state: dict, params: Params, grads: Params, camera: Camera) -> None:
         means = params["means"]
         fused.neural_accumulate(state["grad"], state["count"], means, params["log_scales"],
-                                *(grads[n] for n in MLP_NAMES), camera.w2c.to(means)[:3], side_normals(camera, means),
-                                1.0, self.near)
+                                *(grads[n] for n in MLP_NAMES), *self._camera_frame(camera, means), 1.0, self.near)
 
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
         # the authors' statistic: the sum of the per-tensor gradient norms of the MLP
@@ -207,8 +217,8 @@ class GaussianStrategy(_Strategy):
     def _accumulate_fused(self, state: dict, params: Params, grads: Params, camera: Camera) -> None:
         means = params["means"]
         fused.gaussian_accumulate(state["grad"], state["count"], means, params["log_scales"], grads["means"],
-                                  camera.w2c.to(means)[:3], side_normals(camera, means), GAUSSIAN_RADIUS_SIGMAS,
-                                  self.near, camera.fx, camera.fy, camera.width, camera.height)
+                                  *self._camera_frame(camera, means), GAUSSIAN_RADIUS_SIGMAS, self.near, camera.fx,
+                                  camera.fy, camera.width, camera.height)
 
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
         w2c = camera.w2c.to(params["means"])

@@ -43,8 +43,9 @@ constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.45704579946
                           -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
 
 // basis values b[0..count) at unit direction (x, y, z), and with grad != nullptr their gradients
+// (always inlined: with a constant degree and grad the branches fold away and b, grad stay in registers)
 template <typename T>
-int sh_basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
+__attribute__((always_inline)) inline int sh_basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
   int n = 0;
   auto put = [&](T value, T gx, T gy, T gz) {
     b[n] = value;
@@ -79,6 +80,41 @@ int sh_basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
     put(T(C3[6]) * x * (xx - T(3) * yy), T(C3[6]) * (T(3) * xx - T(3) * yy), T(C3[6]) * T(-6) * x * y, 0);
   }
   return n;
+}
+
+// g_d += Σ_k g_b[k] ∇b_k(x, y, z) over the first (degree + 1)² basis functions: sh_basis's
+// gradients with their zero components left out (x · 0 cannot be folded away without
+// -ffast-math), the same expressions added in the same order of k, so the same sums bit for bit.
+template <typename T>
+__attribute__((always_inline)) inline void sh_basis_grad(int degree, T x, T y, T z, const T* g_b, T* g_d) {
+  if (degree >= 1) {
+    g_d[1] += g_b[1] * T(-C1);
+    g_d[2] += g_b[2] * T(C1);
+    g_d[0] += g_b[3] * T(-C1);
+  }
+  if (degree >= 2) {
+    g_d[0] += g_b[4] * (T(C2[0]) * y), g_d[1] += g_b[4] * (T(C2[0]) * x);
+    g_d[1] += g_b[5] * (T(C2[1]) * z), g_d[2] += g_b[5] * (T(C2[1]) * y);
+    g_d[0] += g_b[6] * (T(C2[2]) * T(-2) * x), g_d[1] += g_b[6] * (T(C2[2]) * T(-2) * y);
+    g_d[2] += g_b[6] * (T(C2[2]) * T(4) * z);
+    g_d[0] += g_b[7] * (T(C2[3]) * z), g_d[2] += g_b[7] * (T(C2[3]) * x);
+    g_d[0] += g_b[8] * (T(C2[4]) * T(2) * x), g_d[1] += g_b[8] * (T(C2[4]) * T(-2) * y);
+  }
+  if (degree >= 3) {
+    const T xx = x * x, yy = y * y, zz = z * z;
+    g_d[0] += g_b[9] * (T(C3[0]) * T(6) * x * y), g_d[1] += g_b[9] * (T(C3[0]) * (T(3) * xx - T(3) * yy));
+    g_d[0] += g_b[10] * (T(C3[1]) * y * z), g_d[1] += g_b[10] * (T(C3[1]) * x * z);
+    g_d[2] += g_b[10] * (T(C3[1]) * x * y);
+    g_d[0] += g_b[11] * (T(C3[2]) * T(-2) * x * y), g_d[1] += g_b[11] * (T(C3[2]) * (T(4) * zz - xx - T(3) * yy));
+    g_d[2] += g_b[11] * (T(C3[2]) * T(8) * y * z);
+    g_d[0] += g_b[12] * (T(C3[3]) * T(-6) * x * z), g_d[1] += g_b[12] * (T(C3[3]) * T(-6) * y * z);
+    g_d[2] += g_b[12] * (T(C3[3]) * (T(6) * zz - T(3) * xx - T(3) * yy));
+    g_d[0] += g_b[13] * (T(C3[4]) * (T(4) * zz - T(3) * xx - yy)), g_d[1] += g_b[13] * (T(C3[4]) * T(-2) * x * y);
+    g_d[2] += g_b[13] * (T(C3[4]) * T(8) * x * z);
+    g_d[0] += g_b[14] * (T(C3[5]) * T(2) * x * z), g_d[1] += g_b[14] * (T(C3[5]) * T(-2) * y * z);
+    g_d[2] += g_b[14] * (T(C3[5]) * (xx - yy));
+    g_d[0] += g_b[15] * (T(C3[6]) * (T(3) * xx - T(3) * yy)), g_d[1] += g_b[15] * (T(C3[6]) * T(-6) * x * y);
+  }
 }
 
 // d̂ = v / max(|v|, 1e-12) as torch.nn.functional.normalize
@@ -190,11 +226,11 @@ template <typename T, int kDegree>
 void sh_parts_backward(const SHParts<T>& in, const T* g, T* g_dc, T* g_rest, T* g_means, int64_t P) {
   constexpr int n = (kDegree + 1) * (kDegree + 1);
   at::parallel_for(0, P, 512, [&](int64_t p0, int64_t p1) {
-    T b[16], db[16][3], d[3], v[3];
+    T b[16], g_b[16], d[3], v[3];
     for (int64_t p = p0; p < p1; ++p) {
       for (int r = 0; r < 3; ++r) v[r] = in.means[3 * p + r] - in.campos[r];
       const T norm = unit(v, d);
-      sh_basis<T>(kDegree, d[0], d[1], d[2], b, db);
+      sh_basis<T>(kDegree, d[0], d[1], d[2], b, nullptr);
       T raw[3] = {0, 0, 0};
       for (int k = 0; k < n; ++k) {
         const T* s = in.coef(p, k);
@@ -209,9 +245,9 @@ void sh_parts_backward(const SHParts<T>& in, const T* g, T* g_dc, T* g_rest, T* 
         const T* s = in.coef(p, k);
         T* gs = k == 0 ? g_dc + 3 * p : gr + (k - 1) * 3;
         for (int ch = 0; ch < 3; ++ch) gs[ch] = b[k] * g_raw[ch];
-        const T g_b = s[0] * g_raw[0] + s[1] * g_raw[1] + s[2] * g_raw[2];
-        for (int r = 0; r < 3; ++r) g_d[r] += g_b * db[k][r];
+        g_b[k] = s[0] * g_raw[0] + s[1] * g_raw[1] + s[2] * g_raw[2];
       }
+      sh_basis_grad<T>(kDegree, d[0], d[1], d[2], g_b, g_d);
       // d̂ = v/|v|: ∂/∂v = (g − d̂ (d̂·g)) / |v|, and ∂v/∂μ = I
       const T dot = d[0] * g_d[0] + d[1] * g_d[1] + d[2] * g_d[2];
       for (int r = 0; r < 3; ++r) g_means[3 * p + r] = (g_d[r] - d[r] * dot) / norm;
