@@ -74,6 +74,27 @@ def reference_half_angle(means, radius, cams, near):
     return torch.tensor(out, dtype=torch.float64)
 
 
+def test_the_projection_is_the_nearest_point_of_the_cone():
+    g = torch.Generator().manual_seed(0)
+    w2, b2 = torch.randn(500, 8, generator=g), torch.randn(500, generator=g) * 2
+    w2[:4], b2[:4] = 0.25, torch.tensor([2.0, 1.99, -0.3, -5.0])  # ties; inside by a hair; polar
+    new_w2, new_b2 = project_nonnegative(w2, b2)
+    ref_w2, ref_b2 = reference_projection(w2, b2)
+    assert torch.allclose(new_w2.double(), ref_w2, atol=1e-5) and torch.allclose(new_b2.double(), ref_b2, atol=1e-5)
+    assert (new_w2.abs().sum(-1) <= new_b2 + 1e-5).all()
+    inside = w2.abs().sum(-1) <= b2 + 1e-6 * (b2.abs() + 1)
+    assert inside.any() and (~inside).any()
+    assert torch.equal(new_w2[inside], w2[inside]) and torch.equal(new_b2[inside], b2[inside])  # bit for bit
+    assert new_b2[3] == 0 and (new_w2[3] == 0).all()  # the polar cone goes to the apex
+    # idempotent, and no point of the cone is nearer than the projection (random cone points)
+    again = project_nonnegative(new_w2, new_b2)
+    assert torch.equal(again[0], new_w2) and torch.equal(again[1], new_b2)
+    probe_w2 = new_w2 + 0.05 * torch.randn(500, 8, generator=g)
+    probe_b2 = probe_w2.abs().sum(-1) + 0.05 * torch.rand(500, generator=g)
+    dist = lambda a, b: (a - w2).square().sum(-1) + (b - b2).square()
+    assert (dist(new_w2, new_b2) <= dist(probe_w2, probe_b2) + 1e-5).all()
+
+
 def test_the_view_cone_half_angle_against_loops():
     cams, prims = two_clusters()
     radius = prims.scales.amax(-1)
