@@ -3,10 +3,12 @@ scripts/study/run_capture.sh) its val PSNR (the eval stage, eval.split=val), hel
 (the train log's last test_psnr), train PSNR, train − held-out, primitives and train seconds.
 Selection is on val; test is only reported.
     usage: STUDY=/work/runs/capture .venv/bin/python scripts/study/collect_capture.py QUEUE... > table.md"""
-import json
 import os
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from collect import run_figures  # noqa: E402  (the study's reader of a finished run)
 
 study = Path(os.environ.get("STUDY", "/work/runs/capture"))
 SKIP = ("data.val_every", "eval.split")
@@ -23,15 +25,10 @@ for queue in sys.argv[1:]:
             k = options.index("--downscale")
             scene += f" /{options[k + 1]}"
             del options[k:k + 2]
-        run = study / "runs" / name
-        try:
-            metrics = json.loads((run / "eval" / "metrics.json").read_text())
-            log = [json.loads(x) for x in (run / "train" / "log.jsonl").read_text().splitlines()]
-            train = json.loads((run / "train" / "manifest.json").read_text())
-        except (OSError, ValueError):
+        figures = run_figures(study / "runs" / name)
+        if figures is None:
             continue
-        test = [r["test_psnr"] for r in log if r.get("test_psnr") is not None][-1]
-        train_psnr = train.get("figures", train).get("train_psnr")
+        metrics, test, train_psnr = figures["metrics"], figures["test"], figures["train_psnr"]
         val = f"{metrics['psnr']:.2f}" if metrics.get("split") == "val" else "–"
         print(f"| {name} | {scene} | {' '.join(options)} | {val} | {test:.2f} | {train_psnr:.2f} | "
-              f"{train_psnr - test:.2f} | {metrics['num_primitives']} | {log[-1]['seconds']:.0f} |")
+              f"{train_psnr - test:.2f} | {metrics['num_primitives']} | {figures['seconds']:.0f} |")
