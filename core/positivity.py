@@ -126,6 +126,9 @@ class NonNegativeDensity:
             return
         if self._mask is None or self._mask.shape[0] != params["w2"].shape[0] or step % self.every == 0:
             self._mask = self.mask(params)
-        w2, b2 = project_nonnegative(params["w2"], params["b2"])
-        params["w2"].copy_(torch.where(self._mask[:, None], w2, params["w2"]))
-        params["b2"].copy_(torch.where(self._mask, b2, params["b2"]))
+        if not bool(self._mask.any()):
+            return  # object-centric captures: no primitive has a narrow cone, nothing to do
+        rows = self._mask.nonzero()[:, 0]  # rows are projected independently: only these change
+        w2, b2 = project_nonnegative(params["w2"][rows], params["b2"][rows])
+        params["w2"][rows] = w2
+        params["b2"][rows] = b2
