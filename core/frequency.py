@@ -34,7 +34,18 @@ projections); `for_training` takes the greatest common divisor of the densificat
 the checkpoint interval and the run length, so the bound is refreshed after every change of the
 population and at every step a checkpoint or final state can be written at: a resumed run then
 recomputes exactly the bound the uninterrupted run used. A primitive that no training view sees
-is left alone (no bound).
+is left alone (no bound by eq. 1).
+
+An absolute bound in units of the primitive (`train.frequency_bound` = K, rad per unit of u; 0 = off)
+can be added on top (README "Few-view captures"):
+
+    k_n ≤ K                                                                                    (3)
+
+eq. (1) is lax for a primitive that covers many pixels: with ρ_max = 8 px and c = 2 a unit may
+oscillate 2.5 periods across the radius, i.e. the primitive carries internal density structure
+whose line integrals differ from view to view (tomography with few, nearly co-directional views).
+K = π allows at most half a period over the radius whatever the footprint; eq. (2) then projects
+onto min(c ρ_max, K) / ω0 (K also binds primitives no view sees).
 """
 
 from __future__ import annotations
@@ -80,9 +91,11 @@ class FrequencyCap:
     """Eq. (1)-(2) during training: `apply(params, step)` after each optimiser step projects the
     rows of params["w1"] onto the ball of radius c · ρ_max / ω0 (in place, no gradient)."""
 
-    def __init__(self, cameras: Sequence[Camera], *, factor: float, omega0: float, near: float, every: int = 100):
-        if factor < 0:
-            raise ValueError(f"frequency cap factor must be >= 0, got {factor}")
+    def __init__(self, cameras: Sequence[Camera], *, factor: float, omega0: float, near: float, every: int = 100,
+                 absolute: float = 0.0):
+        if factor < 0 or absolute < 0:
+            raise ValueError(f"frequency cap factor and absolute bound must be >= 0, got {factor}, {absolute}")
+        self.absolute = absolute  # K of eq. (3), 0 = off
         self.views = view_stack(cameras)
         self.factor = factor
         self.omega0 = omega0
@@ -95,17 +108,23 @@ class FrequencyCap:
         """The cap of a training run from its `train` config section (omega0 None: Gaussians, no cap)."""
         every = math.gcd(cfg["densify"]["every"], cfg["checkpoint_every"], cfg["iterations"])
         factor = cfg["frequency_cap"] if omega0 else 0.0
-        return cls(cameras, factor=factor, omega0=omega0 or 1.0, near=near, every=every)
+        absolute = cfg["frequency_bound"] if omega0 else 0.0
+        return cls(cameras, factor=factor, omega0=omega0 or 1.0, near=near, every=every, absolute=absolute)
 
     @property
     def enabled(self) -> bool:
-        return self.factor > 0
+        return self.factor > 0 or self.absolute > 0
 
     def bound(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
-        """The bound on ‖W1_n‖ per primitive, c · ρ_max / ω0 (inf for primitives no view sees)."""
+        """The bound on ‖W1_n‖ per primitive, min(c · ρ_max, K) / ω0 (eq. 1, 3; inf where neither binds)."""
         means, log_scales = params["means"].detach(), params["log_scales"].detach()
-        rho = footprint(means, torch.exp(log_scales.amax(-1)), self.views, self.near)
-        return torch.where(rho > 0, self.factor * rho / self.omega0, math.inf)
+        bound = torch.full_like(means[:, 0], math.inf)
+        if self.factor > 0:
+            rho = footprint(means, torch.exp(log_scales.amax(-1)), self.views, self.near)
+            bound = torch.where(rho > 0, self.factor * rho / self.omega0, bound)
+        if self.absolute > 0:
+            bound = bound.clamp_max(self.absolute / self.omega0)
+        return bound
 
     @torch.no_grad()
     def apply(self, params: dict[str, torch.Tensor], step: int) -> None:

@@ -8,7 +8,9 @@ over `batch_views` training views (each view's photometric loss weighted 1/batch
 with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
 `sh_increase_every` steps; population control by radfield.core.strategy after the step, then
-(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows.
+(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows and,
+with `nonnegative_density`, radfield.core.positivity projects (W2, b2) so that σ ≥ 0 everywhere
+in the primitives whose training views lie in a narrow cone.
 
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
 loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
@@ -51,6 +53,7 @@ from radfield.core.cameras import Camera
 from radfield.core.distributed import StepSync, World
 from radfield.core.errors import RadfieldError
 from radfield.core.frequency import FrequencyCap
+from radfield.core.positivity import NonNegativeDensity
 from radfield.core.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
 from radfield.core.primitives import Gaussians, NeuralPrimitives
 from radfield.core.rasterize import render
@@ -143,6 +146,9 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     # neural: each W1 row's frequency stays below the primitive's pixel footprint (core/frequency.py)
     cap = FrequencyCap.for_training(train_cameras, cfg, omega0=state.omega0, near=near)
     cap.apply(params, state.step)
+    # neural: σ ≥ 0 everywhere in primitives seen from a narrow cone of views (core/positivity.py)
+    positive = NonNegativeDensity.for_training(train_cameras, cfg, kind=state.kind, near=near)
+    positive.apply(params, state.step)
 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
@@ -177,6 +183,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         optimizer.zero_grad(set_to_none=True)
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
         cap.apply(params, step + 1)
+        positive.apply(params, step + 1)
         sync.check(params, step + 1)
         info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
         every = cfg["eval_every"]

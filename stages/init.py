@@ -103,6 +103,8 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
             raise RadfieldError(f"config key {key} must be at least 1, got {value}")
     require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
     require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
+    require(config, "train.frequency_bound", lambda x: x >= 0, "at least 0 (0 = no bound)")
+    require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
 

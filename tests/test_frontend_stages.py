@@ -249,6 +249,8 @@ def test_too_few_triangulated_points_means_no_cage(blobs, tmp_path):
     (["--set", "sfm.camera_model=THIN_PRISM"], "sfm.camera_model"),
     (["--set", "init.cage_fraction=2"], "init.cage_fraction"),
     (["--set", "train.frequency_cap=-1"], "train.frequency_cap"),
+    (["--set", "train.frequency_bound=-1"], "train.frequency_bound"),
+    (["--set", "train.nonnegative_density=200"], "train.nonnegative_density"),
 ])
 def test_front_end_config_errors_name_the_key(blobs, tmp_path, cli, args, key):
     code, _, err = cli("reconstruct", blobs, "-o", tmp_path / "run", *args)
