@@ -8,7 +8,10 @@ over `batch_views` training views (each view's photometric loss weighted 1/batch
 with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
 `sh_increase_every` steps; population control by radfield.core.strategy after the step, then
-(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows.
+(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows and
+the footprint floor of radfield.core.antialias (`min_footprint`) raises scales below k pixels.
+With `ray_jitter` every training view is rendered with its principal point moved by a random
+sub-pixel offset (radfield.core.antialias): the pixels' rays sample their whole area over the run.
 
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
 loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
@@ -23,7 +26,7 @@ an N-step run: the means' rate is lr0 · r^(t / (N − 1)) at step t (so at step
 lr0 · r^(s / (N − 1)) and decays to lr0 · r at step N − 1), the SH degree and densification
 follow their step thresholds as in an N-step run. It is not the same as a fresh N-step run.
 
-Randomness (view order, split children) is drawn from generators seeded by (seed, step), so a
+Randomness (view order, split children, ray jitter) is drawn from generators seeded by (seed, step), so a
 run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
 moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
 run bit for bit on the CPU. Checkpoints are safetensors files with a JSON header, never pickles.
@@ -46,6 +49,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
+from radfield.core.antialias import FootprintFloor, jitter_offsets, shifted
 from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.distributed import StepSync, World
@@ -65,7 +69,7 @@ GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
 PARAM_NAMES = {"neural": GEOMETRY + ("w1", "b1", "w2", "b2"), "gaussian": GEOMETRY + ("opacities",)}
 LR_KEYS = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}  # param name -> train.lr key, if not its own
 
-_VIEWS, _REFINE, _BACKGROUND = 0, 1, 2  # random streams
+_VIEWS, _REFINE, _BACKGROUND, _JITTER = 0, 1, 2, 3  # random streams
 
 
 @dataclass
@@ -143,6 +147,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     # neural: each W1 row's frequency stays below the primitive's pixel footprint (core/frequency.py)
     cap = FrequencyCap.for_training(train_cameras, cfg, omega0=state.omega0, near=near)
     cap.apply(params, state.step)
+    floor = FootprintFloor.for_training(train_cameras, cfg, near=near)  # anti-aliasing (core/antialias.py)
+    floor.apply(params, state.step)
 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
@@ -152,6 +158,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             regulariser.backward()
         loss_sum = psnr_sum = 0.0
         backgrounds = None if alphas is None else torch.rand(batch, 3, generator=generator(seed, _BACKGROUND, step))
+        offsets = jitter_offsets(cfg["ray_jitter"], batch, generator(seed, _JITTER, step))
         gathering = strategy.gathering(step + 1)
         gathered = sync.gather_into(accumulators, gathering)
         # k: the view's place in the whole batch (its random background), the same on every rank
@@ -162,14 +169,15 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             if backgrounds is not None:  # the same RGBA pixels "over" another colour
                 view_bg = backgrounds[k].to(device)
                 target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
-            out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=view_bg,
+            camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
+            out = render(assemble(params, state.kind, state.omega0), camera, background=view_bg,
                          near=near, sh_degree=degree, max_pairs=max_pairs)
             mask = None if masks is None else masks[view]
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
             (loss / batch).backward()
             # this view's own gradients (unscaled), what the densification statistics measure
             grads = {n: own_gradient(params[n].grad, before[n], batch) for n in tracked}
-            strategy.accumulate(gathered, params, grads, train_cameras[view], step + 1)
+            strategy.accumulate(gathered, params, grads, camera, step + 1)
             loss_sum += float(loss.detach())
             psnr_sum += float(psnr(out.color.detach().clamp(0, 1), target, mask))
         loss_sum, psnr_sum = sync.reduce(params, accumulators, loss_sum, psnr_sum, step + 1)
@@ -177,6 +185,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         optimizer.zero_grad(set_to_none=True)
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
         cap.apply(params, step + 1)
+        floor.apply(params, step + 1)
         sync.check(params, step + 1)
         info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
         every = cfg["eval_every"]

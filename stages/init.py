@@ -103,6 +103,8 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
             raise RadfieldError(f"config key {key} must be at least 1, got {value}")
     require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
     require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
+    require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
+    require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
 

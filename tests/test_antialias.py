@@ -1,0 +1,148 @@
+"""Anti-aliasing of training (radfield.core.antialias): sub-pixel ray jitter and the footprint floor."""
+
+import math
+
+import pytest
+import torch
+
+from radfield.core.antialias import FootprintFloor, jitter_offsets, shifted
+from radfield.core.cameras import Camera, look_at, pixel_rays
+from radfield.core.primitives import random_gaussians, random_neural
+from radfield.core.rasterize import render
+from radfield.core.trainer import generator, load_checkpoint, save_checkpoint, train
+from radfield.datasets.synthetic import generate_scene
+from radfield.stages.config import load_defaults
+
+BG = (1.0, 1.0, 1.0)
+
+
+def orbit(n: int, size: int, radius: float = 3.0) -> list[Camera]:
+    return [Camera(fx=1.3 * size, fy=1.3 * size, cx=size / 2, cy=size / 2, width=size, height=size,
+                   c2w=look_at((radius * math.cos(a), radius * math.sin(a), 0.3 + 0.8 * math.sin(3 * a)), (0, 0, 0)))
+            for a in (2 * math.pi * i / n for i in range(n))]
+
+
+def views(n: int = 4, size: int = 16):
+    truth = random_neural(60, extent=0.6, scale=0.25, seed=1)
+    cameras = orbit(n, size)
+    with torch.no_grad():
+        images = torch.stack([render(truth, c, background=BG).color.clamp(0, 1) for c in cameras])
+    return cameras, images
+
+
+def config(**changes) -> dict:
+    cfg = load_defaults()["train"]
+    cfg["densify"].update(changes.pop("densify", {}))
+    cfg.update(changes)
+    return cfg
+
+
+def test_jitter_offsets_are_seeded_uniform_and_off_at_zero():
+    a = jitter_offsets(1.0, 4000, generator(0, 3, 5))
+    assert a == jitter_offsets(1.0, 4000, generator(0, 3, 5))          # a function of (seed, step)
+    assert a != jitter_offsets(1.0, 4000, generator(0, 3, 6))
+    t = torch.tensor(a)
+    assert t.abs().max() <= 0.5 and t.abs().max() > 0.49               # U(−1/2, 1/2)²
+    assert t.mean(0).abs().max() < 0.02 and (t.var(0) - 1 / 12).abs().max() < 0.005
+    assert (torch.tensor(jitter_offsets(0.4, 500, generator(1, 3, 0))).abs() <= 0.2).all()
+    assert jitter_offsets(0.0, 3, generator(0, 3, 0)) == [(0.0, 0.0)] * 3
+
+
+def test_a_shifted_camera_samples_the_pixels_at_the_offset():
+    cam = orbit(1, 12)[0]
+    moved = shifted(cam, (0.25, -0.4))
+    assert shifted(cam, (0.0, 0.0)) is cam
+    # pixel (i, j) of the moved camera looks along the ray through (j + 0.5 − 0.25, i + 0.5 + 0.4) of cam
+    j, i = torch.meshgrid(torch.arange(12.0) + 0.25, torch.arange(12.0) + 0.9, indexing="xy")
+    d = torch.stack([(j - cam.cx) / cam.fx, (i - cam.cy) / cam.fy, torch.ones_like(i)], -1).double()
+    d = torch.nn.functional.normalize(d, dim=-1) @ cam.c2w[:3, :3].T
+    assert torch.allclose(pixel_rays(moved, dtype=torch.float64)[0], d, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+def test_jittered_training_resumes_bit_for_bit(tmp_path, kind):
+    cameras, images = views()
+    start = (random_neural if kind == "neural" else random_gaussians)(30, sh_degree=1, extent=0.6, scale=0.15, seed=3)
+    cfg = config(iterations=10, sh_degree=1, batch_views=2, checkpoint_every=5, ray_jitter=1.0, min_footprint=1.0,
+                 densify={"start": 4, "stop": 8, "every": 4})
+    run = dict(background=BG, extent=3.3, seed=7)
+    whole = train(start, cameras, images, cfg, **run)
+    plain = train(start, cameras, images, {**cfg, "ray_jitter": 0.0}, **run)
+    assert not torch.equal(whole.params["means"], plain.params["means"])  # the jitter acted
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_7(step, info):
+        if step == 7:
+            raise Killed
+
+    path = tmp_path / "checkpoint.safetensors"
+    with pytest.raises(Killed):
+        train(start, cameras, images, cfg, **run, on_step=kill_at_7, checkpoint=lambda s: save_checkpoint(path, s))
+    resumed = train(start, cameras, images, cfg, **run, start_state=load_checkpoint(path))
+    for name in whole.params:
+        assert torch.equal(whole.params[name], resumed.params[name]), name
+
+
+def finest_pixel(means, cameras, near=0.01):
+    """The obvious loop: per primitive, the smallest z/f (scene units per pixel at its centre) over the
+    views whose image holds the centre; inf where none does."""
+    out = []
+    for mean in means.tolist():
+        best = math.inf
+        for c in cameras:
+            x, y, z = (c.w2c[:3, :3] @ torch.tensor(mean, dtype=torch.float64) + c.w2c[:3, 3]).tolist()
+            if z > near and 0 < c.fx * x / z + c.cx < c.width and 0 < c.fy * y / z + c.cy < c.height:
+                best = min(best, z / max(c.fx, c.fy))
+        out.append(best)
+    return torch.tensor(out)
+
+
+def test_the_floor_raises_thin_axes_only_and_is_idempotent():
+    cams = orbit(3, 20)
+    prims = random_neural(50, extent=0.5, scale=0.4, seed=2)
+    log_scales = prims.log_scales.clone()
+    log_scales[:25, 0] -= 4.0                                    # some very thin axes
+    log_scales[0] = math.log(1e-6)                               # sub-pixel in every direction
+    means = prims.means.clone()
+    means[1] = torch.tensor([0.0, 0.0, 60.0])                   # seen by no view: left alone
+    params = {"means": means, "log_scales": log_scales.clone()}
+    FootprintFloor(cams, pixels=1.5, near=0.01).apply(params, 0)
+    after = params["log_scales"]
+    pixel = finest_pixel(means, cams)
+    assert math.isinf(pixel[1]) and torch.isfinite(pixel[[0] + list(range(2, 50))]).all()
+    want = torch.where(torch.isfinite(pixel)[:, None], torch.maximum(log_scales, torch.log(1.5 * pixel)[:, None]),
+                       log_scales)
+    assert torch.allclose(after, want, atol=1e-4)
+    assert torch.equal(after[1], log_scales[1])
+    above = log_scales > torch.log(1.5 * pixel)[:, None] + 1e-3
+    assert above.any() and (~above).any()
+    assert torch.equal(after[above], log_scales[above])          # axes above the floor keep their bits
+    once = after.clone()
+    FootprintFloor(cams, pixels=1.5, near=0.01).apply(params, 0)  # recomputed from the raised scales
+    assert torch.equal(params["log_scales"], once)
+    with pytest.raises(ValueError):
+        FootprintFloor(cams, pixels=-1.0, near=0.01)
+
+
+def test_after_training_no_primitive_is_thinner_than_the_floor():
+    cameras, images = views()
+    start = random_neural(30, extent=0.6, scale=0.02, seed=3)      # starts below 1 px in every view
+    cfg = config(iterations=8, sh_degree=0, min_footprint=1.5, densify={"start": 4, "stop": 4, "every": 4})
+    trained = train(start, cameras, images, cfg, background=BG, extent=3.3, seed=0).primitives()
+    pixel = finest_pixel(trained.means, cameras)
+    seen = torch.isfinite(pixel)
+    assert seen.sum() > 20
+    assert (trained.scales[seen] >= 1.5 * pixel[seen, None] * (1 - 1e-4)).all()
+    free = train(start, cameras, images, {**cfg, "min_footprint": 0.0}, background=BG, extent=3.3, seed=0).primitives()
+    assert (free.scales < finest_pixel(free.means, cameras)[:, None]).any()
+
+
+@pytest.mark.parametrize("key, value", [("train.ray_jitter", "1.5"), ("train.ray_jitter", "-0.1"),
+                                        ("train.min_footprint", "-1"), ("train.min_footprint", "9")])
+def test_bad_values_are_one_line_errors(tmp_path_factory, tmp_path, cli, key, value):
+    data = generate_scene("blobs", tmp_path_factory.mktemp("data") / "blobs", n_train=4, n_test=1, size=16)
+    code, _, err = cli("reconstruct", data, "-o", tmp_path / "run", "--set", f"{key}={value}")
+    assert code == 1 and len(err.strip().splitlines()) == 1 and key in err, err
+    assert not (tmp_path / "run").exists()
