@@ -5,7 +5,7 @@ images, from a camera or a path tracer, average each pixel's area. An edge that 
 then seen by training at one fixed sub-pixel phase per view, and a model can fit that phase (a
 primitive's hard boundary placed just so) in every training view while a held-out view, whose
 pixels fall on the edge at other phases, sees the fit fail (README "Neural primitives at edges").
-Two remedies, both outside the render kernels:
+Three remedies, all outside the render kernels:
 
 Ray jitter (`train.ray_jitter` = a, in pixels; instant-NGP's training rays): every training view
 of a step is rendered with its principal point shifted by
@@ -18,6 +18,15 @@ box-filtered render, E_δ ‖r(x + δ) − y‖² = ‖(r ∗ box)(x) − y‖²
 area averages that the images hold, plus a variance term that penalises renders which change
 within a pixel (sharp edges placed to match one phase). The offsets are drawn from a generator of
 (seed, step), so a resumed run draws what the uninterrupted one drew.
+
+Supersampling (`render.supersample` = n, in training and in every render of the model): each pixel
+is the mean of the n × n rays through the centres of an n × n grid of sub-pixels,
+
+    C(i, j) = 1/n² Σ_{a,b} r(j + (a + ½)/n, i + (b + ½)/n),                                  (3)
+
+the midpoint quadrature of the pixel's box filter, so the model is fitted to, and rendered as,
+area averages: an edge a few primitives draw is consistent in every view, at any sub-pixel phase.
+It costs n² times the pixels; the loss, SSIM and metrics stay at the image's own resolution.
 
 Footprint floor (`train.min_footprint` = k, in pixels; Mip-Splatting's 3D filter, Yu et al. 2024,
 §4.1, bounds each primitive's size below by the finest sampling interval of the training views):
@@ -41,6 +50,7 @@ import torch
 
 from radfield.core.cameras import Camera
 from radfield.core.frequency import footprint, view_stack
+from radfield.core.rasterize import Render, render
 
 PROBE = 1e-4  # scene units: the radius of the point whose footprint gives a view's pixel size z/f
 
@@ -58,6 +68,27 @@ def shifted(camera: Camera, offset: tuple[float, float]) -> Camera:
     """The camera with its principal point moved by offset (δx, δy) pixels (the same camera at (0, 0))."""
     dx, dy = offset
     return camera if dx == 0 and dy == 0 else replace(camera, cx=camera.cx + dx, cy=camera.cy + dy)
+
+
+def supersample_offsets(n: int) -> list[tuple[float, float]]:
+    """The sub-pixel offsets of eq. (3): the n × n cell centres of a pixel, ((a + ½)/n − ½, (b + ½)/n − ½)."""
+    grid = [(a + 0.5) / n - 0.5 for a in range(n)]
+    return [(dx, dy) for dy in grid for dx in grid]
+
+
+def render_supersampled(prims, camera: Camera, n: int, **kwargs) -> Render:
+    """Eq. (3): each pixel the mean of n × n rays through the cell centres of its n × n grid, rendered
+    as one view at n times the resolution (the same rays: pixel (i', j') of `camera.scaled(n)` looks
+    through ((j' + ½)/n, (i' + ½)/n) of camera) and averaged over n × n blocks. n = 1 is `render`
+    itself. Differentiable like render; meta of the large render. For Gaussians the renderer's
+    0.3 px² EWA dilation then acts in sub-pixels (0.3/n² of a pixel²): the box filter takes over
+    its anti-aliasing role (as Mip-Splatting's 2D filter replaces it by the pixel's footprint)."""
+    if n == 1:
+        return render(prims, camera, **kwargs)
+    out = render(prims, camera.scaled(n), **kwargs)
+    h, w = camera.height, camera.width
+    pool = lambda t: t.reshape(h, n, w, n, *t.shape[2:]).mean((1, 3))
+    return Render(pool(out.color), pool(out.alpha), pool(out.depth), out.meta)
 
 
 class FootprintFloor:

@@ -49,7 +49,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
-from radfield.core.antialias import FootprintFloor, jitter_offsets, shifted
+from radfield.core.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
 from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.distributed import StepSync, World
@@ -57,7 +57,6 @@ from radfield.core.errors import RadfieldError
 from radfield.core.frequency import FrequencyCap
 from radfield.core.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
 from radfield.core.primitives import Gaussians, NeuralPrimitives
-from radfield.core.rasterize import render
 from radfield.core.sh import num_sh_coeffs
 from radfield.core.strategy import make_strategy
 
@@ -109,7 +108,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     masks: (N, H, W) bool valid pixels of each image, or None (all valid).
     alphas: (N, H, W) alpha of RGBA images (train_images are composited on `background`), or
     None; with cfg["random_background"] they are recomposited on a random colour every step.
-    cfg: the `train` config section (pipeline.yaml documents every key).
+    cfg: the `train` config section (pipeline.yaml documents every key), and "supersample" (optional,
+    default 1): render.supersample, each training view rendered with n × n rays per pixel.
     extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
     start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
     on_step(step, info): after every step; info has loss, psnr (of this step's views), primitives
@@ -141,6 +141,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     accumulators = {k: v.to(device) for k, v in state.strategy.items()} or strategy.init_state(len(prims), device)
     bg = torch.as_tensor(background, dtype=torch.float32, device=device)
     iterations, batch = cfg["iterations"], cfg["batch_views"]
+    supersample = cfg.get("supersample", 1)  # render.supersample, put into cfg by the train stage
     means_lr = cfg["lr"]["means"] * extent
     sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
     sync.check(params, state.step, first=True)
@@ -170,8 +171,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
                 view_bg = backgrounds[k].to(device)
                 target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
             camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
-            out = render(assemble(params, state.kind, state.omega0), camera, background=view_bg,
-                         near=near, sh_degree=degree, max_pairs=max_pairs)
+            out = render_supersampled(assemble(params, state.kind, state.omega0), camera, supersample,
+                                      background=view_bg, near=near, sh_degree=degree, max_pairs=max_pairs)
             mask = None if masks is None else masks[view]
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
             (loss / batch).backward()
@@ -362,13 +363,14 @@ def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainS
 
 def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
               background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20,
-              masks: torch.Tensor | None = None) -> float:
+              masks: torch.Tensor | None = None, supersample: int = 1) -> float:
     """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3) (over the
-    valid pixels of masks (N, H, W), when given)."""
+    valid pixels of masks (N, H, W), when given), rendered with `supersample` × `supersample` rays per pixel."""
     total = 0.0
     with torch.no_grad():
         for k, (camera, image) in enumerate(zip(cameras, images)):
-            color = render(prims, camera, background=background, near=near, max_pairs=max_pairs).color
+            color = render_supersampled(prims, camera, supersample, background=background, near=near,
+                                        max_pairs=max_pairs).color
             mask = None if masks is None else masks[k].to(color.device)
             total += float(psnr(color.clamp(0, 1), image.to(color), mask))
     return total / len(cameras) if len(cameras) else math.nan

@@ -104,6 +104,7 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
     require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
     require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
+    require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
     require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
