@@ -1,5 +1,6 @@
 """Anti-aliasing of training (radfield.core.antialias): sub-pixel ray jitter and the footprint floor."""
 
+import json
 import math
 
 import pytest
@@ -7,9 +8,13 @@ import torch
 
 from radfield.core.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted, supersample_offsets
 from radfield.core.cameras import Camera, look_at, pixel_rays
+from radfield.core.io import load_model
+from radfield.core.metrics import psnr
 from radfield.core.primitives import random_gaussians, random_neural
 from radfield.core.rasterize import render
 from radfield.core.trainer import generator, load_checkpoint, mean_psnr, save_checkpoint, train
+from radfield.datasets.images import read_image
+from radfield.datasets.scene import load_scene
 from radfield.datasets.synthetic import generate_scene
 
 from radfield.stages.config import load_defaults
@@ -178,3 +183,26 @@ def test_bad_values_are_one_line_errors(tmp_path_factory, tmp_path, cli, key, va
     code, _, err = cli("reconstruct", data, "-o", tmp_path / "run", "--set", f"{key}={value}")
     assert code == 1 and len(err.strip().splitlines()) == 1 and key in err, err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_supersampled_run_is_measured_and_rendered_as_it_was_trained(tmp_path_factory, tmp_path, cli):
+    data = generate_scene("blobs", tmp_path_factory.mktemp("data") / "blobs", n_train=4, n_test=2, size=16)
+    run = tmp_path / "run"
+    code, _, err = cli("reconstruct", data, "-o", run, "-q", "--set", "train.iterations=30", "--set",
+                       "render.supersample=2", "--set", "init.num_points=200")
+    assert code == 0, err
+    model = load_model(run / "train" / "model.safetensors")
+    scene = load_scene(run / "data" / "scene.json")
+    images, _ = scene.load_images("test")
+    with torch.no_grad():
+        drawn = {n: [render_supersampled(model, c, n, background=scene.background).color.clamp(0, 1)
+                     for c in scene.cameras("test")] for n in (1, 2)}
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    by_n = {n: [float(psnr(d, im)) for d, im in zip(drawn[n], images)] for n in (1, 2)}
+    assert [v["psnr"] for v in metrics["per_view"]] == pytest.approx(by_n[2], abs=0.05)  # eval at n = 2
+    assert by_n[1] != pytest.approx(by_n[2], abs=0.05)                                   # which differs from n = 1
+    code, _, err = cli("render", run, "-o", tmp_path / "frames")
+    assert code == 0, err
+    for camera, image in zip(scene.cameras("test"), drawn[2]):
+        png = read_image(tmp_path / "frames" / f"{camera.name}.png")[..., :3]          # in [0, 1]
+        assert abs(png - image.numpy()).max() <= 1 / 255 + 1e-6
