@@ -1,4 +1,4 @@
-"""Anti-aliasing of training: sub-pixel ray jitter and a minimum primitive footprint.
+"""Anti-aliasing: sub-pixel ray jitter, supersampled pixels and a minimum primitive footprint.
 
 The renderer point-samples one ray through each pixel centre, (j + 0.5, i + 0.5) (core/cameras.py);
 images, from a camera or a path tracer, average each pixel's area. An edge that crosses a pixel is
@@ -17,7 +17,8 @@ of the pixel's square. The expected L2 loss over δ is then the loss against the
 box-filtered render, E_δ ‖r(x + δ) − y‖² = ‖(r ∗ box)(x) − y‖² + Var_δ r, so training fits the
 area averages that the images hold, plus a variance term that penalises renders which change
 within a pixel (sharp edges placed to match one phase). The offsets are drawn from a generator of
-(seed, step), so a resumed run draws what the uninterrupted one drew.
+(seed, step), so a resumed run draws what the uninterrupted one drew. (Measured: with the L1 + D-SSIM
+loss it lowers val by ~2 dB for both kinds on studio; README.)
 
 Supersampling (`render.supersample` = n, in training and in every render of the model): each pixel
 is the mean of the n × n rays through the centres of an n × n grid of sub-pixels,
@@ -26,7 +27,8 @@ is the mean of the n × n rays through the centres of an n × n grid of sub-pixe
 
 the midpoint quadrature of the pixel's box filter, so the model is fitted to, and rendered as,
 area averages: an edge a few primitives draw is consistent in every view, at any sub-pixel phase.
-It costs n² times the pixels; the loss, SSIM and metrics stay at the image's own resolution.
+It costs n² times the pixels (×1.2–1.9 a step at n = 2 on 64×64 views, README); the loss, SSIM and
+metrics stay at the image's own resolution. The model is then right only rendered the same way.
 
 Footprint floor (`train.min_footprint` = k, in pixels; Mip-Splatting's 3D filter, Yu et al. 2024,
 §4.1, bounds each primitive's size below by the finest sampling interval of the training views):
@@ -36,8 +38,9 @@ finest training view,
     s_i ← max(s_i, k · min over the views of z / f)                                        (2)
 
 (z/f of the finest view among those whose image holds the centre, radfield.core.frequency.footprint
-of a point, recomputed with the frequency cap's interval), so no primitive is thinner than k pixels in any training view and none can fit detail
-between the pixel centres. A primitive no training view sees is left alone.
+of a point, recomputed with the frequency cap's interval), so no primitive is thinner than k pixels
+in any training view and none can fit detail between the pixel centres. A primitive no training
+view's image holds is left alone.
 """
 
 from __future__ import annotations
@@ -57,7 +60,7 @@ PROBE = 1e-4  # scene units: the radius of the point whose footprint gives a vie
 
 def jitter_offsets(amount: float, count: int, generator: torch.Generator) -> list[tuple[float, float]]:
     """Eq. (1): `count` principal-point offsets (δx, δy) uniform in [−amount/2, amount/2]² pixels
-    ([] draws nothing when amount is 0)."""
+    (all zero, and nothing drawn, when amount is 0)."""
     if amount <= 0:
         return [(0.0, 0.0)] * count
     offsets = (torch.rand(count, 2, generator=generator, dtype=torch.float64) - 0.5) * amount
