@@ -119,6 +119,8 @@ class _Strategy:
         key = (id(camera), like.dtype, like.device)
         frame = self._frames.get(key)
         if frame is None or frame[0] is not camera:   # `is`: an id can be reused by a new camera
+            if len(self._frames) >= 4096:   # jittered views are new cameras every step: stay bounded
+                self._frames.clear()
             frame = self._frames[key] = (camera, camera.w2c.to(like)[:3].contiguous(), side_normals(camera, like))
         return frame[1], frame[2]
 

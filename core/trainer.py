@@ -8,9 +8,12 @@ over `batch_views` training views (each view's photometric loss weighted 1/batch
 with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
 `means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
 `sh_increase_every` steps; population control by radfield.core.strategy after the step, then
-(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows and,
-with `nonnegative_density`, radfield.core.positivity projects (W2, b2) so that σ ≥ 0 everywhere
-in the primitives whose training views lie in a narrow cone.
+(neural) the frequency cap of radfield.core.frequency (`frequency_cap`) projects W1's rows,
+with `nonnegative_density` radfield.core.positivity projects (W2, b2) so that σ ≥ 0 everywhere
+in the primitives whose training views lie in a narrow cone, and the footprint floor of
+radfield.core.antialias (`min_footprint`) raises scales below k pixels.
+With `ray_jitter` every training view is rendered with its principal point moved by a random
+sub-pixel offset (radfield.core.antialias): the pixels' rays sample their whole area over the run.
 
 Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
 loss and the per-step PSNR, radfield.core.losses). With `random_background` and RGBA training
@@ -25,7 +28,7 @@ an N-step run: the means' rate is lr0 · r^(t / (N − 1)) at step t (so at step
 lr0 · r^(s / (N − 1)) and decays to lr0 · r at step N − 1), the SH degree and densification
 follow their step thresholds as in an N-step run. It is not the same as a fresh N-step run.
 
-Randomness (view order, split children) is drawn from generators seeded by (seed, step), so a
+Randomness (view order, split children, ray jitter) is drawn from generators seeded by (seed, step), so a
 run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
 moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
 run bit for bit on the CPU. Checkpoints are safetensors files with a JSON header, never pickles.
@@ -48,15 +51,15 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
+from radfield.core.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
 from radfield.core.atomic import atomic_write
 from radfield.core.cameras import Camera
 from radfield.core.distributed import StepSync, World
 from radfield.core.errors import RadfieldError
 from radfield.core.frequency import FrequencyCap
-from radfield.core.positivity import NonNegativeDensity
 from radfield.core.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
+from radfield.core.positivity import NonNegativeDensity
 from radfield.core.primitives import Gaussians, NeuralPrimitives
-from radfield.core.rasterize import render
 from radfield.core.sh import join_sh, num_sh_coeffs
 from radfield.core.strategy import make_strategy
 
@@ -68,7 +71,7 @@ GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
 PARAM_NAMES = {"neural": GEOMETRY + ("w1", "b1", "w2", "b2"), "gaussian": GEOMETRY + ("opacities",)}
 LR_KEYS = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}  # param name -> train.lr key, if not its own
 
-_VIEWS, _REFINE, _BACKGROUND = 0, 1, 2  # random streams
+_VIEWS, _REFINE, _BACKGROUND, _JITTER = 0, 1, 2, 3  # random streams
 
 
 @dataclass
@@ -108,7 +111,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     masks: (N, H, W) bool valid pixels of each image, or None (all valid).
     alphas: (N, H, W) alpha of RGBA images (train_images are composited on `background`), or
     None; with cfg["random_background"] they are recomposited on a random colour every step.
-    cfg: the `train` config section (pipeline.yaml documents every key).
+    cfg: the `train` config section (pipeline.yaml documents every key), and "supersample" (optional,
+    default 1): render.supersample, each training view rendered with n × n rays per pixel.
     extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
     start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
     on_step(step, info): after every step; info has loss, psnr (of this step's views), primitives
@@ -140,6 +144,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     accumulators = {k: v.to(device) for k, v in state.strategy.items()} or strategy.init_state(len(prims), device)
     bg = torch.as_tensor(background, dtype=torch.float32, device=device)
     iterations, batch = cfg["iterations"], cfg["batch_views"]
+    supersample = cfg.get("supersample", 1)  # render.supersample, put into cfg by the train stage
     means_lr = cfg["lr"]["means"] * extent
     sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
     sync.check(params, state.step, first=True)
@@ -149,6 +154,8 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     # neural: σ ≥ 0 everywhere in primitives seen from a narrow cone of views (core/positivity.py)
     positive = NonNegativeDensity.for_training(train_cameras, cfg, kind=state.kind, near=near)
     positive.apply(params, state.step)
+    floor = FootprintFloor.for_training(train_cameras, cfg, near=near)  # anti-aliasing (core/antialias.py)
+    floor.apply(params, state.step)
 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
@@ -158,6 +165,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             regulariser.backward()
         loss_sum = psnr_sum = 0.0
         backgrounds = None if alphas is None else torch.rand(batch, 3, generator=generator(seed, _BACKGROUND, step))
+        offsets = jitter_offsets(cfg["ray_jitter"], batch, generator(seed, _JITTER, step))
         gathering = strategy.gathering(step + 1)
         gathered = sync.gather_into(accumulators, gathering)
         # k: the view's place in the whole batch (its random background), the same on every rank
@@ -168,14 +176,15 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
             if backgrounds is not None:  # the same RGBA pixels "over" another colour
                 view_bg = backgrounds[k].to(device)
                 target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
-            out = render(assemble(params, state.kind, state.omega0), train_cameras[view], background=view_bg,
-                         near=near, sh_degree=degree, max_pairs=max_pairs)
+            camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
+            out = render_supersampled(assemble(params, state.kind, state.omega0), camera, supersample,
+                                      background=view_bg, near=near, sh_degree=degree, max_pairs=max_pairs)
             mask = None if masks is None else masks[view]
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
             (loss / batch).backward()
             # this view's own gradients (unscaled), what the densification statistics measure
             grads = {n: own_gradient(params[n].grad, before[n], batch) for n in tracked}
-            strategy.accumulate(gathered, params, grads, train_cameras[view], step + 1)
+            strategy.accumulate(gathered, params, grads, camera, step + 1)
             loss_sum += float(loss.detach())
             psnr_sum += float(psnr(out.color.detach().clamp(0, 1), target, mask))
         loss_sum, psnr_sum = sync.reduce(params, accumulators, loss_sum, psnr_sum, step + 1)
@@ -184,6 +193,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
         cap.apply(params, step + 1)
         positive.apply(params, step + 1)
+        floor.apply(params, step + 1)
         sync.check(params, step + 1)
         info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
         every = cfg["eval_every"]
@@ -360,13 +370,14 @@ def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainS
 
 def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
               background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20,
-              masks: torch.Tensor | None = None) -> float:
+              masks: torch.Tensor | None = None, supersample: int = 1) -> float:
     """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3) (over the
-    valid pixels of masks (N, H, W), when given)."""
+    valid pixels of masks (N, H, W), when given), rendered with `supersample` × `supersample` rays per pixel."""
     total = 0.0
     with torch.no_grad():
         for k, (camera, image) in enumerate(zip(cameras, images)):
-            color = render(prims, camera, background=background, near=near, max_pairs=max_pairs).color
+            color = render_supersampled(prims, camera, supersample, background=background, near=near,
+                                        max_pairs=max_pairs).color
             mask = None if masks is None else masks[k].to(color.device)
             total += float(psnr(color.clamp(0, 1), image.to(color), mask))
     return total / len(cameras) if len(cameras) else math.nan

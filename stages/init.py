@@ -105,6 +105,9 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
     require(config, "train.frequency_bound", lambda x: x >= 0, "at least 0 (0 = no bound)")
     require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
+    require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
+    require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
+    require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
 

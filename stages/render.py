@@ -19,7 +19,7 @@ from radfield.core.atomic import atomic_folder
 from radfield.core.camera_path import write_video
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model
-from radfield.core.rasterize import render
+from radfield.core.antialias import render_supersampled
 from radfield.core.timing import clock
 from radfield.datasets.images import write_image
 from radfield.stages.config import load_config
@@ -54,6 +54,8 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
     model = load_model(model_file, device=device)
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
+    draw = lambda camera: render_supersampled(model, camera, config["render"]["supersample"], background=background,
+                                              near=near)  # a run's model as it was trained: render.supersample
     cameras, names = [], []
     if dataset is not None:
         data = load_split(dataset, split, config["data"])
@@ -63,13 +65,13 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     if on_start is not None:
         on_start(len(cameras))
     with torch.no_grad():  # warm-up, untimed: the first render loads the fused kernels
-        render(model, cameras[0], background=background, near=near)
+        draw(cameras[0])
     seconds, frames = 0.0, []
     with atomic_folder(out_dir, merge=True) as tmp:
         for name, camera in zip(names, cameras):
             start = clock(device)
             with torch.no_grad():
-                color = render(model, camera, background=background, near=near).color
+                color = draw(camera).color
             seconds += clock(device) - start
             pixels = color.clamp(0, 1).cpu().numpy()
             write_image(tmp / f"{name}.png", pixels)

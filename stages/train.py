@@ -52,7 +52,8 @@ CHECKPOINT = CHECKPOINT_FILE  # in RUN/train.work/
 
 
 def run(ctx: Context) -> dict[str, Any]:
-    cfg = ctx.config["train"]
+    supersample = ctx.config["render"]["supersample"]  # rays per pixel side, in training and its measurements
+    cfg = {**ctx.config["train"], "supersample": supersample}
     scene = load_scene(ctx.inputs[SCENE])
     norm = scene.normalization
     cameras = [norm.camera(camera) for camera in scene.train_cameras]  # a RadfieldError for unposed photos
@@ -64,7 +65,7 @@ def run(ctx: Context) -> dict[str, Any]:
         test_cameras, test_images = [norm.camera(c) for c in scene.test_cameras], scene.test_images()
         test_masks = scene.valid_masks("test")
         held_out = lambda p: mean_psnr(p, test_cameras, test_images, background=scene.background, near=near,
-                                       masks=test_masks)
+                                       masks=test_masks, supersample=supersample)
     key = _continue_key(ctx)
     start, records = _starting_point(ctx, key)
     first_step = start.step if start is not None else 0
@@ -86,7 +87,8 @@ def run(ctx: Context) -> dict[str, Any]:
     seconds = time.perf_counter() - clock
 
     trained = state.primitives()
-    train_psnr = mean_psnr(trained, cameras, images, background=scene.background, near=near, masks=masks)
+    train_psnr = mean_psnr(trained, cameras, images, background=scene.background, near=near, masks=masks,
+                           supersample=supersample)
     model = to_world(trained, norm)
     save_model(ctx.outputs[MODEL_FILE], model)
     save_checkpoint(ctx.outputs[FINAL_STATE], state, key)
