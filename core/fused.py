@@ -34,7 +34,7 @@ import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
-            _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp"]
+            _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp", _CSRC / "positivity_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
@@ -392,3 +392,9 @@ def neural_accumulate(grad, count, means, log_scales, g_w1, g_b1, g_w2, g_b2, w2
     """As gaussian_accumulate, with the MLP-gradient signal of neural primitives."""
     args = [t.detach().contiguous() for t in (means, log_scales, g_w1, g_b1, g_w2, g_b2, w2c, normals)]
     _ops().neural_accumulate(grad, count, *args, float(radius_scale), float(near))
+
+
+def project_nonnegative_(w2, b2, mask) -> None:
+    """positivity.project_nonnegative in place on the rows of w2 (P, N) and b2 (P,) where the
+    bool mask (P,) is set (the others untouched). No gradient."""
+    _ops().project_nonnegative_(w2, b2, mask.contiguous())

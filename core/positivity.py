@@ -47,6 +47,7 @@ from collections.abc import Sequence
 
 import torch
 
+from radfield.core import fused
 from radfield.core.cameras import Camera
 from radfield.core.strategy import in_frustum
 
@@ -128,6 +129,11 @@ class NonNegativeDensity:
             self._mask = self.mask(params)
         if not bool(self._mask.any()):
             return  # object-centric captures: no primitive has a narrow cone, nothing to do
+        w2, b2 = params["w2"], params["b2"]
+        if fused.available(w2.device, w2.dtype) and w2.is_contiguous() and b2.is_contiguous() \
+                and b2.dtype == w2.dtype:   # one C++ pass over the masked rows (core/csrc/positivity_kernels.cpp)
+            fused.project_nonnegative_(w2, b2, self._mask)
+            return
         rows = self._mask.nonzero()[:, 0]  # rows are projected independently: only these change
         w2, b2 = project_nonnegative(params["w2"][rows], params["b2"][rows])
         params["w2"][rows] = w2

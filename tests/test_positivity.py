@@ -2,10 +2,12 @@
 and the absolute frequency bound (radfield.core.frequency, train.frequency_bound)."""
 
 import math
+import os
 
 import pytest
 import torch
 
+from radfield.core import fused
 from radfield.core.cameras import Camera, look_at
 from radfield.core.errors import RadfieldError
 from radfield.core.frequency import FrequencyCap
@@ -194,3 +196,28 @@ def test_bad_values_are_one_line_errors(key, value):
     config["train"][key] = value
     with pytest.raises(RadfieldError, match=f"train.{key}"):
         check_config(config, {}, posed=False)
+
+
+@pytest.mark.skipif(os.environ.get("CI", "").strip().lower() != "true" and not fused.available(),
+                    reason="fused CPU kernels unavailable")   # in CI a failed build fails here
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_projection_matches_the_torch_twin(dtype):
+    """core/csrc/positivity_kernels.cpp against project_nonnegative: inside rows, ties, the polar
+    cone, zeros, widths 1-16; only the masked rows change."""
+    g = torch.Generator().manual_seed(5)
+    for width in (1, 3, 8, 16):
+        w2 = (torch.randn(300, width, generator=g) * 0.4).to(dtype)
+        b2 = (torch.randn(300, generator=g) * 0.3).to(dtype)
+        w2[:20] = 0.25                                # ties
+        b2[20:40] = w2[20:40].abs().sum(-1) + 0.1     # inside the cone
+        b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1   # the polar cone
+        w2[60:70], b2[60:70] = 0.0, 0.0
+        mask = torch.rand(300, generator=g) < 0.8
+        expect_w2, expect_b2 = project_nonnegative(w2, b2)
+        fused_w2, fused_b2 = w2.clone(), b2.clone()
+        fused.project_nonnegative_(fused_w2, fused_b2, mask)
+        tol = dict(rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+        torch.testing.assert_close(fused_w2[mask], expect_w2[mask], **tol)
+        torch.testing.assert_close(fused_b2[mask], expect_b2[mask], **tol)
+        assert torch.equal(fused_w2[~mask], w2[~mask]) and torch.equal(fused_b2[~mask], b2[~mask])
+        assert bool((fused_w2[mask].abs().sum(-1) <= fused_b2[mask] + 1e-5).all())
