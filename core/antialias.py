@@ -54,6 +54,7 @@ import torch
 from radfield.core.cameras import Camera
 from radfield.core.frequency import footprint, view_stack
 from radfield.core.rasterize import Render, render
+from radfield.core.strategy import refresh_interval
 
 PROBE = 1e-4  # scene units: the radius of the point whose footprint gives a view's pixel size z/f
 
@@ -110,7 +111,7 @@ class FootprintFloor:
     @classmethod
     def for_training(cls, cameras: Sequence[Camera], cfg: dict, *, near: float) -> "FootprintFloor":
         """The floor of a training run from its `train` config section (refreshed at the frequency cap's interval)."""
-        every = math.gcd(cfg["densify"]["every"], cfg["checkpoint_every"], cfg["iterations"])
+        every = refresh_interval(cfg)
         return cls(cameras, pixels=cfg["min_footprint"], near=near, every=every)
 
     def floor(self, means: torch.Tensor) -> torch.Tensor:

@@ -30,9 +30,9 @@ few pixels and gets only low frequencies, whatever ω0 is (ω0 still scales the 
 statistic that densification thresholds, so it is not free: README); on 223×398 photos, or close
 to a camera, the same primitive may be as detailed as the pixels show. ρ_max depends on the
 means and scales only, so it is recomputed every `every` steps, not every step (P × views
-projections); `for_training` takes the greatest common divisor of the densification interval,
-the checkpoint interval and the run length, so the bound is refreshed after every change of the
-population and at every step a checkpoint or final state can be written at: a resumed run then
+projections); `for_training` takes radfield.core.strategy.refresh_interval, the greatest common
+divisor of the densification and checkpoint intervals, so the bound is refreshed after every
+change of the population and at every step a checkpoint can be written at: a resumed run then
 recomputes exactly the bound the uninterrupted run used. A primitive that no training view sees
 is left alone (no bound by eq. 1).
 
@@ -56,6 +56,7 @@ from collections.abc import Sequence
 import torch
 
 from radfield.core.cameras import Camera
+from radfield.core.strategy import refresh_interval
 
 NYQUIST = math.pi  # c of eq. (1) at which a period spans exactly 2 pixels of the finest view
 CAMERA_CHUNK = 16  # views per batched projection (P × 16 depths at a time)
@@ -106,7 +107,7 @@ class FrequencyCap:
     @classmethod
     def for_training(cls, cameras: Sequence[Camera], cfg: dict, *, omega0: float | None, near: float) -> "FrequencyCap":
         """The cap of a training run from its `train` config section (omega0 None: Gaussians, no cap)."""
-        every = math.gcd(cfg["densify"]["every"], cfg["checkpoint_every"], cfg["iterations"])
+        every = refresh_interval(cfg)
         factor = cfg["frequency_cap"] if omega0 else 0.0
         absolute = cfg["frequency_bound"] if omega0 else 0.0
         return cls(cameras, factor=factor, omega0=omega0 or 1.0, near=near, every=every, absolute=absolute)

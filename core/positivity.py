@@ -35,21 +35,20 @@ mean, the half-angle of its view cone is
 and the projection applies to the primitives with β < θ (θ = 180: every primitive; 0: off). On
 the study's captures β's median is 9° on fern (forward-facing), 48° on fox_small and 92° on
 lego_small (README "Few-view captures"). β depends on the means and scales, so it is recomputed
-at the steps the frequency cap refreshes its bound (every gcd(densify.every, checkpoint_every,
-iterations) steps and after every change of the population): a resumed run recomputes the mask
+at the steps the frequency cap refreshes its bound (every gcd(densify.every, checkpoint_every)
+steps, radfield.core.strategy.refresh_interval: after every change of the population): a resumed run recomputes the mask
 the uninterrupted run used.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
 
 from radfield.core import fused
 from radfield.core.cameras import Camera
-from radfield.core.strategy import in_frustum
+from radfield.core.strategy import in_frustum, refresh_interval
 
 
 def project_nonnegative(w2: torch.Tensor, b2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -107,7 +106,7 @@ class NonNegativeDensity:
     def for_training(cls, cameras: Sequence[Camera], cfg: dict, *, kind: str, near: float) -> "NonNegativeDensity":
         """The rule of a training run from its `train` section (Gaussians: off); refreshed at the
         steps the frequency cap refreshes (radfield.core.frequency.FrequencyCap.for_training)."""
-        every = math.gcd(cfg["densify"]["every"], cfg["checkpoint_every"], cfg["iterations"])
+        every = refresh_interval(cfg)
         return cls(cameras, threshold=cfg["nonnegative_density"] if kind == "neural" else 0.0, near=near, every=every)
 
     @property

@@ -69,6 +69,16 @@ class Schedule:
         return self.start <= step <= self.stop and step % self.every == 0
 
 
+def refresh_interval(train_cfg: dict) -> int:
+    """Steps between refreshes of what the training rules derive from the population's geometry
+    (the frequency cap's ρ_max, the view cones of radfield.core.positivity, the footprint floor of
+    radfield.core.antialias): gcd(densify.every, checkpoint_every), so they are refreshed after
+    every change of the population and at every step a checkpoint is written at. A killed run
+    resumes from a checkpoint and recomputes exactly what the uninterrupted run used; the run
+    length plays no part (a 32-step benchmark refreshes as often as a 3000-step run)."""
+    return math.gcd(train_cfg["densify"]["every"], train_cfg["checkpoint_every"])
+
+
 class _Strategy:
     """What both strategies share: accumulators, visibility, budgeted growth, row surgery."""
 

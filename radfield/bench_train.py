@@ -25,6 +25,7 @@ Absolute times depend on the machine and its load: compare ratios within one run
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -60,7 +61,11 @@ def bench_config(steps: int) -> dict:
     cfg["batch_views"] = 1
     cfg["densify"]["start"] = steps + 1          # statistics every step, no refinement
     cfg["densify"]["stop"] = steps + 1
-    cfg["checkpoint_every"] = steps + 1
+    # no checkpoint within the run, and the rules that refresh what they derive from the geometry
+    # (frequency cap, view cones: strategy.refresh_interval) refresh every densify.every steps as
+    # in a default run, not every step
+    every = cfg["densify"]["every"]
+    cfg["checkpoint_every"] = every * math.ceil((steps + 1) / every)
     return cfg
 
 
