@@ -61,3 +61,28 @@ def cli(capsys):
         return code, out, err
 
     return run
+
+
+class Killed(Exception):
+    """Raised by `kill_and_resume`'s step hook: the training run is killed."""
+
+
+def kill_and_resume(start, cameras, images, cfg, path, *, kill_at: int = 7, **run):
+    """Train `start` with checkpoints written to `path`, kill the run after step `kill_at`, and
+    resume it from its last checkpoint: (the checkpoint's state, the resumed run's final state)."""
+    from radfield.core.trainer import load_checkpoint, save_checkpoint, train
+
+    def kill(step, info):
+        if step == kill_at:
+            raise Killed
+
+    with pytest.raises(Killed):
+        train(start, cameras, images, cfg, **run, on_step=kill, checkpoint=lambda s: save_checkpoint(path, s))
+    saved = load_checkpoint(path)
+    return saved, train(start, cameras, images, cfg, **run, start_state=saved)
+
+
+@pytest.fixture(name="kill_and_resume")
+def kill_and_resume_fixture():
+    """`kill_and_resume(start, cameras, images, cfg, path, kill_at=7, **run)` (see the function)."""
+    return kill_and_resume

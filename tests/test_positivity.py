@@ -15,7 +15,7 @@ from radfield.core.positivity import NonNegativeDensity, project_nonnegative, vi
 from radfield.core.primitives import random_neural
 from radfield.core.rasterize import render
 from radfield.core.strategy import in_frustum
-from radfield.core.trainer import load_checkpoint, save_checkpoint, train
+from radfield.core.trainer import train
 from radfield.stages.config import load_defaults
 from radfield.stages.init import check_config
 
@@ -132,7 +132,7 @@ def test_training_keeps_every_density_non_negative():
     assert (free.w2.abs().sum(-1) > free.b2 * 1.01).any()
 
 
-def test_only_narrow_view_cones_are_projected_and_a_resumed_run_is_the_same(tmp_path):
+def test_only_narrow_view_cones_are_projected_and_a_resumed_run_is_the_same(tmp_path, kill_and_resume):
     cams, start = two_clusters()
     truth = random_neural(40, hidden=6, extent=0.3, scale=0.1, seed=5)
     truth.means[20:, 0] += 5.0
@@ -148,17 +148,7 @@ def test_only_narrow_view_cones_are_projected_and_a_resumed_run_is_the_same(tmp_
     near_a = trained.means[:, 0] < 2.5
     assert inside[near_a].all() and not inside[~near_a].all()
 
-    class Killed(Exception):
-        pass
-
-    def kill_at_7(step, info):
-        if step == 7:
-            raise Killed
-
-    path = tmp_path / "checkpoint.safetensors"
-    with pytest.raises(Killed):
-        train(start, cams, images, cfg, **run, on_step=kill_at_7, checkpoint=lambda s: save_checkpoint(path, s))
-    resumed = train(start, cams, images, cfg, **run, start_state=load_checkpoint(path))
+    _, resumed = kill_and_resume(start, cams, images, cfg, tmp_path / "checkpoint.safetensors", kill_at=7, **run)
     for name in whole.params:
         assert torch.equal(whole.params[name], resumed.params[name]), name
 

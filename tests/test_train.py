@@ -318,7 +318,7 @@ def test_a_short_run_learns_the_scene():
 
 
 @pytest.mark.parametrize("kind", ["neural", "gaussian"])
-def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind):
+def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind, kill_and_resume):
     cameras, images = synthetic_views(4, 16)
     start = (random_neural if kind == "neural" else random_gaussians)(30, sh_degree=1, extent=0.6, scale=0.15, seed=3)
     cfg = config(iterations=12, sh_degree=1, sh_increase_every=6, batch_views=2, checkpoint_every=5,
@@ -327,19 +327,8 @@ def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind):
     run = dict(background=BG, extent=3.3, seed=7)
     whole = train(start, cameras, images, cfg, **run)
 
-    class Killed(Exception):
-        pass
-
-    def kill_at_7(step, info):
-        if step == 7:
-            raise Killed
-
-    path = tmp_path / "checkpoint.safetensors"
-    with pytest.raises(Killed):
-        train(start, cameras, images, cfg, **run, on_step=kill_at_7, checkpoint=lambda s: save_checkpoint(path, s))
-    saved = load_checkpoint(path)
+    saved, resumed = kill_and_resume(start, cameras, images, cfg, tmp_path / "checkpoint.safetensors", kill_at=7, **run)
     assert saved.step == 5
-    resumed = train(start, cameras, images, cfg, **run, start_state=saved)
     assert resumed.step == whole.step == 12
     assert len(whole.params["means"]) != 30  # population control acted
     for name in whole.params:
