@@ -55,6 +55,7 @@ TRAIN_CURVES = ("curves.png", "log.jsonl")  # written by the train stage into RU
 
 
 def run(ctx: Context) -> dict[str, Any]:
+    check_supersample(ctx.inputs[MODEL_FILE], ctx.config["render"]["supersample"])
     scene = load_scene(ctx.inputs[SCENE])
     metrics = evaluate(ctx.inputs[MODEL_FILE], scene, ctx.config["eval"]["split"], ctx.outputs[RENDERS],
                        near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet, grids=ctx.outputs[GRIDS])
@@ -63,8 +64,19 @@ def run(ctx: Context) -> dict[str, Any]:
     return {key: metrics[key] for key in ("psnr", "ssim", "lpips", "fps", "views")}
 
 
-STAGE = Stage("eval", run, config_keys=("eval", "render.near"), inputs=(SCENE, MODEL_FILE),
+STAGE = Stage("eval", run, config_keys=("eval", "render.near", "render.supersample"), inputs=(SCENE, MODEL_FILE),
               outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING), version=2)
+
+
+def check_supersample(model_file: Path, trained_with: int) -> None:
+    """The run's model draws with its own n (the file's `supersample`); a file that disagrees with the
+    run's render.supersample was trained before model files recorded n, and would be measured at
+    the wrong n: an error rather than a silently lower PSNR."""
+    recorded = load_model(model_file).supersample
+    if recorded != trained_with:
+        raise RadfieldError(f"{model_file}: records supersample={recorded} but the run trained with "
+                            f"render.supersample={trained_with} (a model from before model files recorded it): "
+                            f"retrain it with --force train")
 
 
 def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near: float = 0.01,

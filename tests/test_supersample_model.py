@@ -193,3 +193,17 @@ def test_export_warns_in_one_line_for_one_ray_formats(tmp_path, cli):
     assert code == 0 and "warning" not in err, err
     assert supersample_warning(model(2), "points") is None  # a point cloud is not drawn per pixel
     assert supersample_warning(model(2), "ply-3dgs") is not None
+
+
+def test_the_eval_stage_refuses_a_model_that_disagrees_with_its_run(tmp_path):
+    """A run trained at n = 2 before model files recorded n: its eval stage must not measure it at 1."""
+    from radfield.core.errors import RadfieldError
+    from radfield.stages.evaluate import check_supersample
+
+    save_model(tmp_path / "old.safetensors", model(1))
+    save_model(tmp_path / "new.safetensors", model(2))
+    check_supersample(tmp_path / "new.safetensors", 2)
+    check_supersample(tmp_path / "old.safetensors", 1)
+    with pytest.raises(RadfieldError, match="--force train") as error:
+        check_supersample(tmp_path / "old.safetensors", 2)
+    assert "\n" not in str(error.value)
