@@ -108,7 +108,7 @@ def animate(
     from radfield.core.camera_path import orbit as make_orbit
     from radfield.core.camera_path import orbit_from_cameras
     from radfield.core.metrics import psnr
-    from radfield.core.rasterize import render
+    from radfield.core.antialias import render_model
     from radfield.datasets.images import write_image
     from radfield.datasets.readers import load_dataset
     from radfield.edit.deform import deform_field
@@ -171,7 +171,7 @@ def animate(
         cams = [data.cameras[camera]] * len(poses)
 
     with torch.no_grad():
-        render(fld.prims.to(dev), cams[0], background=bg)   # warm-up, untimed (kernel loading)
+        render_model(fld.prims.to(dev), cams[0], background=bg)   # warm-up, untimed (kernel loading)
     with atomic_folder(output) as tmp:
         frames, per_frame, cache = [], [], {}
         with progress_bar(quiet) as progress:
@@ -183,7 +183,7 @@ def animate(
                 prims = posed.prims.to(dev)
                 middle = time.perf_counter()
                 with torch.no_grad():
-                    color = render(prims, cam, background=bg).color
+                    color = render_model(prims, cam, background=bg).color  # its own n × n rays a pixel
                 end = time.perf_counter()
                 frames.append(to_uint8(color))
                 write_image(tmp / f"frame_{i:04d}.png", color.clamp(0, 1).cpu().numpy())

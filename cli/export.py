@@ -64,8 +64,9 @@ def export(
 
     From a Gaussian model ply-3dgs and splat are exact; neural primitives are approximated by
     moment-matched Gaussians (--components per primitive), for a run refined against renders of
-    the model (--refine)."""
-    from radfield.core.export import FORMATS, as_gaussians, check_target, export as export_content
+    the model (--refine). A model trained with render.supersample > 1 draws each pixel with n x n
+    rays, which ply-3dgs/splat viewers cannot: a one-line warning on stderr."""
+    from radfield.core.export import FORMATS, as_gaussians, check_target, export as export_content, supersample_warning
     from radfield.core.primitives import NeuralPrimitives
 
     if format not in FORMATS:
@@ -80,6 +81,9 @@ def export(
     if output.is_dir():
         raise RadfieldError(f"{output}: is a folder, not a file")
     content = load_content(target)
+    warning = supersample_warning(content.model, format)
+    if warning:
+        typer.echo(warning, err=True)
     how = None
     if format in ("ply-3dgs", "splat") and isinstance(content.model, NeuralPrimitives):
         steps = refine if refine is not None else (REFINE_STEPS if content.views else 0)

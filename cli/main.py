@@ -134,7 +134,8 @@ def render(
     """Render every camera of a dataset split (or an orbit / a camera path) to OUTPUT/<frame name>.png.
 
     For a run directory every default is the run's own: its dataset, its split rule
-    (data.test_every), background, downscale and near plane; explicit options win."""
+    (data.test_every), background, downscale and near plane; explicit options win. Each pixel is
+    drawn with the model's own n x n rays (its file's supersample, from render.supersample)."""
     from radfield.stages.pipeline import is_run_dir
     from radfield.stages.render import render_frames
 

@@ -28,7 +28,9 @@ is the mean of the n × n rays through the centres of an n × n grid of sub-pixe
 the midpoint quadrature of the pixel's box filter, so the model is fitted to, and rendered as,
 area averages: an edge a few primitives draw is consistent in every view, at any sub-pixel phase.
 It costs n² times the pixels (×1.2–1.9 a step at n = 2 on 64×64 views, README); the loss, SSIM and
-metrics stay at the image's own resolution. The model is then right only rendered the same way.
+metrics stay at the image's own resolution. The model is then right only rendered the same way:
+the train stage stores n in the model (`prims.supersample`, the model file's `supersample` key),
+and every render of a model for a user goes through `render_model`, which reads it from there.
 
 Footprint floor (`train.min_footprint` = k, in pixels; Mip-Splatting's 3D filter, Yu et al. 2024,
 §4.1, bounds each primitive's size below by the finest sampling interval of the training views):
@@ -93,6 +95,11 @@ def render_supersampled(prims, camera: Camera, n: int, **kwargs) -> Render:
     h, w = camera.height, camera.width
     pool = lambda t: t.reshape(h, n, w, n, *t.shape[2:]).mean((1, 3))
     return Render(pool(out.color), pool(out.alpha), pool(out.depth), out.meta)
+
+
+def render_model(prims, camera: Camera, **kwargs) -> Render:
+    """A model drawn as it was trained: eq. (3) with its own n (`prims.supersample`, 1 = `render`)."""
+    return render_supersampled(prims, camera, prims.supersample, **kwargs)
 
 
 class FootprintFloor:

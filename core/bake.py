@@ -23,9 +23,9 @@ from typing import Callable, Sequence
 
 import torch
 
+from radfield.core.antialias import render_model
 from radfield.core.cameras import Camera
 from radfield.core.primitives import Gaussians, NeuralPrimitives
-from radfield.core.rasterize import render
 from radfield.core.sh import C0
 
 DEFAULT_MIN_WEIGHT = 1.0 / 255.0  # below one 8-bit level in every pixel of every training view
@@ -38,7 +38,8 @@ def coverage(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], *, 
     frozen = prims.map(lambda t: t.detach())
     for camera in cameras:
         probe = torch.zeros(len(prims), 1, 3, device=best.device, dtype=best.dtype, requires_grad=True)
-        out = render(replace(frozen, sh=probe), camera, background=background, near=near)
+        # with the model's own n × n rays a pixel: W_iv sums each pixel's mean T α of its rays (still ≤ 1 a pixel)
+        out = render_model(replace(frozen, sh=probe), camera, background=background, near=near)
         (grad,) = torch.autograd.grad(out.color[..., 0].sum(), probe, allow_unused=True)
         if grad is not None:  # None: no primitive reached a pixel
             best = torch.maximum(best, grad[:, 0, 0] / C0)

@@ -11,6 +11,9 @@ Formats (all in the dataset's world frame):
 - ``splat``     antimatter15's .splat: 32 bytes a splat, position 3×f32, linear σ 3×f32, RGBA 4×u8
   (0.5 + C0·f_dc and sigmoid(opacity), ×255 truncated), rotation 4×u8 ((q/|q|)·128 + 128, w x y z),
   in decreasing order of exp(Σ log σ)·sigmoid(opacity), as that viewer's convert.py writes it.
+  Other tools draw these with one ray per pixel: a model trained with `render.supersample` = n > 1
+  (its pixels the mean of n × n rays, README) cannot be drawn so, and `radfield export` warns
+  (`supersample_warning`; a run's refinement fits the Gaussians to the model's n × n renders).
 - ``points``    a PLY point cloud of the primitive centres with uchar ``red green blue`` from SH DC.
 - ``cage``      the cage as a tetrahedral mesh, ``.vtk`` (legacy VTK) or ``.msh`` (Gmsh 2.2), meshio.
 - ``envelope``  the envelope triangle mesh as a binary PLY.
@@ -41,6 +44,16 @@ FORMATS = MODEL_FORMATS + RUN_FORMATS
 SUFFIXES = {"ply-3dgs": (".ply",), "splat": (".splat",), "points": (".ply",), "cage": (".vtk", ".msh"),
             "envelope": (".ply",), "cameras": (".json",)}
 REST_COEFFS = num_sh_coeffs(3) - 1  # 15 per channel: the 45 f_rest of a degree-3 3DGS PLY
+ONE_RAY_FORMATS = ("ply-3dgs", "splat")  # drawn by other tools with one ray per pixel
+
+
+def supersample_warning(model: NeuralPrimitives | Gaussians, format: str) -> str | None:
+    """One line when `format` cannot hold how the model is drawn (its n × n rays a pixel), else None."""
+    n = model.supersample
+    if format not in ONE_RAY_FORMATS or n == 1:
+        return None
+    return (f"radfield: warning: the model was trained with {n}x{n} rays per pixel (render.supersample={n}); "
+            f"{format} viewers draw one ray per pixel, so its edges will look harder than in radfield")
 
 
 @dataclass

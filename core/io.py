@@ -3,6 +3,9 @@
 Neural primitives: float32 `means` (P,3), `log_scales` (P,3), `quats` (P,4, w x y z), `w1` (P,N,3),
 `b1` (P,N), `w2` (P,N), `b2` (P,), `sh` (P,K,3); metadata format=radfield, kind=neural, version,
 omega0, sh_degree. Gaussians: same geometry and `sh`, plus `opacities` (P,) logits, kind=gaussian.
+Both: optional metadata `supersample` (an integer 1..4 as a string, written only when > 1; absent
+means 1): the rays per pixel side the model was trained with (render.supersample), carried as
+`prims.supersample` and honoured by every render of the model (core/antialias.render_model).
 Tensors may also be stored as float16 (`radfield bake --fp16` writes all of them so); readers
 accept float32 and float16 and return float32. Readers check everything and never
 unpickle anything.
@@ -24,6 +27,7 @@ from radfield.core.sh import num_sh_coeffs
 
 FORMAT = "radfield"
 VERSION = 1
+MAX_SUPERSAMPLE = 4  # render.supersample's range (stages/init.py checks the config alike)
 
 # tensor name -> shape after the leading P, with "N" the MLP width and "K" the SH coefficient count
 _SCHEMA = {
@@ -53,6 +57,8 @@ def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dic
     meta = {"format": FORMAT, "kind": prims.kind, "version": str(VERSION), "sh_degree": str(prims.sh_degree)}
     if isinstance(prims, NeuralPrimitives):
         meta["omega0"] = repr(float(prims.omega0))
+    if prims.supersample != 1:  # absent = 1: a model trained without it keeps its bytes (and hash)
+        meta["supersample"] = str(int(prims.supersample))
     meta.update({k: v if isinstance(v, str) else json.dumps(v) for k, v in (extra or {}).items()})
     atomic_write_bytes(path, _canonical_header(save(tensors, metadata=meta)))
 
@@ -91,6 +97,9 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
     sh_degree = _int_meta(path, meta, "sh_degree")
     if not 0 <= sh_degree <= 3:
         raise RadfieldError(f"{path}: metadata sh_degree={sh_degree} is outside 0..3")
+    supersample = _int_meta(path, meta, "supersample") if "supersample" in meta else 1
+    if not 1 <= supersample <= MAX_SUPERSAMPLE:
+        raise RadfieldError(f"{path}: metadata supersample={supersample} is outside 1..{MAX_SUPERSAMPLE}")
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             names = set(f.keys())
@@ -126,9 +135,9 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
     tensors = {name: t.to(torch.float32) for name, t in tensors.items()}
     if kind == "neural":
         omega0 = _float_meta(path, meta, "omega0")
-        model = NeuralPrimitives(**tensors, omega0=omega0)
+        model = NeuralPrimitives(**tensors, omega0=omega0, supersample=supersample)
     else:
-        model = Gaussians(**tensors)
+        model = Gaussians(**tensors, supersample=supersample)
     if (model.quats.norm(dim=-1) == 0).any():
         raise RadfieldError(f"{path}: tensor 'quats' has all-zero rows (no rotation)")
     return model.to(device)

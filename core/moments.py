@@ -135,11 +135,11 @@ def refine_gaussians(gaussians: Gaussians, teacher, cameras, train_cfg: dict, *,
     the `train` config section) for `steps` steps with the full SH degree and no population control,
     so the result keeps one Gaussian per moment-matched one. The teacher's renders, not the photos,
     are the targets: the export stays a copy of the model (with its edits)."""
-    from radfield.core.rasterize import render
+    from radfield.core.antialias import render_model
     from radfield.core.trainer import train
 
-    with torch.no_grad():
-        targets = torch.stack([render(teacher, c, background=background).color.clamp(0, 1) for c in cameras])
+    with torch.no_grad():  # the teacher as it looks (its own n × n rays a pixel); the student one ray a pixel
+        targets = torch.stack([render_model(teacher, c, background=background).color.clamp(0, 1) for c in cameras])
     densify = {**train_cfg["densify"], "start": steps + 1, "stop": steps + 1,
                "gaussian": {**train_cfg["densify"]["gaussian"], "opacity_reset_every": steps + 1}}
     cfg = {**train_cfg, "iterations": steps, "max_primitives": None, "sh_degree": gaussians.sh_degree,

@@ -8,7 +8,7 @@ the SH colour layout, so the renderer can bin and composite them identically.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 
@@ -57,6 +57,10 @@ class _Primitives:
     log_scales: torch.Tensor  # (P, 3) ℓ, scales s = exp(ℓ)
     quats: torch.Tensor       # (P, 4) rotation q, w x y z, need not be normalised
     sh: torch.Tensor          # (P, K, 3) SH coefficients, K = (degree+1)^2
+    # rays per pixel side the model was trained with (render.supersample, core/antialias.py): every
+    # render for a user draws each pixel as the mean of n × n rays; the model file's `supersample`
+    # key (absent = 1). Keyword-only, so it follows the subclasses' fields; map/to/select keep it.
+    supersample: int = field(default=1, kw_only=True)
 
     kind = "base"
 

@@ -370,9 +370,11 @@ def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainS
 
 def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
               background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20,
-              masks: torch.Tensor | None = None, supersample: int = 1) -> float:
+              masks: torch.Tensor | None = None, supersample: int | None = None) -> float:
     """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3) (over the
-    valid pixels of masks (N, H, W), when given), rendered with `supersample` × `supersample` rays per pixel."""
+    valid pixels of masks (N, H, W), when given), rendered with `supersample` × `supersample` rays
+    per pixel (default: the model's own, prims.supersample)."""
+    supersample = prims.supersample if supersample is None else supersample
     total = 0.0
     with torch.no_grad():
         for k, (camera, image) in enumerate(zip(cameras, images)):

@@ -376,7 +376,7 @@ def cap_primitives(original: NeuralPrimitives, pts: np.ndarray, normal: np.ndarr
         w1=(torch.rand(n, hidden, 3, generator=g, dtype=torch.float64) * 2 - 1) / 3,
         b1=(torch.rand(n, hidden, generator=g, dtype=torch.float64) * 2 - 1) / 3,
         w2=torch.zeros(n, hidden, dtype=torch.float64), b2=torch.full((n,), b2, dtype=torch.float64),
-        omega0=original.omega0,
+        omega0=original.omega0, supersample=original.supersample,
     ).to(dtype=dtype)
 
 

@@ -13,13 +13,14 @@ A field edited with preserve_opacity carries a per-primitive `rest_metric`; join
 that has none, the other's primitives get the identity metric (their optical depth unchanged).
 Mismatched fields: SH degree → the lower one is padded with zero bands; hidden width → the
 narrower MLP is padded with zero units (W2 = 0 adds nothing); ω0 → the other's W1 and b1 are
-rescaled by ω0_other / ω0 (only ω0·W1 and ω0·b1 enter the density); Gaussians with neural
-primitives → refused.
+rescaled by ω0_other / ω0 (only ω0·W1 and ω0·b1 enter the density); rays per pixel
+(`supersample`) → the larger; Gaussians with neural primitives → refused.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -86,7 +87,9 @@ def concat_prims(a, b, where: str = "compose"):
         a, b = pad_hidden(a, hidden), pad_hidden(b, hidden)
         a, b = with_rest_metric(a, b.rest_metric is not None), with_rest_metric(b, a.rest_metric is not None)
     b = b.to(dtype=a.means.dtype)
-    out = a.map(lambda x: x)
+    # the finer of the two: a model trained at n drawn at n' > n is only a little smoother (box
+    # filter), one drawn at fewer rays than it was trained with loses its edges (README)
+    out = replace(a, supersample=max(a.supersample, b.supersample))
     for name, tensor in a.tensors().items():
         setattr(out, name, torch.cat([tensor, getattr(b, name)], 0))
     return out

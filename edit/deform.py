@@ -247,7 +247,8 @@ def split_primitives(prims, index: np.ndarray):
         children.append(replace(par, **fields))
     parts = [prims.select(keep)] + children
     return type(prims)(**{name: torch.cat([getattr(q, name) for q in parts]) for name in prims.tensors()},
-                       **({"omega0": prims.omega0} if isinstance(prims, NeuralPrimitives) else {}))
+                       **({"omega0": prims.omega0} if isinstance(prims, NeuralPrimitives) else {}),
+                       supersample=prims.supersample)
 
 
 # --- the deformation of a field ---------------------------------------------------------------

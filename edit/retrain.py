@@ -308,7 +308,7 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     figures["stage1_seconds"] = time.perf_counter() - t0
     figures["psnr_after_stage1"] = _mean_psnr(_joined(frozen, {**params, **extras}, frozen), cameras, targets)
     after1 = NeuralPrimitives(**{n: t.detach().clone().to(student.means.dtype) for n, t in {**params, **extras}.items()},
-                              omega0=student.omega0)
+                              omega0=student.omega0, supersample=student.supersample)
 
     # stage 2: every parameter of the student to teacher renders (eq. 12, second line)
     t0 = time.perf_counter()
@@ -329,7 +329,7 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
             log(f"retrain stage 2: step {step}/{steps2}, L1 {float(loss.detach()):.4f}")
     figures["stage2_seconds"] = time.perf_counter() - t0
     fitted = NeuralPrimitives(**{n: t.detach().to(student.means.dtype) for n, t in {**params, **extras}.items()},
-                              omega0=student.omega0)
+                              omega0=student.omega0, supersample=student.supersample)
     figures["psnr_after_stage2"] = _mean_psnr(_joined(frozen, fitted.tensors(), frozen), cameras, targets)
     # never leave the field further from the teacher (on these views) than an earlier stage did
     candidates = {"before": (figures["psnr_before"], student), "stage1": (figures["psnr_after_stage1"], after1),

@@ -1,5 +1,5 @@
-"""A browser viewer (viser): the model is rendered on the server by radfield.core.rasterize.render
-and streamed to each browser as the scene's background image; the cage (a wireframe toggle) and the
+"""A browser viewer (viser): the model is rendered on the server as it was trained (each pixel the
+mean of its own n × n rays, radfield.core.antialias.render_model) and streamed to each browser as the scene's background image; the cage (a wireframe toggle) and the
 dataset's cameras (frustums) are drawn by the browser on top.
 
 Each connected browser gets its own frames: while its camera moves the view is rendered at
@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from radfield.core.antialias import render_model
 from radfield.core.cameras import Camera
 from radfield.core.export import view_cameras
 from radfield.core.primitives import quat_to_rotmat, rotmat_to_quat
@@ -143,7 +144,7 @@ class Viewer:
         cam = client.camera
         camera = viser_camera(cam.wxyz, cam.position, cam.fov, cam.aspect, height)
         with torch.no_grad():
-            out = render(self.scene.model, camera, background=self.scene.background)
+            out = render_model(self.scene.model, camera, background=self.scene.background)
         return (out.color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
 
     def step(self) -> int:

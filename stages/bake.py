@@ -7,6 +7,9 @@ one model file (radfield.core.io format) whose metadata says how it was made::
     "baked": {"source": "<file name>", "source_sha256": "...", "min_weight": τ, "fp16": bool,
               "primitives_before": P0, "primitives_after": P1}
 
+The baked model keeps the source's `supersample` (prims.supersample): coverage and PSNR are
+measured with its n × n rays per pixel, as every render of the model draws it.
+
 Figures (manifest / `radfield info`): primitives and file sizes before and after, and the PSNR of
 the `eval.split` views before and after with its change (as the baked file renders, float16
 included). The eval stage still measures the trained model; this stage measures what it changed.

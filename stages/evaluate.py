@@ -39,7 +39,7 @@ from radfield.core import lpips as lpips_metric
 from radfield.core import report
 from radfield.core.io import load_model
 from radfield.core.metrics import psnr, ssim
-from radfield.core.antialias import render_supersampled
+from radfield.core.antialias import render_model
 from radfield.datasets.images import write_image
 from radfield.stages.config import load_config
 from radfield.datasets.scene import SCENE, Scene, load_scene, read_dataset, scene_from_json
@@ -55,10 +55,10 @@ TRAIN_CURVES = ("curves.png", "log.jsonl")  # written by the train stage into RU
 
 
 def run(ctx: Context) -> dict[str, Any]:
+    check_supersample(ctx.inputs[MODEL_FILE], ctx.config["render"]["supersample"])
     scene = load_scene(ctx.inputs[SCENE])
     metrics = evaluate(ctx.inputs[MODEL_FILE], scene, ctx.config["eval"]["split"], ctx.outputs[RENDERS],
-                       near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet, grids=ctx.outputs[GRIDS],
-                       supersample=ctx.config["render"]["supersample"])
+                       near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet, grids=ctx.outputs[GRIDS])
     ctx.outputs[METRICS].write_text(json.dumps(metrics, indent=1) + "\n")
     write_report(ctx.tmp, metrics, model=f"{ctx.run_dir.name}/{MODEL_STAGE}/{MODEL_FILE}", run_dir=ctx.run_dir)
     return {key: metrics[key] for key in ("psnr", "ssim", "lpips", "fps", "views")}
@@ -68,11 +68,23 @@ STAGE = Stage("eval", run, config_keys=("eval", "render.near", "render.supersamp
               outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING), version=2)
 
 
+def check_supersample(model_file: Path, trained_with: int) -> None:
+    """The run's model draws with its own n (the file's `supersample`); a file that disagrees with the
+    run's render.supersample was trained before model files recorded n, and would be measured at
+    the wrong n: an error rather than a silently lower PSNR."""
+    recorded = load_model(model_file).supersample
+    if recorded != trained_with:
+        raise RadfieldError(f"{model_file}: records supersample={recorded} but the run trained with "
+                            f"render.supersample={trained_with} (a model from before model files recorded it): "
+                            f"retrain it with --force train")
+
+
 def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near: float = 0.01,
-             device: str = "cpu", quiet: bool = True, grids: Path | None = None, supersample: int = 1) -> dict[str, Any]:
-    """Render `split` of `scene` with the model into `renders/` (created) and return the metrics
-    (module docstring); with `grids`, also the grid images there. Everything is loaded before
-    anything is written."""
+             device: str = "cpu", quiet: bool = True, grids: Path | None = None) -> dict[str, Any]:
+    """Render `split` of `scene` with the model, as it was trained (its own n × n rays a pixel,
+    core/antialias.render_model), into `renders/` (created) and return the metrics (module
+    docstring); with `grids`, also the grid images there. Everything is loaded before anything
+    is written."""
     model = load_model(model_file, device=device)
     cameras = scene.cameras(split)
     images, _ = scene.load_images(split)
@@ -81,8 +93,7 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
     renders.mkdir(parents=True, exist_ok=True)
     if grids is not None:
         grids.mkdir(parents=True, exist_ok=True)
-    draw = torch.no_grad()(lambda camera: render_supersampled(model, camera, supersample, background=scene.background,
-                                                              near=near).color)
+    draw = torch.no_grad()(lambda camera: render_model(model, camera, background=scene.background, near=near).color)
     draw(cameras[0])  # warm-up, untimed: fps is the steady rate, without one-off allocations
     per_view = []
     with progress_bar(quiet) as progress:
@@ -154,7 +165,7 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
     with atomic_folder(out_dir, merge=True) as tmp:
         metrics = evaluate(model, scene, split, tmp / RENDERS, near=config["render"]["near"], device=device,
-                           quiet=quiet, grids=tmp / GRIDS, supersample=config["render"]["supersample"])
+                           quiet=quiet, grids=tmp / GRIDS)
         atomic_write_text(tmp / METRICS, json.dumps(metrics, indent=1) + "\n")
         write_report(tmp, metrics, model=str(model), run_dir=run_dir)
     return metrics

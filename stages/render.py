@@ -3,6 +3,8 @@
 For a run directory every default is the run's own (RUN/config.yaml): the dataset it trained on
 (stages.info.run_dataset), its split rule (data.test_every), background, downscale and near plane;
 `options` ({"data.background": [...], "data.downscale": 2, "render.near": 0.05}) win over them.
+A run or a model file is drawn as it was trained: each pixel the mean of the model's own n × n
+rays (its `supersample`, core/antialias.render_model).
 The frames are written into a temporary folder beside the output and moved into place at the end,
 so a failed render leaves no partial output.
 """
@@ -19,7 +21,7 @@ from radfield.core.atomic import atomic_folder
 from radfield.core.camera_path import write_video
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model
-from radfield.core.antialias import render_supersampled
+from radfield.core.antialias import render_model
 from radfield.core.timing import clock
 from radfield.datasets.images import write_image
 from radfield.stages.config import load_config
@@ -54,8 +56,7 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
     model = load_model(model_file, device=device)
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
-    draw = lambda camera: render_supersampled(model, camera, config["render"]["supersample"], background=background,
-                                              near=near)  # a run's model as it was trained: render.supersample
+    draw = lambda camera: render_model(model, camera, background=background, near=near)  # its own n × n rays a pixel
     cameras, names = [], []
     if dataset is not None:
         data = load_split(dataset, split, config["data"])

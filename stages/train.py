@@ -1,7 +1,8 @@
 """Stage "train": optimise the initial primitives against the training views.
 
 Inputs: scene.json (data stage) and init.safetensors (init stage). Outputs in RUN/train/:
-model.safetensors, the trained model in the dataset's own world frame (radfield.core.io format);
+model.safetensors, the trained model in the dataset's own world frame (radfield.core.io format;
+with render.supersample > 1 its metadata records n, so every later render of the file draws it so);
 log.jsonl, one JSON record per step (radfield.core.trainlog: step, loss,
 train PSNR, primitives, seconds, population control, and test_psnr, the held-out views' PSNR
 every `train.eval_every` steps and at the last, for information only); curves.png, the log
@@ -86,9 +87,8 @@ def run(ctx: Context) -> dict[str, Any]:
     steps_run = state.step - first_step
     seconds = time.perf_counter() - clock
 
-    trained = state.primitives()
-    train_psnr = mean_psnr(trained, cameras, images, background=scene.background, near=near, masks=masks,
-                           supersample=supersample)
+    trained = replace(state.primitives(), supersample=supersample)  # the model records its n (core/io.py)
+    train_psnr = mean_psnr(trained, cameras, images, background=scene.background, near=near, masks=masks)
     model = to_world(trained, norm)
     save_model(ctx.outputs[MODEL_FILE], model)
     save_checkpoint(ctx.outputs[FINAL_STATE], state, key)

@@ -192,6 +192,7 @@ def test_a_supersampled_run_is_measured_and_rendered_as_it_was_trained(tmp_path_
                        "render.supersample=2", "--set", "init.num_points=200")
     assert code == 0, err
     model = load_model(run / "train" / "model.safetensors")
+    assert model.supersample == 2  # the file records n (tests/test_supersample_model.py)
     scene = load_scene(run / "data" / "scene.json")
     images, _ = scene.load_images("test")
     with torch.no_grad():
