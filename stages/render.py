@@ -46,11 +46,15 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
     primitives, kind and ms_per_frame (rendering only, after one untimed warm-up render, the
     device synchronised before each clock reading)."""
-    config = load_config(Path(run_dir) / CONFIG_FILE if run_dir is not None else None, options=options or {})
+    # a run edited from a model file (radfield edit MODEL -o RUN) has no config and no dataset of its own
+    config_file = Path(run_dir) / CONFIG_FILE if run_dir is not None else None
+    config = load_config(config_file if config_file is not None and config_file.is_file() else None,
+                         options=options or {})
     if dataset is None:
         dataset = run_dataset(run_dir) if run_dir is not None else None
         if dataset is None and camera_path is None:
-            raise RadfieldError("--dataset is required to render a model file (a run knows its dataset)")
+            what = f"{run_dir} (edited from a model file)" if run_dir is not None else "a model file"
+            raise RadfieldError(f"--dataset is required to render {what}: a reconstructed run knows its dataset")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise RadfieldError(f"{out_dir}: exists and is not a folder")

@@ -120,7 +120,10 @@ def test_an_edited_model_keeps_n_and_is_rendered_with_it(tmp_path, cli, data, te
     assert code == 0, err
     edited = load_model(tmp_path / "edited" / EDIT_STAGE / EDIT_MODEL)
     assert edited.supersample == 2
-    code, _, err = cli("render", tmp_path / "edited" / EDIT_STAGE / EDIT_MODEL, "-d", data, "-o", tmp_path / "frames", "-q")
+    # the edited run itself (edited from a model file: no config, no dataset of its own)
+    code, _, err = cli("render", tmp_path / "edited", "-o", tmp_path / "frames", "-q")
+    assert code == 1 and "--dataset is required" in err and "Traceback" not in err
+    code, _, err = cli("render", tmp_path / "edited", "-d", data, "-o", tmp_path / "frames", "-q")
     assert code == 0, err
     cameras, _ = test_views
     for c, want in zip(cameras, drawn(edited, cameras, 2)):
