@@ -56,7 +56,7 @@ import torch
 from radfield.core.cameras import Camera
 from radfield.core.frequency import footprint, view_stack
 from radfield.core.rasterize import Render, render
-from radfield.core.strategy import refresh_interval
+from radfield.core.strategy import refresh_interval, stale
 
 PROBE = 1e-4  # scene units: the radius of the point whose footprint gives a view's pixel size z/f
 
@@ -74,12 +74,6 @@ def shifted(camera: Camera, offset: tuple[float, float]) -> Camera:
     """The camera with its principal point moved by offset (δx, δy) pixels (the same camera at (0, 0))."""
     dx, dy = offset
     return camera if dx == 0 and dy == 0 else replace(camera, cx=camera.cx + dx, cy=camera.cy + dy)
-
-
-def supersample_offsets(n: int) -> list[tuple[float, float]]:
-    """The sub-pixel offsets of eq. (3): the n × n cell centres of a pixel, ((a + ½)/n − ½, (b + ½)/n − ½)."""
-    grid = [(a + 0.5) / n - 0.5 for a in range(n)]
-    return [(dx, dy) for dy in grid for dx in grid]
 
 
 def render_supersampled(prims, camera: Camera, n: int, **kwargs) -> Render:
@@ -134,7 +128,7 @@ class FootprintFloor:
         if self.views is None:
             return
         log_scales = params["log_scales"]
-        if self._floor is None or self._floor.shape[0] != log_scales.shape[0] or step % self.every == 0:
+        if stale(self._floor, log_scales.shape[0], step, self.every):
             self._floor = self.floor(params["means"].detach())
         # in place and idempotent: scales at or above the floor keep their bits
         torch.maximum(log_scales, self._floor[:, None].to(log_scales), out=log_scales)

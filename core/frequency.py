@@ -56,7 +56,7 @@ from collections.abc import Sequence
 import torch
 
 from radfield.core.cameras import Camera
-from radfield.core.strategy import refresh_interval
+from radfield.core.strategy import refresh_interval, stale
 
 NYQUIST = math.pi  # c of eq. (1) at which a period spans exactly 2 pixels of the finest view
 CAMERA_CHUNK = 16  # views per batched projection (P × 16 depths at a time)
@@ -132,7 +132,7 @@ class FrequencyCap:
         if not self.enabled or "w1" not in params:
             return
         w1 = params["w1"]
-        if self._bound is None or self._bound.shape[0] != w1.shape[0] or step % self.every == 0:
+        if stale(self._bound, w1.shape[0], step, self.every):
             self._bound = self.bound(params)
         norms = w1.norm(dim=-1)                                                        # (P, N)
         bound = self._bound[:, None]

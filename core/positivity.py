@@ -48,7 +48,7 @@ import torch
 
 from radfield.core import fused
 from radfield.core.cameras import Camera
-from radfield.core.strategy import in_frustum, refresh_interval
+from radfield.core.strategy import in_frustum, refresh_interval, stale
 
 
 def project_nonnegative(w2: torch.Tensor, b2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -124,7 +124,7 @@ class NonNegativeDensity:
     def apply(self, params: dict[str, torch.Tensor], step: int) -> None:
         if not self.enabled:
             return
-        if self._mask is None or self._mask.shape[0] != params["w2"].shape[0] or step % self.every == 0:
+        if stale(self._mask, params["w2"].shape[0], step, self.every):
             self._mask = self.mask(params)
         if not bool(self._mask.any()):
             return  # object-centric captures: no primitive has a narrow cone, nothing to do

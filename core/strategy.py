@@ -79,6 +79,13 @@ def refresh_interval(train_cfg: dict) -> int:
     return math.gcd(train_cfg["densify"]["every"], train_cfg["checkpoint_every"])
 
 
+def stale(derived: torch.Tensor | None, count: int, step: int, every: int) -> bool:
+    """Whether a per-primitive quantity derived from the geometry (P rows) must be recomputed
+    at `step`: never computed, the population changed (not `count` rows), or a refresh step
+    (a multiple of `every`, refresh_interval)."""
+    return derived is None or derived.shape[0] != count or step % every == 0
+
+
 class _Strategy:
     """What both strategies share: accumulators, visibility, budgeted growth, row surgery."""
 

@@ -168,9 +168,9 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         offsets = jitter_offsets(cfg["ray_jitter"], batch, generator(seed, _JITTER, step))
         gathering = strategy.gathering(step + 1)
         gathered = sync.gather_into(accumulators, gathering)
+        tracked = strategy.grad_names if gathering else ()   # accumulate reads nothing otherwise
         # k: the view's place in the whole batch (its random background), the same on every rank
         for k, view in sync.share(list(enumerate(views_for_step(seed, step, batch, len(train_cameras))))):
-            tracked = strategy.grad_names if gathering else ()   # accumulate reads nothing otherwise
             before = {n: None if params[n].grad is None else params[n].grad.clone() for n in tracked}
             view_bg, target = bg, images[view]
             if backgrounds is not None:  # the same RGBA pixels "over" another colour

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from radfield.core.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted, supersample_offsets
+from radfield.core.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
 from radfield.core.cameras import Camera, look_at, pixel_rays
 from radfield.core.io import load_model
 from radfield.core.metrics import psnr
@@ -61,6 +61,13 @@ def test_a_shifted_camera_samples_the_pixels_at_the_offset():
     d = torch.stack([(j - cam.cx) / cam.fx, (i - cam.cy) / cam.fy, torch.ones_like(i)], -1).double()
     d = torch.nn.functional.normalize(d, dim=-1) @ cam.c2w[:3, :3].T
     assert torch.allclose(pixel_rays(moved, dtype=torch.float64)[0], d, atol=1e-12)
+
+
+def supersample_offsets(n: int) -> list[tuple[float, float]]:
+    """The sub-pixel offsets of eq. (3) of radfield.core.antialias: the n × n cell centres of a
+    pixel, ((a + ½)/n − ½, (b + ½)/n − ½): the reference's shifted single-ray renders."""
+    grid = [(a + 0.5) / n - 0.5 for a in range(n)]
+    return [(dx, dy) for dy in grid for dx in grid]
 
 
 def test_supersampling_is_the_mean_of_the_sub_pixel_renders():
