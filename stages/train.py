@@ -103,6 +103,7 @@ def run(ctx: Context) -> dict[str, Any]:
         "seconds_per_iteration": seconds / steps_run if steps_run else None,
         "continued_from": first_step,
         "last_test_psnr": held[-1] if held else None,
+        "supersample": supersample,   # rays per pixel side the model is drawn with (radfield info shows it)
     }
 
 
