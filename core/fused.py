@@ -8,6 +8,7 @@
     sh_color_parts(sh_dc, sh_rest, means, campos, degree)          the colour from the trainer's SH tensors
     gaussian_accumulate(...), neural_accumulate(...)               the densification statistics of a view
     ssim_map(x, y, taps, pad, c1, c2), anisotropy(log_scales)      the loss (core/losses.py)
+    photometric(x, y, taps, lambda_dssim, c1, c2)                  L1 + D-SSIM of a step in one op
     neural_block(...), gaussian_block(...)    the pair kernels alone (the tests' window on them)
     available(device=None, dtype=None) -> bool, build_error() -> str | None
 
@@ -325,6 +326,22 @@ class _SSIMMap(torch.autograd.Function):
         return _ops().ssim_map_backward(grad.contiguous(), x, y, taps, moments, *ctx.constants), None, None, None, None, None
 
 
+class _Photometric(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, y, taps, lambda_dssim, c1, c2):
+        x, y, taps = x.contiguous(), y.contiguous(), taps.contiguous()
+        loss, moments = _ops().photometric_forward(x, y, taps, lambda_dssim, c1, c2)
+        ctx.constants = (lambda_dssim, c1, c2)
+        ctx.save_for_backward(x, y, taps, moments)
+        return loss
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        x, y, taps, moments = ctx.saved_tensors
+        return _ops().photometric_backward(grad.contiguous(), x, y, taps, moments, *ctx.constants), None, None, None, None, None
+
+
 class _Anisotropy(torch.autograd.Function):
     @staticmethod
     def forward(ctx, log_scales):
@@ -342,6 +359,14 @@ def ssim_map(x, y, taps, pad: int, c1: float, c2: float) -> torch.Tensor:
     """The SSIM map (B, Ho, Wo, C) of images x, y (B, H, W, C) with the separable window `taps`
     (11,) and zero padding `pad` (0 or 5), differentiable w.r.t. x only; see losses.ssim."""
     return _SSIMMap.apply(x, y, taps, int(pad), float(c1), float(c2))
+
+
+def photometric(x, y, taps, lambda_dssim: float, c1: float, c2: float) -> torch.Tensor:
+    """(1 − λ) mean|x − y| + λ (1 − mean SSIM map) of images x, y (B, H, W, C) with the "same"
+    map (zero padding 5) and the separable window `taps` (11,), in one op (the loss of a training
+    step, losses.photometric without a mask); differentiable w.r.t. x only. Its gradient is the
+    composition's bit for bit; the value differs from torch's float reductions in the last bits."""
+    return _Photometric.apply(x, y, taps, float(lambda_dssim), float(c1), float(c2))
 
 
 def anisotropy(log_scales) -> torch.Tensor:

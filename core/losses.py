@@ -103,7 +103,21 @@ def dssim(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None
 
 def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float,
                 mask: torch.Tensor | None = None) -> torch.Tensor:
-    """The 3DGS image loss (1 − λ) L1 + λ D-SSIM (over the valid pixels of `mask`)."""
+    """The 3DGS image loss (1 − λ) L1 + λ D-SSIM (over the valid pixels of `mask`).
+
+    Without a mask, on the fused CPU path, one C++ op (core/csrc/loss_kernels.cpp) computes it and
+    its image gradient in one pass each: the composition below is its readable twin, whose
+    gradient it reproduces bit for bit (its value: to the last bits of the float means)."""
+    if mask is None and img.dim() >= 3 and fused.available(img.device, img.dtype) and ref.dtype == img.dtype \
+            and ref.shape == img.shape and not ref.requires_grad:
+        x, y = img.reshape(-1, *img.shape[-3:]), ref.reshape(-1, *ref.shape[-3:])
+        return fused.photometric(x, y, _gaussian_window(img.dtype, img.device), lambda_dssim, SSIM_C1, SSIM_C2)
+    return _photometric(img, ref, lambda_dssim, mask)
+
+
+def _photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float,
+                 mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The readable twin of the fused photometric op: L1 and D-SSIM as separate terms."""
     return (1.0 - lambda_dssim) * l1(img, ref, mask) + lambda_dssim * dssim(img, ref, mask)
 
 

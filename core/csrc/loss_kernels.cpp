@@ -9,6 +9,8 @@
 //   over images (B, H, W, C) channel-last, zero padding `pad` (0: "valid", 5: "same"), giving
 //   (B, Ho, Wo, C). The backward differentiates w.r.t. x only (y is the photo) and uses the
 //   adjoint of the blur: the same symmetric taps, scattered back from the output window.
+//   photometric: the training step's image loss (1 − λ) L1 + λ D-SSIM ("same" map, no mask) in
+//     one op, forward and backward (its twin: the composition in losses.photometric).
 //   anisotropy: Splat the Net's std(s / min(s)) per primitive (Bessel-corrected), averaged.
 //
 // Threads: over image planes (b, c) for SSIM, over primitives for the regulariser.
@@ -111,6 +113,61 @@ std::vector<at::Tensor> ssim_map_forward(const at::Tensor& x, const at::Tensor& 
   return {map, stats};
 }
 
+// The per-plane backward of the SSIM map, shared by ssim_map_backward and photometric_backward
+// (so that the two round alike, bit for bit): from the plane's moments s (5, Ho, Wo) and
+// gS(e) = ∂L/∂S at output pixel e, it calls put(o, ∂L/∂x) for every input offset o = at(r, col) + c
+// of the plane. gm, v, row: scratch of 3 n_out, 3 H Wo and 3 (W + 2 pad) values.
+template <typename T, typename GradS, typename Put>
+void ssim_plane_backward(const T* s, GradS&& gS_of, const T* xb, const T* yb, int64_t c, const Plane& g, const T* w,
+                         T C1, T C2, T* gm, T* v, T* row, Put&& put) {
+  const int64_t n_out = g.Ho * g.Wo, padded = g.W + 2 * g.pad;  // = Wo + kTaps − 1
+  // ∂L/∂ of the blurred moments w∗x, w∗x², w∗xy (y's need none)
+  for (int64_t e = 0; e < n_out; ++e) {
+    const T mx = s[e], my = s[n_out + e];
+    const T vx = s[2 * n_out + e] - mx * mx, vy = s[3 * n_out + e] - my * my, cxy = s[4 * n_out + e] - mx * my;
+    const T a1 = T(2) * mx * my + C1, a2 = T(2) * cxy + C2, b1 = mx * mx + my * my + C1, b2 = vx + vy + C2;
+    const T den = b1 * b2, S = a1 * a2 / den, gS = gS_of(e);
+    const T g_a1 = gS * a2 / den, g_a2 = gS * a1 / den, g_b1 = -gS * S / b1, g_b2 = -gS * S / b2;
+    // A1 = 2 μx μy + C1, A2 = 2 (w∗xy − μx μy) + C2, B1 = μx² + μy² + C1, B2 = w∗x² − μx² + … + C2
+    gm[e] = T(2) * my * g_a1 - T(2) * my * g_a2 + T(2) * mx * g_b1 - T(2) * mx * g_b2;
+    gm[n_out + e] = g_b2;
+    gm[2 * n_out + e] = T(2) * g_a2;
+  }
+  // adjoint of the vertical pass: back to every input row
+  std::fill(v, v + 3 * g.H * g.Wo, T(0));
+  for (int q = 0; q < 3; ++q)
+    for (int64_t r = 0; r < g.Ho; ++r) {
+      const T* src = gm + q * n_out + r * g.Wo;
+      for (int64_t k = 0; k < kTaps; ++k) {
+        const int64_t dst_r = r + k - g.pad;
+        if (dst_r < 0 || dst_r >= g.H) continue;
+        T* dst = v + (q * g.H + dst_r) * g.Wo;
+        const T wk = w[k];
+#pragma omp simd
+        for (int64_t j = 0; j < g.Wo; ++j) dst[j] += wk * src[j];
+      }
+    }
+  // adjoint of the horizontal pass, then x's three moments: ∂x, ∂x² = 2x, ∂xy = y
+  for (int64_t r = 0; r < g.H; ++r) {
+    for (int q = 0; q < 3; ++q) {  // scatter output column j to input columns j + k − pad
+      const T* src = v + (q * g.H + r) * g.Wo;
+      T* acc = row + q * padded;
+      std::fill(acc, acc + padded, T(0));
+      for (int64_t k = 0; k < kTaps; ++k) {
+        const T wk = w[k];
+        T* dst = acc + k;
+#pragma omp simd
+        for (int64_t j = 0; j < g.Wo; ++j) dst[j] += wk * src[j];
+      }
+    }
+    const T *a0 = row + g.pad, *a1 = a0 + padded, *a2 = a1 + padded;
+    for (int64_t col = 0; col < g.W; ++col) {
+      const int64_t o = g.at(r, col) + c;
+      put(o, a0[col] + T(2) * xb[o] * a1[col] + yb[o] * a2[col]);
+    }
+  }
+}
+
 // ∂L/∂x (B, H, W, C) from ∂L/∂map.
 at::Tensor ssim_map_backward(const at::Tensor& grad, const at::Tensor& x, const at::Tensor& y, const at::Tensor& taps,
                              const at::Tensor& stats, int64_t pad, double c1, double c2) {
@@ -125,61 +182,104 @@ at::Tensor ssim_map_backward(const at::Tensor& grad, const at::Tensor& x, const 
     const T* sp = stats.data_ptr<T>();
     T* out = gx.data_ptr<T>();
     const T C1 = T(c1), C2 = T(c2);
-    const int64_t n_out = g.Ho * g.Wo, padded = g.W + 2 * g.pad;  // = Wo + kTaps − 1
+    const int64_t n_out = g.Ho * g.Wo, padded = g.W + 2 * g.pad;
     at::parallel_for(0, B * g.C, 1, [&](int64_t i0, int64_t i1) {
       std::vector<T> gm(3 * n_out), v(3 * g.H * g.Wo), row(3 * padded);
       for (int64_t i = i0; i < i1; ++i) {
-        const int64_t b = i / g.C, c = i % g.C;
-        const T* s = sp + i * 5 * n_out;
+        const int64_t b = i / g.C, c = i % g.C, image = b * g.H * g.W * g.C;
         const T* gs = gp + b * n_out * g.C + c;
-        // ∂L/∂ of the blurred moments w∗x, w∗x², w∗xy (y's need none)
+        T* ob = out + image;
+        ssim_plane_backward(sp + i * 5 * n_out, [&](int64_t e) { return gs[e * g.C]; }, xp + image, yp + image, c, g, w,
+                            C1, C2, gm.data(), v.data(), row.data(), [&](int64_t o, T value) { ob[o] = value; });
+      }
+    });
+  });
+  return gx;
+}
+
+// --- the photometric loss of a training step ---------------------------------------------------
+//
+// losses.photometric without a mask, L = (1 − λ) mean|x − y| + λ (1 − mean S) with the "same"
+// SSIM map (zero padding 5), as one op: the forward blurs the moments once per plane (kept for
+// the backward) and sums |x − y| and S per plane in double (planes added in order: the same value
+// at any thread count); the backward writes ∂L/∂x in one pass,
+//   ∂L/∂x = sgn(x − y) ((1 − λ) g) / N + ∂/∂x of Σ S · (−(λ g)) / N,
+// in the float operations autograd performs on the composition (the scalars in T, the mean's
+// backward a division by N, the SSIM part through ssim_plane_backward): the same gradient bit for
+// bit. The loss itself differs from torch's float reductions in the last bits (double sums).
+
+// Returns the loss (a 0-dim tensor) and the moments (B, C, 5, H, W) the backward needs.
+std::vector<at::Tensor> photometric_forward(const at::Tensor& x, const at::Tensor& y, const at::Tensor& taps,
+                                            double lambda, double c1, double c2) {
+  check_params({x, y, taps});
+  TORCH_CHECK(x.dim() == 4 && x.sizes() == y.sizes() && taps.numel() == kTaps && x.numel() > 0,
+              "photometric: x and y (B, H, W, C), not empty, 11 taps");
+  const Plane g = plane_of(x, 5);
+  const int64_t B = x.size(0), planes = B * g.C, n_out = g.Ho * g.Wo;
+  at::Tensor loss = at::empty({}, x.options());
+  at::Tensor stats = at::empty({B, g.C, 5, g.Ho, g.Wo}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "photometric_forward", [&] {
+    using T = scalar_t;
+    const T *xp = x.data_ptr<T>(), *yp = y.data_ptr<T>(), *w = taps.data_ptr<T>();
+    T* sp = stats.data_ptr<T>();
+    const T C1 = T(c1), C2 = T(c2);
+    std::vector<double> l1_sum(planes), ssim_sum(planes);
+    at::parallel_for(0, planes, 1, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        const int64_t b = i / g.C, c = i % g.C, image = b * g.H * g.W * g.C;
+        T* s = sp + i * 5 * n_out;
+        blur_moments(xp + image, yp + image, c, g, w, s);
+        double total = 0.0;
         for (int64_t e = 0; e < n_out; ++e) {
           const T mx = s[e], my = s[n_out + e];
           const T vx = s[2 * n_out + e] - mx * mx, vy = s[3 * n_out + e] - my * my, cxy = s[4 * n_out + e] - mx * my;
-          const T a1 = T(2) * mx * my + C1, a2 = T(2) * cxy + C2, b1 = mx * mx + my * my + C1, b2 = vx + vy + C2;
-          const T den = b1 * b2, S = a1 * a2 / den, gS = gs[e * g.C];
-          const T g_a1 = gS * a2 / den, g_a2 = gS * a1 / den, g_b1 = -gS * S / b1, g_b2 = -gS * S / b2;
-          // A1 = 2 μx μy + C1, A2 = 2 (w∗xy − μx μy) + C2, B1 = μx² + μy² + C1, B2 = w∗x² − μx² + … + C2
-          gm[e] = T(2) * my * g_a1 - T(2) * my * g_a2 + T(2) * mx * g_b1 - T(2) * mx * g_b2;
-          gm[n_out + e] = g_b2;
-          gm[2 * n_out + e] = T(2) * g_a2;
+          total += double(((T(2) * mx * my + C1) * (T(2) * cxy + C2)) / ((mx * mx + my * my + C1) * (vx + vy + C2)));
         }
-        // adjoint of the vertical pass: back to every input row
-        std::fill(v.begin(), v.end(), T(0));
-        for (int q = 0; q < 3; ++q)
-          for (int64_t r = 0; r < g.Ho; ++r) {
-            const T* src = gm.data() + q * n_out + r * g.Wo;
-            for (int64_t k = 0; k < kTaps; ++k) {
-              const int64_t dst_r = r + k - g.pad;
-              if (dst_r < 0 || dst_r >= g.H) continue;
-              T* dst = v.data() + (q * g.H + dst_r) * g.Wo;
-              const T wk = w[k];
-_Pragma("omp simd")  // (a pragma inside the dispatch macro)
-              for (int64_t j = 0; j < g.Wo; ++j) dst[j] += wk * src[j];
-            }
-          }
-        // adjoint of the horizontal pass, then x's three moments: ∂x, ∂x² = 2x, ∂xy = y
-        const T* xb = xp + b * g.H * g.W * g.C;
-        const T* yb = yp + b * g.H * g.W * g.C;
-        T* ob = out + b * g.H * g.W * g.C;
-        for (int64_t r = 0; r < g.H; ++r) {
-          for (int q = 0; q < 3; ++q) {  // scatter output column j to input columns j + k − pad
-            const T* src = v.data() + (q * g.H + r) * g.Wo;
-            T* acc = row.data() + q * padded;
-            std::fill(acc, acc + padded, T(0));
-            for (int64_t k = 0; k < kTaps; ++k) {
-              const T wk = w[k];
-              T* dst = acc + k;
-_Pragma("omp simd")
-              for (int64_t j = 0; j < g.Wo; ++j) dst[j] += wk * src[j];
-            }
-          }
-          const T *a0 = row.data() + g.pad, *a1 = a0 + padded, *a2 = a1 + padded;
-          for (int64_t col = 0; col < g.W; ++col) {
-            const int64_t o = g.at(r, col) + c;
-            ob[o] = a0[col] + T(2) * xb[o] * a1[col] + yb[o] * a2[col];
-          }
-        }
+        ssim_sum[i] = total;
+        total = 0.0;
+        for (int64_t e = 0; e < g.H * g.W; ++e) total += double(std::abs(xp[image + e * g.C + c] - yp[image + e * g.C + c]));
+        l1_sum[i] = total;
+      }
+    });
+    double l1 = 0.0, ssim = 0.0;
+    for (int64_t i = 0; i < planes; ++i) l1 += l1_sum[i], ssim += ssim_sum[i];
+    const double n = double(x.numel());   // = B Ho Wo C: the "same" map has the image's size
+    // as the composition: (1 − λ) · l1 + λ · (1 − ssim), each mean rounded to T
+    const T mean_l1 = T(l1 / n), mean_ssim = T(ssim / n);
+    loss.fill_(T(1.0 - lambda) * mean_l1 + T(lambda) * (T(1) - mean_ssim));
+  });
+  return {loss, stats};
+}
+
+// ∂L/∂x (B, H, W, C) from ∂L/∂loss (a 0-dim tensor).
+at::Tensor photometric_backward(const at::Tensor& grad, const at::Tensor& x, const at::Tensor& y, const at::Tensor& taps,
+                                const at::Tensor& stats, double lambda, double c1, double c2) {
+  check_params({grad, x, y, taps, stats});
+  TORCH_CHECK(grad.numel() == 1, "photometric_backward: the gradient of a scalar");
+  const Plane g = plane_of(x, 5);
+  const int64_t B = x.size(0), n_out = g.Ho * g.Wo, padded = g.W + 2 * g.pad;
+  TORCH_CHECK(stats.sizes() == at::IntArrayRef({B, g.C, 5, g.Ho, g.Wo}), "photometric_backward: bad moments");
+  at::Tensor gx = at::empty_like(x);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "photometric_backward", [&] {
+    using T = scalar_t;
+    const T *xp = x.data_ptr<T>(), *yp = y.data_ptr<T>(), *w = taps.data_ptr<T>(), *sp = stats.data_ptr<T>();
+    T* out = gx.data_ptr<T>();
+    const T C1 = T(c1), C2 = T(c2), g_loss = grad.data_ptr<T>()[0], n = T(x.numel());
+    // autograd on the composition: MulBackward (g · (1 − λ), g · λ in T), RsubBackward (−),
+    // MeanBackward (÷ N), AbsBackward (· sgn(x − y))
+    const T g_l1 = (g_loss * T(1.0 - lambda)) / n, g_ssim = -(g_loss * T(lambda)) / n;
+    at::parallel_for(0, B * g.C, 1, [&](int64_t i0, int64_t i1) {
+      std::vector<T> gm(3 * n_out), v(3 * g.H * g.Wo), row(3 * padded);
+      for (int64_t i = i0; i < i1; ++i) {
+        const int64_t b = i / g.C, c = i % g.C, image = b * g.H * g.W * g.C;
+        const T *xb = xp + image, *yb = yp + image;
+        T* ob = out + image;
+        ssim_plane_backward(sp + i * 5 * n_out, [&](int64_t) { return g_ssim; }, xb, yb, c, g, w, C1, C2, gm.data(),
+                            v.data(), row.data(), [&](int64_t o, T value) {
+                              const T d = xb[o] - yb[o];
+                              const T sgn = T((T(0) < d) - (d < T(0)));
+                              ob[o] = value + g_l1 * sgn;
+                            });
       }
     });
   });
@@ -276,6 +376,8 @@ at::Tensor anisotropy_backward(const at::Tensor& grad, const at::Tensor& log_sca
 TORCH_LIBRARY_FRAGMENT(radfield, m) {
   m.def("ssim_map_forward", &ssim_map_forward);
   m.def("ssim_map_backward", &ssim_map_backward);
+  m.def("photometric_forward", &photometric_forward);
+  m.def("photometric_backward", &photometric_backward);
   m.def("anisotropy_forward", &anisotropy_forward);
   m.def("anisotropy_backward", &anisotropy_backward);
 }
