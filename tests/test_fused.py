@@ -600,7 +600,7 @@ def test_anisotropy_matches_torch_twin_over_many_chunks(dtype):
 def test_photometric_op_matches_the_composition(dtype):
     """The fused photometric op (L1 + D-SSIM in one pass) gives the composition's gradient bit for
     bit (at a loss gradient ≠ 1 too, and with pixels where x = y), its value to rounding, and
-    passes gradcheck in float64; RADFIELD_KERNELS=torch's twin agrees within float tolerance."""
+    passes gradcheck in float64."""
     from radfield.core import losses
 
     g = torch.Generator().manual_seed(5)

@@ -79,6 +79,15 @@ void blur_moments(const T* x, const T* y, int64_t c, const Plane& g, const T* w,
     }
 }
 
+// SSIM at output pixel e from a plane's blurred moments s (5, n_out): w∗x, w∗y, w∗x², w∗y², w∗xy.
+// One expression for ssim_map_forward and photometric_forward, so that both round alike.
+template <typename T>
+inline T ssim_at(const T* s, int64_t n_out, int64_t e, T C1, T C2) {
+  const T mx = s[e], my = s[n_out + e];
+  const T vx = s[2 * n_out + e] - mx * mx, vy = s[3 * n_out + e] - my * my, cxy = s[4 * n_out + e] - mx * my;
+  return ((T(2) * mx * my + C1) * (T(2) * cxy + C2)) / ((mx * mx + my * my + C1) * (vx + vy + C2));
+}
+
 // Returns the map (B, Ho, Wo, C) and the moments (B, C, 5, Ho, Wo) the backward needs.
 std::vector<at::Tensor> ssim_map_forward(const at::Tensor& x, const at::Tensor& y, const at::Tensor& taps,
                                          int64_t pad, double c1, double c2) {
@@ -102,11 +111,7 @@ std::vector<at::Tensor> ssim_map_forward(const at::Tensor& x, const at::Tensor& 
         T* s = sp + i * 5 * n_out;
         blur_moments(xp + b * g.H * g.W * g.C, yp + b * g.H * g.W * g.C, c, g, w, s);
         T* out = mp + b * n_out * g.C + c;
-        for (int64_t e = 0; e < n_out; ++e) {
-          const T mx = s[e], my = s[n_out + e];
-          const T vx = s[2 * n_out + e] - mx * mx, vy = s[3 * n_out + e] - my * my, cxy = s[4 * n_out + e] - mx * my;
-          out[e * g.C] = ((T(2) * mx * my + C1) * (T(2) * cxy + C2)) / ((mx * mx + my * my + C1) * (vx + vy + C2));
-        }
+        for (int64_t e = 0; e < n_out; ++e) out[e * g.C] = ssim_at(s, n_out, e, C1, C2);
       }
     });
   });
@@ -230,11 +235,7 @@ std::vector<at::Tensor> photometric_forward(const at::Tensor& x, const at::Tenso
         T* s = sp + i * 5 * n_out;
         blur_moments(xp + image, yp + image, c, g, w, s);
         double total = 0.0;
-        for (int64_t e = 0; e < n_out; ++e) {
-          const T mx = s[e], my = s[n_out + e];
-          const T vx = s[2 * n_out + e] - mx * mx, vy = s[3 * n_out + e] - my * my, cxy = s[4 * n_out + e] - mx * my;
-          total += double(((T(2) * mx * my + C1) * (T(2) * cxy + C2)) / ((mx * mx + my * my + C1) * (vx + vy + C2)));
-        }
+        for (int64_t e = 0; e < n_out; ++e) total += double(ssim_at(s, n_out, e, C1, C2));
         ssim_sum[i] = total;
         total = 0.0;
         for (int64_t e = 0; e < g.H * g.W; ++e) total += double(std::abs(xp[image + e * g.C + c] - yp[image + e * g.C + c]));
