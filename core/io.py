@@ -6,6 +6,8 @@ omega0, sh_degree. Gaussians: same geometry and `sh`, plus `opacities` (P,) logi
 Both: optional metadata `supersample` (an integer 1..4 as a string, written only when > 1; absent
 means 1): the rays per pixel side the model was trained with (render.supersample), carried as
 `prims.supersample` and honoured by every render of the model (core/antialias.render_model).
+Neural: optional metadata `window` ("1", written only when set; absent means "0"): the density
+window of render.window (`prims.window`, core/primitives.py: density_window).
 Tensors may also be stored as float16 (`radfield bake --fp16` writes all of them so); readers
 accept float32 and float16 and return float32. Readers check everything and never
 unpickle anything.
@@ -57,6 +59,8 @@ def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dic
     meta = {"format": FORMAT, "kind": prims.kind, "version": str(VERSION), "sh_degree": str(prims.sh_degree)}
     if isinstance(prims, NeuralPrimitives):
         meta["omega0"] = repr(float(prims.omega0))
+        if prims.window:   # absent = the hard-edged ellipsoid: older files keep their bytes (and hash)
+            meta["window"] = "1"
     if prims.supersample != 1:  # absent = 1: a model trained without it keeps its bytes (and hash)
         meta["supersample"] = str(int(prims.supersample))
     meta.update({k: v if isinstance(v, str) else json.dumps(v) for k, v in (extra or {}).items()})
@@ -135,7 +139,10 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
     tensors = {name: t.to(torch.float32) for name, t in tensors.items()}
     if kind == "neural":
         omega0 = _float_meta(path, meta, "omega0")
-        model = NeuralPrimitives(**tensors, omega0=omega0, supersample=supersample)
+        window = meta.get("window", "0")
+        if window not in ("0", "1"):
+            raise RadfieldError(f"{path}: metadata window={window!r} is not 0 or 1")
+        model = NeuralPrimitives(**tensors, omega0=omega0, supersample=supersample, window=window == "1")
     else:
         model = Gaussians(**tensors, supersample=supersample)
     if (model.quats.norm(dim=-1) == 0).any():

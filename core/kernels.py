@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat
+from radfield.core.primitives import WINDOW_GAIN, NeuralPrimitives, quat_to_rotmat
 
 ALPHA_MAX = 0.99        # 3DGS clamp: no primitive is fully opaque, keeps log(1 − α) finite
 ALPHA_MIN = 1.0 / 255   # 3DGS skip threshold
@@ -105,6 +105,47 @@ def neural_optical_depth(l_in, l_out, hit, a, c, w2, b2, inv_smax) -> torch.Tens
     delta = torch.clamp_min(l_out - l_in, 0.0) * inv_smax
     tau_m = 0.5 * (l_in + l_out) * inv_smax
     integral = _CosMLPIntegral.apply(a, c, w2, tau_m, delta) + b2 * delta
+    return torch.where(hit, integral, torch.zeros_like(integral))
+
+
+def _below_one(x, series, formula):
+    """series(x) where |x| < 1 (where the formula cancels), formula(x) elsewhere."""
+    small = x.abs() < 1.0
+    return torch.where(small, series(x), formula(torch.where(small, torch.ones_like(x), x)))
+
+
+def window_integral(x: torch.Tensor) -> torch.Tensor:
+    """W(x) = ½ ∫_{−1}^{1} (1 − t²) cos(x t) dt = 2 (sin x − x cos x) / x³, the windowed twin of
+    sinc (sinc x = ½ ∫ cos(x t) dt), by its series 2/3 − x²/15 + x⁴/420 − … below |x| = 1."""
+    def series(x):
+        x2 = x * x
+        return 2 / 3 - x2 * (1 / 15 - x2 * (1 / 420 - x2 * (1 / 22680 - x2 * (1 / 1995840 - x2 / 259459200))))
+    return _below_one(x, series, lambda x: 2 * (torch.sin(x) - x * torch.cos(x)) / (x * x * x))
+
+
+def windowed_optical_depth(l_in_raw, l_in, l_out, hit, a_sq, a, c, w2, b2, inv_smax) -> torch.Tensor:
+    """Closed-form line integral of the windowed density 1.5 (1 − r²) σ (primitives.density_window).
+
+    Along the ray, r² = |p|² + A (ℓ − ℓ*)² (ray_ellipsoid), so in τ = ℓ / max(s) about the clipped
+    chord's midpoint τ_m, with half-length h = Δ/2, s = τ − τ_m and the near-plane clip
+    e = τ_in − τ_in,unclipped ≥ 0: 1 − r² = κ (h + e + s)(h − s), κ = A max(s)². With
+    φ_k = a_k τ_m + c_k, x_k = a_k Δ/2 and ½∫(1 − t²) cos(x t) dt = W (window_integral):
+        I = 1.5 κ [Σ_k W2_k (cos φ_k Δ³/4 W(x_k) + e Δ²/2 (cos φ_k sinc x_k + sin φ_k x_k W(x_k)/2))
+                   + b2 (Δ³/6 + e Δ²/2)],
+    the e terms vanishing where no near plane cuts the chord. Shapes as neural_optical_depth, plus l_in_raw (the unclipped entry)
+    and a_sq = A = |S⁻¹Rᵀ d̂|² (...,)."""
+    delta = torch.clamp_min(l_out - l_in, 0.0) * inv_smax
+    tau_m = 0.5 * (l_in + l_out) * inv_smax
+    clip = (l_in - l_in_raw) * inv_smax
+    kappa = a_sq / (inv_smax * inv_smax)
+    d2, e = (0.5 * delta * delta)[..., None], clip[..., None]
+    d3 = (0.25 * delta * delta * delta)[..., None]
+    x = 0.5 * a * delta[..., None]
+    phase = a * tau_m[..., None] + c
+    cos_p, w = torch.cos(phase), window_integral(x)
+    terms = cos_p * d3 * w + e * d2 * (cos_p * sinc(x) + torch.sin(phase) * (0.5 * x * w))
+    inner = (w2 * terms).sum(-1) + b2 * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta))
+    integral = WINDOW_GAIN * kappa * inner
     return torch.where(hit, integral, torch.zeros_like(integral))
 
 

@@ -18,6 +18,16 @@ DEFAULT_OMEGA0 = 30.0
 DEFAULT_HIDDEN = 8
 
 
+WINDOW_GAIN = 1.5   # the window 1.5 (1 − r²): the central chord's optical depth is the hard-edged one's
+
+
+def density_window(prims: "NeuralPrimitives", r2: torch.Tensor) -> torch.Tensor | float:
+    """The factor on σ at points of squared ellipsoid radius r2 = |S⁻¹Rᵀ(x − μ)|² (inside: r2 ≤ 1):
+    1.5 (1 − r2) for a windowed model, 1 for a hard-edged one. Every evaluation of a neural
+    primitive's density at points takes it from here (the renderer integrates it in closed form)."""
+    return WINDOW_GAIN * (1.0 - r2) if prims.window else 1.0
+
+
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     """Rotation matrices (P, 3, 3) from quaternions (P, 4) in w x y z order (normalised here)."""
     w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
@@ -95,7 +105,8 @@ class _Primitives:
 @dataclass
 class NeuralPrimitives(_Primitives):
     """Splattable neural primitives. Density inside the ellipsoid (radii s, paper eq. 5-6):
-    σ(x) = w2 · cos(ω0 (w1 u + b1)) + b2,  u = (x − μ) / max(s)."""
+    σ(x) = w2 · cos(ω0 (w1 u + b1)) + b2,  u = (x − μ) / max(s), times the window 1.5 (1 − r²)
+    where `window` is set (`density_window`)."""
 
     w1: torch.Tensor = None  # (P, N, 3)
     b1: torch.Tensor = None  # (P, N)
@@ -105,6 +116,11 @@ class NeuralPrimitives(_Primitives):
     # optional, written by `radfield edit --preserve-opacity` (edit/deform.py): per primitive the
     # symmetric rest-space metric G (xx yy zz xy xz yz) that scales the optical depth by √(d̂ᵀ G d̂)
     rest_metric: torch.Tensor | None = None  # (P, 6)
+    # the density window (render.window, core/kernels.py: windowed_optical_depth): σ(x) is taken
+    # times 1.5 (1 − r²), r = |S⁻¹Rᵀ(x − μ)|, so it falls to 0 on the ellipsoid and a primitive's
+    # silhouette is smooth; False: the paper's hard-edged ellipsoid. The model file's `window` key
+    # (absent = False); map/to/select keep it.
+    window: bool = field(default=False, kw_only=True)
 
     kind = "neural"
 

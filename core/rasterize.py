@@ -20,13 +20,14 @@ Pipeline:
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import NamedTuple
 
 import torch
 
 from radfield.core import fused
 from radfield.core.cameras import Camera
-from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, gaussian_alpha, neural_optical_depth, ray_ellipsoid
+from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, gaussian_alpha, neural_optical_depth, ray_ellipsoid, windowed_optical_depth
 from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat
 from radfield.core.sh import sh_parts, sh_to_color
 
@@ -64,7 +65,7 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
     depth = means_cam[:, 2]
     degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
-    use_fused = fused.available(device, dtype)
+    use_fused = fused.available(device, dtype) and not getattr(prims, "window", False)   # TODO fused window
     parts = sh_parts(prims.sh)   # the trainer's (sh_dc, sh_rest), read in place by the fused op
     if use_fused and parts is not None:
         colors = fused.sh_color_parts(*parts, prims.means, campos, degree)
@@ -109,7 +110,7 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
         ids = torch.nonzero(visible).squeeze(1)
         ids = ids[torch.argsort(depth[ids].detach(), stable=True)]   # front to back; position = depth rank
         bounds = bounds[ids]
-        kernel = _neural_block if isinstance(prims, NeuralPrimitives) else _gaussian_block
+        kernel = partial(_neural_block, window=prims.window) if isinstance(prims, NeuralPrimitives) else _gaussian_block
         acc_color, acc_depth, transmittance, (n_pairs, n_contrib, n_done) = _composite(
             kernel, [t[ids] for t in view], bounds, colors[ids], depth[ids], intrinsics, height, width, max_pairs, t_min)
         x0, y0, x1, y1 = bounds.unbind(-1)
@@ -297,14 +298,18 @@ def _camera_directions(u, v, intrinsics):
     return d / norm[..., None], near * norm
 
 
-def _neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax):
-    """α of primitives (P,) over blocks of image points (P, A)."""
+def _neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, window: bool = False):
+    """α of primitives (P,) over blocks of image points (P, A); `window`: the windowed density."""
     d, l_near = _camera_directions(u, v, intrinsics)
     d_ell = d @ m_cam.transpose(1, 2)                    # d' = S⁻¹Rᵀ d̂
-    l_in, l_out, hit = ray_ellipsoid(o_ell[:, None, :], d_ell)
-    l_in = torch.maximum(l_in, l_near)                   # camera inside: start at the near plane
+    l_in_raw, l_out, hit = ray_ellipsoid(o_ell[:, None, :], d_ell)
+    l_in = torch.maximum(l_in_raw, l_near)               # camera inside: start at the near plane
     a = d @ w_cam.transpose(1, 2)                        # a_k = ω0 W1_k · d̂
-    optical_depth = neural_optical_depth(l_in, l_out, hit, a, c[:, None, :], w2[:, None, :], b2[:, None], inv_smax[:, None])
+    mlp = c[:, None, :], w2[:, None, :], b2[:, None], inv_smax[:, None]
+    if window:
+        optical_depth = windowed_optical_depth(l_in_raw, l_in, l_out, hit, (d_ell * d_ell).sum(-1), a, *mlp)
+    else:
+        optical_depth = neural_optical_depth(l_in, l_out, hit, a, *mlp)
     return alpha_from_optical_depth(optical_depth)
 
 

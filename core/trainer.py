@@ -90,10 +90,11 @@ class TrainState:
     params: dict[str, torch.Tensor]
     moments: dict[str, dict[str, torch.Tensor]]
     strategy: dict[str, torch.Tensor]
+    window: bool = False   # neural: the density window (primitives.density_window)
 
     def primitives(self) -> NeuralPrimitives | Gaussians:
         """The trained primitives (detached), SH bands merged back."""
-        return assemble(self.params, self.kind, self.omega0).map(lambda t: t.detach().clone())
+        return assemble(self.params, self.kind, self.omega0, self.window).map(lambda t: t.detach().clone())
 
 
 def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], train_images: torch.Tensor,
@@ -177,7 +178,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
                 view_bg = backgrounds[k].to(device)
                 target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
             camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
-            out = render_supersampled(assemble(params, state.kind, state.omega0), camera, supersample,
+            out = render_supersampled(assemble(params, state.kind, state.omega0, state.window), camera, supersample,
                                       background=view_bg, near=near, sh_degree=degree, max_pairs=max_pairs)
             mask = None if masks is None else masks[view]
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
@@ -199,7 +200,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         every = cfg["eval_every"]
         if held_out is not None and ((every and (step + 1) % every == 0) or step + 1 == iterations):
             with torch.no_grad():
-                info["test_psnr"] = float(held_out(assemble(params, state.kind, state.omega0).map(torch.Tensor.detach)))
+                info["test_psnr"] = float(held_out(assemble(params, state.kind, state.omega0, state.window).map(torch.Tensor.detach)))
         if on_step is not None:
             on_step(step + 1, info)
         if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
@@ -240,14 +241,16 @@ def initial_state(prims: NeuralPrimitives | Gaussians, sh_degree: int) -> TrainS
     params = {name: sh[:, :1] if name == "sh_dc" else sh[:, 1:] if name == "sh_rest" else tensors[name]
               for name in PARAM_NAMES[prims.kind]}
     omega0 = prims.omega0 if isinstance(prims, NeuralPrimitives) else None
-    return TrainState(0, prims.kind, omega0, {n: t.detach().clone() for n, t in params.items()}, {}, {})
+    return TrainState(0, prims.kind, omega0, {n: t.detach().clone() for n, t in params.items()}, {}, {},
+                      window=getattr(prims, "window", False))
 
 
-def assemble(params: dict[str, torch.Tensor], kind: str, omega0: float | None) -> NeuralPrimitives | Gaussians:
+def assemble(params: dict[str, torch.Tensor], kind: str, omega0: float | None,
+             window: bool = False) -> NeuralPrimitives | Gaussians:
     """Primitives built from the parameter tensors (differentiable: no copies)."""
     tensors = {n: t for n, t in params.items() if n not in ("sh_dc", "sh_rest")}
     sh = join_sh(params["sh_dc"], params["sh_rest"])   # the fused renderer reads the two parts (core/sh.py)
-    return NeuralPrimitives(**tensors, sh=sh, omega0=omega0) if kind == "neural" else Gaussians(**tensors, sh=sh)
+    return NeuralPrimitives(**tensors, sh=sh, omega0=omega0, window=window) if kind == "neural" else Gaussians(**tensors, sh=sh)
 
 
 def make_optimizer(params: dict[str, torch.Tensor], lr: dict, extent: float) -> torch.optim.Adam:
@@ -290,7 +293,7 @@ def snapshot(step: int, state: TrainState, params: dict, optimizer: torch.optim.
         if adam:
             moments[group["name"]] = {k: adam[k] for k in ("exp_avg", "exp_avg_sq", "step")}
     return TrainState(step, state.kind, state.omega0, {n: p.detach() for n, p in params.items()}, moments,
-                      dict(accumulators))
+                      dict(accumulators), window=state.window)
 
 
 def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
@@ -309,13 +312,13 @@ def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
 def save_checkpoint(path: str | Path, state: TrainState, note: dict | None = None) -> None:
     """Write a TrainState atomically as one safetensors file: tensors param.NAME, adam.NAME.KEY,
     strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind,
-    omega0, note} (`note`: the caller's own JSON, e.g. what the state is valid for)."""
+    omega0, window, note} (`note`: the caller's own JSON, e.g. what the state is valid for)."""
     path = Path(path)
     tensors = {k: t.detach().cpu().contiguous() for k, t in state_tensors(state).items()}
     # one metadata key: safetensors writes several in a random order, and equal states should
     # give equal bytes
     header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
-              "omega0": state.omega0, "note": note}
+              "omega0": state.omega0, "window": state.window, "note": note}
     meta = {CHECKPOINT_FORMAT: json.dumps(header, sort_keys=True)}
     atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
 
@@ -365,7 +368,8 @@ def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainS
             moments.setdefault(name, {})[field] = t
         else:
             strategy[rest] = t
-    return TrainState(header["step"], header["kind"], header["omega0"], params, moments, strategy)
+    return TrainState(header["step"], header["kind"], header["omega0"], params, moments, strategy,
+                      window=bool(header.get("window", False)))
 
 
 def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,

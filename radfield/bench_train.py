@@ -107,7 +107,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = clock("loss", t)
         before = {n: None if params[n].grad is None else params[n].grad.clone() for n in strategy.grad_names}
         t = clock("population", t)
-        out = render(trainer.assemble(params, state.kind, state.omega0), cams[view], background=bg, sh_degree=degree)
+        out = render(trainer.assemble(params, state.kind, state.omega0, state.window), cams[view], background=bg, sh_degree=degree)
         t = clock("forward", t)
         image = out.color.detach().requires_grad_(True)
         loss = photometric(image, images[view], cfg["lambda_dssim"])

@@ -73,7 +73,7 @@ def run(ctx: Context) -> dict[str, Any]:
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
                             cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed,
-                            w1_bound=cfg["init"]["w1_scale"])
+                            w1_bound=cfg["init"]["w1_scale"], window=cfg["render"]["window"])
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
@@ -86,7 +86,7 @@ STAGE = Stage(
     "init",
     run,
     config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0",
-                 "render.hidden", "seed"),
+                 "render.hidden", "render.window", "seed"),
     inputs=(SCENE, POINTS, ENVELOPE, CAGE_NPZ),
     outputs=(INIT_MODEL, BINDING),
     version=3,
@@ -107,6 +107,7 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
     require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
     require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
+    require(config, "render.window", lambda x: isinstance(x, bool), "true or false")
     require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
@@ -212,7 +213,8 @@ def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
 
 def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, hidden: int,
-                    omega0: float, extent: float, seed: int, w1_bound: float = 1 / 3) -> NeuralPrimitives | Gaussians:
+                    omega0: float, extent: float, seed: int, w1_bound: float = 1 / 3,
+                    window: bool = False) -> NeuralPrimitives | Gaussians:
     """Isotropic primitives at `means` (see the module docstring for every initial value)."""
     num = len(means)
     radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
@@ -230,4 +232,5 @@ def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_deg
         return Gaussians(**geometry, opacities=torch.full((num,), GAUSSIAN_OPACITY))
     w1, b1, w2, b2 = siren_mlp_init(num, hidden, omega0, generator=torch.Generator().manual_seed(seed),
                                     w1_bound=w1_bound)
-    return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0)
+    return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0,
+                            window=window)
