@@ -33,6 +33,8 @@ from pathlib import Path
 
 import torch
 
+from radfield.core.primitives import WINDOW_GAIN
+
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
             _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp", _CSRC / "positivity_kernels.cpp"]
@@ -131,17 +133,18 @@ def _prepared(u, v, *params):
 
 class _NeuralBlock(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax):
+    def forward(ctx, u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, gain):
         args = _prepared(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
+        ctx.gain = gain
         ctx.save_for_backward(*args)
-        return _ops().neural_block_forward(*args)
+        return _ops().neural_block_forward(*args, gain)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_alpha):
         args = ctx.saved_tensors
-        grads = _ops().neural_block_backward(grad_alpha.contiguous(), *args)
-        return None, None, None, *grads
+        grads = _ops().neural_block_backward(grad_alpha.contiguous(), *args, ctx.gain)
+        return None, None, None, *grads, None
 
 
 class _GaussianBlock(torch.autograd.Function):
@@ -158,10 +161,15 @@ class _GaussianBlock(torch.autograd.Function):
         return None, None, None, *grads
 
 
-def neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax) -> torch.Tensor:
+def neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, window: bool = False) -> torch.Tensor:
     """α of neural primitives (P,) over blocks of image points u, v (P, A); see
-    rasterize._neural_block (paper eq. 7–9)."""
-    return _NeuralBlock.apply(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
+    rasterize._neural_block (paper eq. 7–9; `window`: the windowed density)."""
+    return _NeuralBlock.apply(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, _gain(window))
+
+
+def _gain(window: bool) -> float:
+    """The kernels' window argument: the window's 1.5, or 0 for the hard-edged ellipsoid."""
+    return WINDOW_GAIN if window else 0.0
 
 
 def gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> torch.Tensor:
@@ -177,14 +185,15 @@ class _View(torch.autograd.Function):
     differentiable w.r.t. colors, depth and the kind's per-primitive tensors."""
 
     @staticmethod
-    def forward(ctx, kind, bounds, order, intrinsics, height, width, t_min, colors, depth, *params):
+    def forward(ctx, kind, bounds, order, intrinsics, height, width, t_min, gain, colors, depth, *params):
         inputs = [t.contiguous() for t in (colors, depth, *params)]
         bounds, order = bounds.contiguous(), order.contiguous()
         lead = (bounds, intrinsics.contiguous()) if kind == "neural" else (bounds,)
+        tail = (gain,) if kind == "neural" else ()
         acc_color, acc_depth, trans, trans64, last, offsets, entries, used, counters, *gathered = getattr(
-            _ops(), f"{kind}_view_forward")(bounds, order, *lead[1:], *inputs, height, width, t_min)
+            _ops(), f"{kind}_view_forward")(bounds, order, *lead[1:], *inputs, height, width, t_min, *tail)
         # gathered: bounds and the per-primitive inputs in depth order, which the backward reads
-        ctx.kind, ctx.intrinsics, ctx.count = kind, lead[1:], bounds.shape[0]
+        ctx.kind, ctx.intrinsics, ctx.count, ctx.tail = kind, lead[1:], bounds.shape[0], tail
         ctx.save_for_backward(*gathered, trans64, last, offsets, entries, used, order)
         ctx.mark_non_differentiable(counters)
         return acc_color, acc_depth, trans, counters
@@ -197,26 +206,28 @@ class _View(torch.autograd.Function):
         grads = [torch.zeros(s, dtype=dtype) if g is None else g.contiguous()
                  for g, s in zip((g_color, g_depth, g_trans), (last.shape + (3,), last.shape, last.shape))]
         out = getattr(_ops(), f"{ctx.kind}_view_backward")(*grads, bounds, *ctx.intrinsics, *inputs, trans64, last,
-                                                            offsets, entries, used, order, ctx.count)
-        return None, None, None, None, None, None, None, *out
+                                                            offsets, entries, used, order, ctx.count, *ctx.tail)
+        return None, None, None, None, None, None, None, None, *out
 
 
 def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, m_cam, o_ell, w_cam, c, w2, b2,
-                inv_smax):
+                inv_smax, window: bool = False):
     """Front-to-back compositing of neural primitives over a whole view in one fused kernel:
     returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
     composited pairs, terminated pixels, candidate pairs)). order (V,) int64: the primitives to
     draw, front to back, each once; bounds (P, 4) int64 inclusive pixel boxes, inside the image
     for those in `order`; the per-primitive tensors (P, ...) as rasterize._neural_view returns
     them (gradients are zero for the primitives not in `order`). The op keeps copies of them in
-    depth order for its backward (memory O(V) per-primitive rows, nothing per pair)."""
-    return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, colors, depth,
+    depth order for its backward (memory O(V) per-primitive rows, nothing per pair).
+    `window`: the windowed density (primitives.density_window)."""
+    return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, _gain(window), colors, depth,
                        m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
 
 
 def gaussian_view(bounds, order, height, width, t_min, colors, depth, mean2d, conic, opacity):
     """As neural_view, for EWA splats (mean2d (P, 2), conic (P, 3), opacity (P,))."""
-    return _View.apply("gaussian", bounds, order, None, height, width, t_min, colors, depth, mean2d, conic, opacity)
+    return _View.apply("gaussian", bounds, order, None, height, width, t_min, None, colors, depth, mean2d, conic,
+                       opacity)
 
 
 def neural_bounds(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):

@@ -46,6 +46,13 @@ def sinc(x: torch.Tensor) -> torch.Tensor:
     return torch.nan_to_num(torch.sin(x) / x, nan=1.0)
 
 
+def _sinc_differentiable(x: torch.Tensor) -> torch.Tensor:
+    """sinc for autograd: sin(x)/x has a 0/0 gradient at x = 0, where its limit's is 0."""
+    zero = x == 0
+    safe = torch.where(zero, torch.ones_like(x), x)
+    return torch.where(zero, torch.ones_like(x), torch.sin(safe) / safe)
+
+
 def _sinc_slope(x: torch.Tensor, cos_x: torch.Tensor, sinc_x: torch.Tensor) -> torch.Tensor:
     """d sinc/dx = (cos x − sinc x)/x, by its series −x/3 + x³/30 where the difference cancels."""
     small = x.abs() < 1e-2
@@ -143,7 +150,7 @@ def windowed_optical_depth(l_in_raw, l_in, l_out, hit, a_sq, a, c, w2, b2, inv_s
     x = 0.5 * a * delta[..., None]
     phase = a * tau_m[..., None] + c
     cos_p, w = torch.cos(phase), window_integral(x)
-    terms = cos_p * d3 * w + e * d2 * (cos_p * sinc(x) + torch.sin(phase) * (0.5 * x * w))
+    terms = cos_p * d3 * w + e * d2 * (cos_p * _sinc_differentiable(x) + torch.sin(phase) * (0.5 * x * w))
     inner = (w2 * terms).sum(-1) + b2 * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta))
     integral = WINDOW_GAIN * kappa * inner
     return torch.where(hit, integral, torch.zeros_like(integral))

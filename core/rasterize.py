@@ -65,7 +65,7 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
     means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
     depth = means_cam[:, 2]
     degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
-    use_fused = fused.available(device, dtype) and not getattr(prims, "window", False)   # TODO fused window
+    use_fused = fused.available(device, dtype)
     parts = sh_parts(prims.sh)   # the trainer's (sh_dc, sh_rest), read in place by the fused op
     if use_fused and parts is not None:
         colors = fused.sh_color_parts(*parts, prims.means, campos, degree)
@@ -101,7 +101,7 @@ def render(prims: NeuralPrimitives | Gaussians, camera: Camera, *, background=(1
         # takes every per-primitive tensor with `ids` (the visible primitives front to back) and
         # gathers and scatters itself, so no autograd op of a gather is recorded here
         if isinstance(prims, NeuralPrimitives):
-            out = fused.neural_view(bounds, ids, intrinsics, height, width, t_min, colors, depth, *view)
+            out = fused.neural_view(bounds, ids, intrinsics, height, width, t_min, colors, depth, *view, window=prims.window)
         else:
             out = fused.gaussian_view(bounds, ids, height, width, t_min, colors, depth, *view)
         acc_color, acc_depth, transmittance, counters = out

@@ -9,6 +9,7 @@ plane, grazing rays, a_k = 0 and a_k ≈ 0 (sinc's series branch), α at the 0.9
 import math
 import os
 import warnings
+from functools import partial
 
 import pytest
 import torch
@@ -178,11 +179,15 @@ def _compare(fast_fn, slow_fn, args, n_pad, dtype, seed=0, kind="neural"):
     return slow[0]
 
 
+@pytest.mark.parametrize("window", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_neural_block_matches_torch_twin(dtype, seed):
+def test_neural_block_matches_torch_twin(dtype, seed, window):
     args, n_pad = neural_case(seed, grazing=(1e-3, 1e-6) if dtype == torch.float64 else (1e-2, 1e-3))
-    alpha = _compare(fused.neural_block, _neural_block, args, n_pad, dtype, seed)
+    if window:   # the window thins every chord's optical depth: scale it back so that α spans every branch
+        args = (*args[:8], args[8] * 4.0, args[9])
+    alpha = _compare(partial(fused.neural_block, window=window), partial(_neural_block, window=window), args, n_pad,
+                     dtype, seed)
     # the block really exercises every branch
     a = alpha.double()
     assert (a == 0).any() and (a == torch.tensor(0.99, dtype=dtype).double()).any() and ((a > 0) & (a < 0.99)).any()
@@ -204,14 +209,14 @@ def test_block_kernels_take_broadcast_points():
     torch.testing.assert_close(fused.neural_block(u, v, *args[2:]), _neural_block(u, v, *args[2:]), rtol=1e-9, atol=1e-11)
 
 
-def _smooth_neural_block(seed=3, per_prim=10):
+def _smooth_neural_block(seed=3, per_prim=10, window=False):
     """A small float64 block away from every kink (clamps, 1/255, silhouettes, near-plane tie),
     for finite differences; keeps the camera-inside and a_k ≈ 0 primitives."""
     (u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax), _ = neural_case(seed, grazing=())
     keep = torch.tensor([0, 2, 6, 7])
     params = [t[keep] for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax)]
     u, v = u[keep], v[keep]
-    alpha = _neural_block(u, v, intrinsics, *params)
+    alpha = _neural_block(u, v, intrinsics, *params, window=window)
     d, l_near = _camera_directions(u, v, intrinsics)
     d_ell = d @ params[0].transpose(1, 2)
     l_in, l_out, hit = ray_ellipsoid(params[1][:, None, :], d_ell)
@@ -228,12 +233,13 @@ def _smooth_neural_block(seed=3, per_prim=10):
     return u, v, intrinsics, params
 
 
-def test_neural_block_gradcheck():
-    u, v, intrinsics, params = _smooth_neural_block()
-    alpha = _neural_block(u, v, intrinsics, *params)
+@pytest.mark.parametrize("window", [False, True])
+def test_neural_block_gradcheck(window):
+    u, v, intrinsics, params = _smooth_neural_block(window=window)
+    alpha = _neural_block(u, v, intrinsics, *params, window=window)
     assert ((alpha > 0.02) & (alpha < 0.95)).all()
     params = [t.clone().requires_grad_(True) for t in params]
-    f = lambda *p: fused.neural_block(u, v, intrinsics, *p)
+    f = lambda *p: fused.neural_block(u, v, intrinsics, *p, window=window)
     assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
@@ -252,11 +258,12 @@ def test_gaussian_block_gradcheck():
 
 def _render_scene(kind, dtype, hidden=8):
     eye = torch.tensor([0.3, -3.0, 0.5])
-    if kind == "neural":
+    if kind in ("neural", "neural-window"):
         prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
         prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
         prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
         prims.b2[2] = 40.0
+        prims.window = kind == "neural-window"
     else:
         prims = random_gaussians(14, sh_degree=1, scale=0.15, extent=0.6, seed=4)
     cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at(tuple(eye.tolist()), (0, 0, 0)))
@@ -277,7 +284,7 @@ def _render_with_grads(prims, cam, monkeypatch, kernels):
     return out, dict(zip(names, grads))
 
 
-@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+@pytest.mark.parametrize("kind", ["neural", "neural-window", "gaussian"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_render_fused_equals_torch(kind, dtype, monkeypatch):
     prims, cam = _render_scene(kind, dtype)
@@ -316,10 +323,10 @@ def test_render_uses_fused_kernels(monkeypatch):
     calls = []
     for name in ("neural_view", "gaussian_view"):
         original = getattr(fused, name)
-        monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name: calls.append(_n) or _f(*a))
-    for kind in ("neural", "gaussian"):
+        monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name, **k: calls.append(_n) or _f(*a, **k))
+    for kind in ("neural", "neural-window", "gaussian"):
         render(*_render_scene(kind, torch.float32))
-    assert "neural_view" in calls and "gaussian_view" in calls
+    assert calls == ["neural_view", "neural_view", "gaussian_view"]
     calls.clear()
     monkeypatch.setenv("RADFIELD_KERNELS", "torch")
     assert not fused.available()

@@ -43,9 +43,9 @@ template <typename T>
 NeuralInputs<T> neural_inputs(const at::Tensor& u, const at::Tensor& v, const at::Tensor& intrinsics,
                               const at::Tensor& m_cam, const at::Tensor& o_ell, const at::Tensor& w_cam,
                               const at::Tensor& c, const at::Tensor& w2, const at::Tensor& b2,
-                              const at::Tensor& inv_smax) {
+                              const at::Tensor& inv_smax, double gain) {
   return {u.size(0), u.size(1), c.size(1), read_intrinsics<T>(intrinsics), u.data_ptr<T>(), v.data_ptr<T>(),
-          neural_tensors<T>(m_cam, o_ell, w_cam, c, w2, b2, inv_smax)};
+          neural_tensors<T>(m_cam, o_ell, w_cam, c, w2, b2, inv_smax, gain)};
 }
 
 template <typename T>
@@ -123,12 +123,12 @@ void check_neural(const at::Tensor& u, const at::Tensor& v, const at::Tensor& in
 at::Tensor neural_block_forward(const at::Tensor& u, const at::Tensor& v, const at::Tensor& intrinsics,
                                 const at::Tensor& m_cam, const at::Tensor& o_ell, const at::Tensor& w_cam,
                                 const at::Tensor& c, const at::Tensor& w2, const at::Tensor& b2,
-                                const at::Tensor& inv_smax) {
+                                const at::Tensor& inv_smax, double gain) {
   check_neural(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax);
   at::Tensor alpha = at::empty_like(u);
   AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "neural_block_forward", [&] {
     neural_forward_kernel<scalar_t>(
-        neural_inputs<scalar_t>(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax),
+        neural_inputs<scalar_t>(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, gain),
         alpha.data_ptr<scalar_t>());
   });
   return alpha;
@@ -139,7 +139,7 @@ std::vector<at::Tensor> neural_block_backward(const at::Tensor& grad_alpha, cons
                                               const at::Tensor& v, const at::Tensor& intrinsics,
                                               const at::Tensor& m_cam, const at::Tensor& o_ell,
                                               const at::Tensor& w_cam, const at::Tensor& c, const at::Tensor& w2,
-                                              const at::Tensor& b2, const at::Tensor& inv_smax) {
+                                              const at::Tensor& b2, const at::Tensor& inv_smax, double gain) {
   check_neural(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax);
   check_params({u, grad_alpha});
   TORCH_CHECK(grad_alpha.sizes() == u.sizes(), "grad_alpha must be (P, A)");
@@ -148,7 +148,7 @@ std::vector<at::Tensor> neural_block_backward(const at::Tensor& grad_alpha, cons
                                  at::empty_like(inv_smax)};
   AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "neural_block_backward", [&] {
     neural_backward_kernel<scalar_t>(
-        neural_inputs<scalar_t>(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax),
+        neural_inputs<scalar_t>(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, gain),
         grad_alpha.data_ptr<scalar_t>(), out);
   });
   return out;

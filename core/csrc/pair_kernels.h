@@ -141,6 +141,27 @@ inline T sinc_slope(T x, T cos_x, T sinc_x) {
   return (cos_x - sinc_x) / x;
 }
 
+// The window's twin of sinc (kernels.py: window_integral): W(x) = ½∫_{−1}^{1} (1 − t²) cos(x t) dt
+// = 2 (sin x − x cos x)/x³, by its series below |x| = 1, where the difference cancels.
+template <typename T>
+inline T window_integral(T x, T sin_x, T cos_x) {
+  const T x2 = x * x;
+  if (std::abs(x) < T(1))
+    return T(2) / T(3) -
+           x2 * (T(1) / T(15) - x2 * (T(1) / T(420) - x2 * (T(1) / T(22680) - x2 * (T(1) / T(1995840) - x2 / T(259459200)))));
+  return T(2) * (sin_x - x * cos_x) / (x2 * x);
+}
+
+// W'(x) = 2 sin x / x² − 3 W / x, by its series −2x/15 + x³/105 − … below |x| = 1.
+template <typename T>
+inline T window_slope(T x, T sin_x, T w) {
+  const T x2 = x * x;
+  if (std::abs(x) < T(1))
+    return -x * (T(2) / T(15) -
+                 x2 * (T(1) / T(105) - x2 * (T(1) / T(3780) - x2 * (T(1) / T(249480) - x2 / T(25945920)))));
+  return T(2) * sin_x / x2 - T(3) * w / x;
+}
+
 // Paper eq. 9 with the 3DGS clamps, given expm1(−max(0, I)):
 // α = min(0.99, 1 − exp(−max(0, I))), and 0 below 1/255.
 template <typename T>
@@ -169,24 +190,26 @@ struct NeuralParams {
   const T* c;      // (N,), c_k = ω0 (W1_k · u0 + b1_k)
   const T* w2;     // (N,)
   T b2, inv_smax;  // b2, 1 / max(s)
+  T gain;          // the density window's 1.5 (kernels.py: windowed_optical_depth), 0: the hard-edged ellipsoid
 };
 
 template <typename T>
 struct NeuralTensors {  // the (P, ...) parameter tensors of all primitives
   int64_t P, N;
   const T *m_cam, *o_ell, *w_cam, *c, *w2, *b2, *inv_smax;
+  T gain;  // 1.5: the windowed density of every primitive (prims.window); 0: hard-edged
 
   NeuralParams<T> primitive(int64_t p) const {
-    return {m_cam + 9 * p, o_ell + 3 * p, w_cam + 3 * N * p, c + N * p, w2 + N * p, b2[p], inv_smax[p]};
+    return {m_cam + 9 * p, o_ell + 3 * p, w_cam + 3 * N * p, c + N * p, w2 + N * p, b2[p], inv_smax[p], gain};
   }
 };
 
 template <typename T>
 NeuralTensors<T> neural_tensors(const at::Tensor& m_cam, const at::Tensor& o_ell, const at::Tensor& w_cam,
                                 const at::Tensor& c, const at::Tensor& w2, const at::Tensor& b2,
-                                const at::Tensor& inv_smax) {
+                                const at::Tensor& inv_smax, double gain) {
   return {c.size(0), c.size(1), m_cam.data_ptr<T>(), o_ell.data_ptr<T>(), w_cam.data_ptr<T>(),
-          c.data_ptr<T>(), w2.data_ptr<T>(), b2.data_ptr<T>(), inv_smax.data_ptr<T>()};
+          c.data_ptr<T>(), w2.data_ptr<T>(), b2.data_ptr<T>(), inv_smax.data_ptr<T>(), T(gain)};
 }
 
 // Where one primitive's gradient sums go (double; NeuralGradSums or a slice of a per-thread buffer).
@@ -224,6 +247,7 @@ struct ChordTile {
   std::vector<T> half;                   // half the chord, √((1 − |p|²)/A)
   std::vector<T> l_in_raw, l_in, l_out;  // entry before and after the near-plane clip, exit
   std::vector<T> delta, tau_m;           // Δ = max(ℓ_out − ℓ_in, 0)/max(s), τ_m = (ℓ_in + ℓ_out)/2/max(s)
+  std::vector<T> clip, kappa;            // window: e = (ℓ_in − ℓ_in,raw)/max(s), the near plane's cut; κ = A max(s)²
   // step 2, the MLP integral, for pixel j and unit k at [j * units + k] (SIMD over both: a batch
   // of a small splat has few pixels, but every pixel has `units` terms)
   int64_t units;
@@ -234,6 +258,8 @@ struct ChordTile {
   std::vector<T> px, sin_px, cos_px;
   T *phase = nullptr, *x = nullptr, *cos_p = nullptr, *sin_x = nullptr, *sin_p = nullptr, *cos_x = nullptr;  // set by optical_depth
   std::vector<T> sinc_x, slope;
+  std::vector<T> win, win_slope;         // window: W(x) = ½∫(1 − t²) cos(x t) dt and W'(x), per (pixel, unit)
+  std::vector<T> inner, g_clip, g_kappa; // window: I / (1.5 κ) per pixel; backward: ∂L/∂e, ∂L/∂κ
   std::vector<double> sum_c, sum_w2, sum_wx, sum_wy, sum_wz;  // backward: per-unit gradient sums
   std::vector<T> integral;               // I
   std::vector<T> neg_depth, expm1_neg;   // −max(I, 0) and expm1 of it (eq. 9)
@@ -242,21 +268,21 @@ struct ChordTile {
 
   ChordTile(int64_t n_units, int64_t capacity, bool backward) : cap(capacity), units(n_units) {
     for (auto* buf : chord_fields()) buf->resize(cap);
-    for (auto* buf : {&integral, &neg_depth, &expm1_neg, &g_I}) buf->resize(cap);
-    for (auto* buf : {&a, &sinc_x}) buf->resize(cap * units);
+    for (auto* buf : {&integral, &neg_depth, &expm1_neg, &g_I, &inner}) buf->resize(cap);
+    for (auto* buf : {&a, &sinc_x, &win}) buf->resize(cap * units);
     for (auto* buf : {&px, &sin_px, &cos_px}) buf->resize(2 * cap * units);
     w_t.resize(3 * units);
     pixel.resize(cap);
     if (backward) {
-      slope.resize(cap * units);
+      for (auto* buf : {&slope, &win_slope}) buf->resize(cap * units);
       for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) buf->resize(units);
-      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A}) buf->resize(cap);
+      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_clip, &g_kappa}) buf->resize(cap);
     }
   }
 
-  std::array<std::vector<T>*, 18> chord_fields() {
+  std::array<std::vector<T>*, 20> chord_fields() {
     return {&d0, &d1, &d2, &l_near, &e0, &e1, &e2, &A, &l_mid, &p0, &p1, &p2, &half,
-            &l_in_raw, &l_in, &l_out, &delta, &tau_m};
+            &l_in_raw, &l_in, &l_out, &delta, &tau_m, &clip, &kappa};
   }
 
   // Step 1 for image points (u, v)[0, m) (rasterize.py: _camera_directions, kernels.py:
@@ -307,6 +333,8 @@ struct ChordTile {
       // a miss contributes nothing (where(hit, I, 0)); give it no chord
       delta[j] = hit ? std::max(l_out[j] - l_in[j], T(0)) * q.inv_smax : T(0);
       tau_m[j] = T(0.5) * (l_in[j] + l_out[j]) * q.inv_smax;
+      clip[j] = (l_in[j] - l_in_raw[j]) * q.inv_smax;
+      kappa[j] = A[j] / (q.inv_smax * q.inv_smax);
     }
     n = 0;
     for (int64_t j = 0; j < m; ++j) {
@@ -323,6 +351,8 @@ struct ChordTile {
     };
     if (backward) {
       for (auto* field : chord_fields()) compact(*field);
+    } else if (q.gain != T(0)) {
+      for (auto* field : {&d0, &d1, &d2, &delta, &tau_m, &clip, &kappa}) compact(*field);
     } else {
       for (auto* field : {&d0, &d1, &d2, &delta, &tau_m}) compact(*field);
     }
@@ -350,6 +380,7 @@ struct ChordTile {
         xj[k] = T(0.5) * aj[k] * dl;
       }
     }
+    if (q.gain != T(0)) return windowed_optical_depth(q, backward, N, L);
     if (backward) {  // also sin of the phase and cos of x, from the same range reductions
       simd_sincos(px.data(), sin_px.data(), cos_px.data(), 2 * L);
     } else {
@@ -377,9 +408,92 @@ struct ChordTile {
     }
   }
 
+  // Step 2 for the windowed density 1.5 (1 − r²) σ (kernels.py: windowed_optical_depth), e the
+  // near plane's cut, κ = A max(s)², x_k = a_k Δ/2, W = window_integral:
+  //   I = 1.5 κ [Σ_k W2_k (cos φ_k Δ³/4 W(x_k) + e Δ²/2 (cos φ_k sinc x_k + sin φ_k x_k W(x_k)/2))
+  //              + b2 (Δ³/6 + e Δ²/2)];
+  // the forward needs sin φ for the cut's term, so both phases' sines and cosines come from one pass.
+  void windowed_optical_depth(const NeuralParams<T>& q, bool backward, int64_t N, int64_t L) {
+    simd_sincos(px.data(), sin_px.data(), cos_px.data(), 2 * L);
+    const T *xs = x, *sx = sin_x, *cx = cos_x;
+    T *s = sinc_x.data(), *w = win.data();
+#pragma omp simd
+    for (int64_t e = 0; e < L; ++e) {
+      s[e] = sinc(xs[e], sx[e]);
+      w[e] = window_integral(xs[e], sx[e], cx[e]);
+    }
+    if (backward) {
+      T* ws = win_slope.data();
+#pragma omp simd
+      for (int64_t e = 0; e < L; ++e) ws[e] = window_slope(xs[e], sx[e], w[e]);
+    }
+    for (int64_t j = 0; j < n; ++j) {
+      const T dl = delta[j], cut = clip[j];
+      const T d3 = T(0.25) * dl * dl * dl, d2 = T(0.5) * dl * dl;
+      const T *cj = cos_p + j * N, *spj = sin_p + j * N, *sj = s + j * N, *wj = w + j * N, *xj = xs + j * N;
+      T sum = T(0);
+      for (int64_t k = 0; k < N; ++k)
+        sum += q.w2[k] * (cj[k] * d3 * wj[k] + cut * d2 * (cj[k] * sj[k] + spj[k] * (T(0.5) * xj[k] * wj[k])));
+      inner[j] = sum + q.b2 * (dl * dl * dl / T(6) + cut * (T(0.5) * dl * dl));
+      integral[j] = q.gain * kappa[j] * inner[j];
+      neg_depth[j] = -std::max(integral[j], T(0));
+    }
+    simd_expm1(neg_depth.data(), expm1_neg.data(), n);
+  }
+
+  // Step 2 backward for the windowed density: from g_I to g_tau, g_delta, g_clip and g_kappa, and
+  // the sums for c, w2, w_cam and b2 (sinc' = −j1 and j1' = f2 with j1 = x W/2, f2 = (W + x W')/2).
+  void windowed_optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
+    const int64_t N = kUnits > 0 ? kUnits : units;
+    for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
+    double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
+    const T* w2 = q.w2;
+    double sum_b2 = 0;
+    for (int64_t j = 0; j < n; ++j) {
+      const T gI = g_I[j], dl = delta[j], cut = clip[j], tm = tau_m[j], dx = d0[j], dy = d1[j], dz = d2[j];
+      const T gk = gI * q.gain * kappa[j];
+      const T d3 = T(0.25) * dl * dl * dl, d2 = T(0.5) * dl * dl, d3_dl = T(0.75) * dl * dl;
+      sum_b2 += double(gk * (dl * dl * dl / T(6) + cut * d2));
+      const int64_t o = j * N;
+      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p + o, *spj = sin_p + o;
+      const T *wj = win.data() + o, *wsj = win_slope.data() + o, *xj = x + o;
+      T gt = T(0), gd = gk * q.b2 * (d2 + cut * dl), ge = gk * q.b2 * d2;
+#pragma omp simd reduction(+ : gt, gd, ge)
+      for (int64_t k = 0; k < N; ++k) {
+        const T C = cj[k], S = spj[k], W = wj[k], j1 = T(0.5) * xj[k] * W, f2 = T(0.5) * (W + xj[k] * wsj[k]);
+        const T cut_term = C * sj[k] + S * j1;                                  // the near plane's bracket
+        const T gw = gk * w2[k];
+        const T g_phase = gw * (-S * d3 * W + cut * d2 * (C * j1 - S * sj[k]));  // ∂/∂φ
+        const T g_x = gw * (C * d3 * wsj[k] + cut * d2 * (S * f2 - C * j1));     // ∂/∂x
+        const T g_a = g_phase * tm + T(0.5) * g_x * dl;
+        gt += g_phase * aj[k];
+        gd += gw * (C * d3_dl * W + cut * dl * cut_term) + T(0.5) * g_x * aj[k];
+        ge += gw * d2 * cut_term;
+        sc[k] += double(g_phase);
+        sw2[k] += double(gk * (C * d3 * W + cut * d2 * cut_term));
+        swx[k] += double(g_a * dx);
+        swy[k] += double(g_a * dy);
+        swz[k] += double(g_a * dz);
+      }
+      g_tau[j] = gt;
+      g_delta[j] = gd;
+      g_clip[j] = ge;
+      g_kappa[j] = gI * q.gain * inner[j];
+    }
+    *acc.b2 += sum_b2;
+    for (int64_t k = 0; k < N; ++k) {
+      acc.c[k] += sc[k];
+      acc.w2[k] += sw2[k];
+      acc.w_cam[3 * k] += swx[k];
+      acc.w_cam[3 * k + 1] += swy[k];
+      acc.w_cam[3 * k + 2] += swz[k];
+    }
+  }
+
   // Step 2 backward (kernels.py: _CosMLPIntegral.backward), + b2 Δ: from g_I to g_tau and
   // g_delta, and the sums for c, w2, w_cam and b2.
   void optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
+    if (q.gain != T(0)) return windowed_optical_depth_backward(q, acc);
     const int64_t N = kUnits > 0 ? kUnits : units;
     for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
     double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
@@ -423,16 +537,22 @@ struct ChordTile {
   // ℓ_in/out = ℓ* ∓ h, h = √((1 − |p|²)/A), p = o' + ℓ* d', ℓ* = −(o'·d')/A, A = d'·d', d' = M d̂.
   void chords_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
     const T* o = q.o_ell;
+    const bool windowed = q.gain != T(0);
+    const T inv2 = q.inv_smax * q.inv_smax;
     double sum_inv_smax = 0;
 #pragma omp simd reduction(+ : sum_inv_smax)
     for (int64_t j = 0; j < n; ++j) {
+      // the window's e = (ℓ_in − ℓ_in_raw)/max(s) and κ = A/(1/max(s))² (zero gradients without it)
+      const T g_cut = windowed ? g_clip[j] : T(0), g_kap = windowed ? g_kappa[j] : T(0);
       // Δ = max(ℓ_out − ℓ_in, 0)/max(s) with Δ > 0 here, τ_m = (ℓ_in + ℓ_out)/2/max(s)
       sum_inv_smax += double(g_delta[j] * (l_out[j] - l_in[j]) + g_tau[j] * T(0.5) * (l_in[j] + l_out[j]));
+      if (windowed) sum_inv_smax += double(g_cut * (l_in[j] - l_in_raw[j]) - T(2) * g_kap * A[j] / (inv2 * q.inv_smax));
       const T g_length = g_delta[j] * q.inv_smax;
-      const T g_l_in = -g_length + T(0.5) * q.inv_smax * g_tau[j];
+      const T g_l_in = -g_length + T(0.5) * q.inv_smax * g_tau[j] + g_cut * q.inv_smax;
       const T g_l_out = g_length + T(0.5) * q.inv_smax * g_tau[j];
       // ℓ_in = maximum(ℓ_in_raw, ℓ_near): the near plane is a constant; half the gradient at a tie
-      const T g_l_in_raw = l_in_raw[j] > l_near[j] ? g_l_in : (l_in_raw[j] == l_near[j] ? T(0.5) * g_l_in : T(0));
+      const T g_l_in_raw = (l_in_raw[j] > l_near[j] ? g_l_in : (l_in_raw[j] == l_near[j] ? T(0.5) * g_l_in : T(0))) -
+                           g_cut * q.inv_smax;
       const T g_half = g_l_out - g_l_in_raw;
       // half = √s, s = (1 − |p|²)/A
       const T g_s = g_half / (T(2) * half[j]);
@@ -442,7 +562,7 @@ struct ChordTile {
       g_p2[j] = T(2) * g_h * p2[j];
       const T g_lmid = g_l_in_raw + g_l_out + g_p0[j] * e0[j] + g_p1[j] * e1[j] + g_p2[j] * e2[j];
       g_mid[j] = g_lmid / A[j];
-      g_A[j] = -g_s * (half[j] * half[j]) / A[j] - g_mid[j] * l_mid[j];
+      g_A[j] = -g_s * (half[j] * half[j]) / A[j] - g_mid[j] * l_mid[j] + g_kap / inv2;
     }
     *acc.inv_smax += sum_inv_smax;
     // one pass over the pixels for the 12 sums (a batch holds one or two pixels at 64×64, where

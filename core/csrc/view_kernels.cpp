@@ -573,7 +573,8 @@ std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::
                                             const at::Tensor& colors, const at::Tensor& depth,
                                             const at::Tensor& m_cam, const at::Tensor& o_ell, const at::Tensor& w_cam,
                                             const at::Tensor& c, const at::Tensor& w2, const at::Tensor& b2,
-                                            const at::Tensor& inv_smax, int64_t height, int64_t width, double t_min) {
+                                            const at::Tensor& inv_smax, int64_t height, int64_t width, double t_min,
+                                            double gain) {
   check_params({colors, depth, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax});
   check_view(bounds, colors, depth, height, width);
   check_order(order, bounds, height, width);
@@ -581,7 +582,7 @@ std::vector<at::Tensor> neural_view_forward(const at::Tensor& bounds, const at::
   std::vector<at::Tensor> result;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "neural_view_forward", [&] {
     using T = scalar_t;
-    const NeuralTensors<T> prm = neural_tensors<T>(v[3], v[4], v[5], v[6], v[7], v[8], v[9]);
+    const NeuralTensors<T> prm = neural_tensors<T>(v[3], v[4], v[5], v[6], v[7], v[8], v[9], gain);
     const Intrinsics<T> k = read_intrinsics<T>(intrinsics);
     result = forward_outputs(colors, v[0], height, width, [&](const Grid& g, const int64_t* off, const int32_t* ent, ForwardOut& out) {
       const View<T> view{g, v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(), v[2].data_ptr<T>()};
@@ -605,7 +606,8 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
                                              const at::Tensor& b2, const at::Tensor& inv_smax,
                                              const at::Tensor& trans64, const at::Tensor& last,
                                              const at::Tensor& offsets, const at::Tensor& entries,
-                                             const at::Tensor& used, const at::Tensor& order, int64_t count) {
+                                             const at::Tensor& used, const at::Tensor& order, int64_t count,
+                                             double gain) {
   const int64_t height = trans64.size(0), width = trans64.size(1);
   check_params({colors, depth, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, g_color});
   check_view(bounds, colors, depth, height, width);
@@ -614,7 +616,7 @@ std::vector<at::Tensor> neural_view_backward(const at::Tensor& g_color, const at
   std::vector<at::Tensor> grads;
   AT_DISPATCH_FLOATING_TYPES(colors.scalar_type(), "neural_view_backward", [&] {
     using T = scalar_t;
-    const NeuralTensors<T> prm = neural_tensors<T>(v[3], v[4], v[5], v[6], v[7], v[8], v[9]);
+    const NeuralTensors<T> prm = neural_tensors<T>(v[3], v[4], v[5], v[6], v[7], v[8], v[9], gain);
     const Intrinsics<T> k = read_intrinsics<T>(intrinsics);
     const View<T> view{Grid(height, width), v[0].size(0), v[0].data_ptr<int64_t>(), v[1].data_ptr<T>(),
                        v[2].data_ptr<T>()};
