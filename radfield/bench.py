@@ -3,7 +3,9 @@
 The scene imitates a trained object: primitives scattered over a unit sphere's surface (where
 training puts them), seen from cameras on an orbit. Both representations get the same centres,
 rotations, SH and cameras, and the same footprint: a neural primitive's ellipsoid has radii s and
-the Gaussian σ = s/3, so the Gaussian's 3σ splat covers the same pixels. The figures that matter
+the Gaussian σ = s/3, so the Gaussian's 3σ splat covers the same pixels. Neural primitives are
+timed with the windowed density of the defaults (render.window) and with the hard-edged ellipsoid
+("neural-hard"). The figures that matter
 are ratios measured in one run; absolute times depend on the machine and its load. On CUDA the
 device is synchronised before every clock reading (radfield.core.timing), so a time is the work's.
 """
@@ -13,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -48,11 +50,23 @@ def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0
     quats = torch.randn(num, 4, generator=g)
     sh = torch.randn(num, num_sh_coeffs(sh_degree), 3, generator=g) * 0.3
     w1, b1, w2, _ = siren_mlp_init(num, generator=g)
+    # windowed, as a trained model with the defaults (render.window); bench_models adds the hard edge
     neural = NeuralPrimitives(means=means, log_scales=log_scales, quats=quats, sh=sh, w1=w1, b1=b1,
-                              w2=w2 * 10, b2=torch.full((num,), 1.0))
+                              w2=w2 * 10, b2=torch.full((num,), 1.0), window=True)
     gauss = Gaussians(means=means, log_scales=log_scales - math.log(3.0), quats=quats, sh=sh,
                       opacities=torch.full((num,), 1.0))
     return neural, gauss
+
+
+BENCH_KINDS = ("neural", "neural-hard", "gaussian")
+
+
+def bench_models(num: int, kinds=BENCH_KINDS) -> dict:
+    """{kind: primitives} of bench_scene for `kinds`: "neural" (the windowed density of the
+    defaults), "neural-hard" (the same primitives with the paper's hard-edged ellipsoid), "gaussian"."""
+    neural, gauss = bench_scene(num)
+    models = {"neural": neural, "neural-hard": replace(neural, window=False), "gaussian": gauss}
+    return {kind: models[kind] for kind in kinds}
 
 
 def bench_cameras(count: int, width: int, height: int) -> list[Camera]:
@@ -105,32 +119,32 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
               device: str = "cpu", profile: bool = False, echo=print, baseline: bool = False) -> dict:
     """Print forward and forward+backward ms/frame of both kinds; with `baseline`, first the
     reference twin's (RADFIELD_KERNELS=torch) in the same run, and the ratios."""
-    neural, gauss = bench_scene(num)
+    models = bench_models(num)
     cams = bench_cameras(views, width, height)
     echo(f"bench-render: {num} primitives, {views} views of {width}x{height}, {repeats} repeats, "
          f"device={device}, threads={torch.get_num_threads()}")
     results, before = {}, {}
-    for name, prims in (("neural", neural), ("gaussian", gauss)):
+    for name, prims in models.items():
         if baseline:
             with reference_twin():
                 t = time_model(prims, cams, repeats, device)
             before[name] = t
-            echo(f"  {name:9s} torch twin  forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame")
+            echo(f"  {name:11s} torch twin  forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame")
         t = time_model(prims, cams, repeats, device)
         results[name] = t
-        echo(f"  {name:9s} forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame   "
+        echo(f"  {name:11s} forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame   "
              f"{t.pairs / 1e6:.2f} M pairs/frame ({t.contributing / 1e6:.2f} M contributing)   "
              f"{t.pairs / t.forward_ms / 1e3:.2f} M pairs/s forward")
         if baseline:
             b = before[name]
-            echo(f"  {name:9s} speed-up over the torch twin: forward {b.forward_ms / t.forward_ms:.2f}x, "
+            echo(f"  {name:11s} speed-up over the torch twin: forward {b.forward_ms / t.forward_ms:.2f}x, "
                  f"forward+backward {b.backward_ms / t.backward_ms:.2f}x")
     n, g = results["neural"], results["gaussian"]
     echo(f"  neural/gaussian time ratio: forward {n.forward_ms / g.forward_ms:.2f}x, "
          f"forward+backward {n.backward_ms / g.backward_ms:.2f}x; per pair {(n.forward_ms / n.pairs) / (g.forward_ms / g.pairs):.2f}x")
     if profile:
         from torch.profiler import ProfilerActivity, profile as torch_profile
-        for name, prims in (("neural", neural), ("gaussian", gauss)):
+        for name, prims in models.items():
             params = prims.to(device).map(lambda t: t.clone().requires_grad_(True))
             with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
                 render(params, cams[0]).color.sum().backward()

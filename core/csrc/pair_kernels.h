@@ -414,7 +414,14 @@ struct ChordTile {
   //              + b2 (Δ³/6 + e Δ²/2)];
   // the forward needs sin φ for the cut's term, so both phases' sines and cosines come from one pass.
   void windowed_optical_depth(const NeuralParams<T>& q, bool backward, int64_t N, int64_t L) {
-    simd_sincos(px.data(), sin_px.data(), cos_px.data(), 2 * L);
+    bool cut_any = false;  // the near plane cuts a chord of this batch: its term needs sin φ
+    for (int64_t j = 0; j < n; ++j) cut_any = cut_any || clip[j] != T(0);
+    if (backward || cut_any) {
+      simd_sincos(px.data(), sin_px.data(), cos_px.data(), 2 * L);
+    } else {
+      simd_cos(phase, cos_p, L);
+      simd_sincos(x, sin_x, cos_x, L);
+    }
     const T *xs = x, *sx = sin_x, *cx = cos_x;
     T *s = sinc_x.data(), *w = win.data();
 #pragma omp simd
@@ -432,8 +439,12 @@ struct ChordTile {
       const T d3 = T(0.25) * dl * dl * dl, d2 = T(0.5) * dl * dl;
       const T *cj = cos_p + j * N, *spj = sin_p + j * N, *sj = s + j * N, *wj = w + j * N, *xj = xs + j * N;
       T sum = T(0);
-      for (int64_t k = 0; k < N; ++k)
-        sum += q.w2[k] * (cj[k] * d3 * wj[k] + cut * d2 * (cj[k] * sj[k] + spj[k] * (T(0.5) * xj[k] * wj[k])));
+      if (cut == T(0)) {  // the usual chord, whole: only the first term (and sin φ may not be there)
+        for (int64_t k = 0; k < N; ++k) sum += q.w2[k] * (cj[k] * d3 * wj[k]);
+      } else {
+        for (int64_t k = 0; k < N; ++k)
+          sum += q.w2[k] * (cj[k] * d3 * wj[k] + cut * d2 * (cj[k] * sj[k] + spj[k] * (T(0.5) * xj[k] * wj[k])));
+      }
       inner[j] = sum + q.b2 * (dl * dl * dl / T(6) + cut * (T(0.5) * dl * dl));
       integral[j] = q.gain * kappa[j] * inner[j];
       neg_depth[j] = -std::max(integral[j], T(0));
@@ -443,51 +454,67 @@ struct ChordTile {
 
   // Step 2 backward for the windowed density: from g_I to g_tau, g_delta, g_clip and g_kappa, and
   // the sums for c, w2, w_cam and b2 (sinc' = −j1 and j1' = f2 with j1 = x W/2, f2 = (W + x W')/2).
+  // A whole chord (e = 0, the usual case) takes the loop without the cut's terms; e's gradient
+  // there would reach ℓ_in and ℓ_in_raw alike and cancel (chords_backward), so g_clip = 0.
   void windowed_optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
     const int64_t N = kUnits > 0 ? kUnits : units;
     for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
-    double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
-    const T* w2 = q.w2;
     double sum_b2 = 0;
     for (int64_t j = 0; j < n; ++j) {
-      const T gI = g_I[j], dl = delta[j], cut = clip[j], tm = tau_m[j], dx = d0[j], dy = d1[j], dz = d2[j];
-      const T gk = gI * q.gain * kappa[j];
-      const T d3 = T(0.25) * dl * dl * dl, d2 = T(0.5) * dl * dl, d3_dl = T(0.75) * dl * dl;
-      sum_b2 += double(gk * (dl * dl * dl / T(6) + cut * d2));
-      const int64_t o = j * N;
-      const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p + o, *spj = sin_p + o;
-      const T *wj = win.data() + o, *wsj = win_slope.data() + o, *xj = x + o;
-      T gt = T(0), gd = gk * q.b2 * (d2 + cut * dl), ge = gk * q.b2 * d2;
-#pragma omp simd reduction(+ : gt, gd, ge)
-      for (int64_t k = 0; k < N; ++k) {
-        const T C = cj[k], S = spj[k], W = wj[k], j1 = T(0.5) * xj[k] * W, f2 = T(0.5) * (W + xj[k] * wsj[k]);
-        const T cut_term = C * sj[k] + S * j1;                                  // the near plane's bracket
-        const T gw = gk * w2[k];
-        const T g_phase = gw * (-S * d3 * W + cut * d2 * (C * j1 - S * sj[k]));  // ∂/∂φ
-        const T g_x = gw * (C * d3 * wsj[k] + cut * d2 * (S * f2 - C * j1));     // ∂/∂x
-        const T g_a = g_phase * tm + T(0.5) * g_x * dl;
-        gt += g_phase * aj[k];
-        gd += gw * (C * d3_dl * W + cut * dl * cut_term) + T(0.5) * g_x * aj[k];
-        ge += gw * d2 * cut_term;
-        sc[k] += double(g_phase);
-        sw2[k] += double(gk * (C * d3 * W + cut * d2 * cut_term));
-        swx[k] += double(g_a * dx);
-        swy[k] += double(g_a * dy);
-        swz[k] += double(g_a * dz);
-      }
-      g_tau[j] = gt;
-      g_delta[j] = gd;
-      g_clip[j] = ge;
-      g_kappa[j] = gI * q.gain * inner[j];
+      const T gk = g_I[j] * q.gain * kappa[j], dl = delta[j], cut = clip[j];
+      sum_b2 += double(gk * (dl * dl * dl / T(6) + cut * (T(0.5) * dl * dl)));
+      if (cut == T(0))
+        windowed_pixel_backward<false>(q, j, N, gk);
+      else
+        windowed_pixel_backward<true>(q, j, N, gk);
+      g_kappa[j] = g_I[j] * q.gain * inner[j];
     }
     *acc.b2 += sum_b2;
     for (int64_t k = 0; k < N; ++k) {
-      acc.c[k] += sc[k];
-      acc.w2[k] += sw2[k];
-      acc.w_cam[3 * k] += swx[k];
-      acc.w_cam[3 * k + 1] += swy[k];
-      acc.w_cam[3 * k + 2] += swz[k];
+      acc.c[k] += sum_c[k];
+      acc.w2[k] += sum_w2[k];
+      acc.w_cam[3 * k] += sum_wx[k];
+      acc.w_cam[3 * k + 1] += sum_wy[k];
+      acc.w_cam[3 * k + 2] += sum_wz[k];
     }
+  }
+
+  // pixel j of windowed_optical_depth_backward, gk = ∂L/∂I · 1.5 κ; kCut: its chord is cut (e > 0)
+  template <bool kCut>
+  void windowed_pixel_backward(const NeuralParams<T>& q, int64_t j, int64_t N, T gk) {
+    double *sc = sum_c.data(), *sw2 = sum_w2.data(), *swx = sum_wx.data(), *swy = sum_wy.data(), *swz = sum_wz.data();
+    const T dl = delta[j], cut = clip[j], tm = tau_m[j], dx = d0[j], dy = d1[j], dz = d2[j];
+    const T d3 = T(0.25) * dl * dl * dl, d2 = T(0.5) * dl * dl, d3_dl = T(0.75) * dl * dl;
+    const int64_t o = j * N;
+    const T *aj = a.data() + o, *sj = sinc_x.data() + o, *cj = cos_p + o, *spj = sin_p + o;
+    const T *wj = win.data() + o, *wsj = win_slope.data() + o, *xj = x + o, *w2 = q.w2;
+    T gt = T(0), gd = gk * q.b2 * (d2 + cut * dl), ge = kCut ? gk * q.b2 * d2 : T(0);
+#pragma omp simd reduction(+ : gt, gd, ge)
+    for (int64_t k = 0; k < N; ++k) {
+      const T C = cj[k], S = spj[k], W = wj[k], gw = gk * w2[k];
+      T f = C * d3 * W, f_phase = -S * d3 * W, f_x = C * d3 * wsj[k], f_dl = C * d3_dl * W;  // F and ∂F/∂(φ, x, Δ)
+      if constexpr (kCut) {
+        const T j1 = T(0.5) * xj[k] * W, f2 = T(0.5) * (W + xj[k] * wsj[k]);
+        const T cut_term = C * sj[k] + S * j1;  // the near plane's bracket
+        f += cut * d2 * cut_term;
+        f_phase += cut * d2 * (C * j1 - S * sj[k]);
+        f_x += cut * d2 * (S * f2 - C * j1);
+        f_dl += cut * dl * cut_term;
+        ge += gw * d2 * cut_term;
+      }
+      const T g_phase = gw * f_phase, g_x = gw * f_x;
+      const T g_a = g_phase * tm + T(0.5) * g_x * dl;
+      gt += g_phase * aj[k];
+      gd += gw * f_dl + T(0.5) * g_x * aj[k];
+      sc[k] += double(g_phase);
+      sw2[k] += double(gk * f);
+      swx[k] += double(g_a * dx);  // a_k = w_cam_k · d̂
+      swy[k] += double(g_a * dy);
+      swz[k] += double(g_a * dz);
+    }
+    g_tau[j] = gt;
+    g_delta[j] = gd;
+    g_clip[j] = ge;
   }
 
   // Step 2 backward (kernels.py: _CosMLPIntegral.backward), + b2 Δ: from g_I to g_tau and
