@@ -174,15 +174,19 @@ def neural_line_integral(prims: NeuralPrimitives, origins: torch.Tensor, dirs: t
                          l_min: torch.Tensor | float = 0.0) -> torch.Tensor:
     """Optical depth I of every primitive along every ray: origins, dirs (R, 3) with unit dirs ->
     (R, P). Integration starts at ray distance l_min (near plane, or 0 for a camera inside).
-    A convenience wrapper over the same per-pair kernel the rasteriser uses."""
+    A convenience wrapper over the same per-pair kernel the rasteriser uses (windowed where
+    prims.window is set)."""
     m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)       # (P,3,3), (P,)
     rel = origins[:, None, :] - prims.means[None]                               # (R, P, 3)
     o_ell = torch.einsum("pij,rpj->rpi", m, rel)
     d_ell = torch.einsum("pij,rj->rpi", m, dirs)
-    l_in, l_out, hit = ray_ellipsoid(o_ell, d_ell)
-    l_min = torch.as_tensor(l_min, dtype=l_in.dtype, device=l_in.device)
-    l_in = torch.maximum(l_in, l_min[:, None] if l_min.ndim == 1 else l_min)
+    l_in_raw, l_out, hit = ray_ellipsoid(o_ell, d_ell)
+    l_min = torch.as_tensor(l_min, dtype=l_in_raw.dtype, device=l_in_raw.device)
+    l_in = torch.maximum(l_in_raw, l_min[:, None] if l_min.ndim == 1 else l_min)
     w = prims.omega0 * prims.w1                                                 # (P, N, 3)
     a = torch.einsum("pnj,rj->rpn", w, dirs)
     c = torch.einsum("pnj,rpj->rpn", w, rel / smax[:, None]) + prims.omega0 * prims.b1
+    if prims.window:
+        return windowed_optical_depth(l_in_raw, l_in, l_out, hit, (d_ell * d_ell).sum(-1), a, c, prims.w2, prims.b2,
+                                      1.0 / smax)
     return neural_optical_depth(l_in, l_out, hit, a, c, prims.w2, prims.b2, 1.0 / smax)

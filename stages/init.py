@@ -107,7 +107,6 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
     require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
     require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
-    require(config, "render.window", lambda x: isinstance(x, bool), "true or false")
     require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)

@@ -1,6 +1,7 @@
 """The model file format: round trip, and a precise one-line error for every way it can be wrong."""
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -11,7 +12,9 @@ from radfield.core.io import load_model, read_metadata, save_model
 from radfield.core.primitives import NeuralPrimitives, random_gaussians, random_neural
 
 
-@pytest.mark.parametrize("make", [lambda: random_neural(7, sh_degree=2, omega0=20.0), lambda: random_gaussians(5, sh_degree=3)])
+@pytest.mark.parametrize("make", [lambda: random_neural(7, sh_degree=2, omega0=20.0),
+                                  lambda: replace(random_neural(7, sh_degree=2, omega0=20.0), window=True),
+                                  lambda: random_gaussians(5, sh_degree=3)])
 def test_round_trip(tmp_path, make):
     prims = make()
     save_model(tmp_path / "m.safetensors", prims, extra={"normalization": {"scale": 2.0}})
@@ -23,7 +26,8 @@ def test_round_trip(tmp_path, make):
     assert meta["format"] == "radfield" and meta["version"] == "1" and meta["kind"] == prims.kind
     assert json.loads(meta["normalization"]) == {"scale": 2.0}
     if isinstance(prims, NeuralPrimitives):
-        assert back.omega0 == 20.0
+        assert back.omega0 == 20.0 and back.window == prims.window
+        assert meta.get("window") == ("1" if prims.window else None)   # a hard-edged model's file is unchanged
     assert not list(tmp_path.glob("*.tmp"))
 
 
@@ -45,6 +49,7 @@ def _neural_tensors(p=4, n=8, k=4):
     (lambda t, m: m.update(omega0="abc"), "metadata 'omega0' is missing or not a number"),
     (lambda t, m: m.update(omega0=None), "metadata 'omega0' is missing"),
     (lambda t, m: m.update(sh_degree="5"), "sh_degree=5 is outside 0..3"),
+    (lambda t, m: m.update(window="yes"), "metadata window='yes' is not 0 or 1"),
     (lambda t, m: m.update(sh_degree="2"), "tensor 'sh' has shape (4, 4, 3), expected (P, 9, 3) with P=4, K=9 for sh_degree=2"),
     (lambda t, m: t.pop("w2"), "missing tensors ['w2'] for kind=neural"),
     (lambda t, m: t.update(extra=torch.zeros(4)), "unexpected tensors ['extra']"),

@@ -246,6 +246,7 @@ def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
                                                           "cage_samples": 15, "bound": True}
     model = load_model(run_dir / "init" / init.INIT_MODEL)
     assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 10.0 and model.hidden == 8
+    assert model.window   # render.window's default
     assert torch.all(model.b2 == torch.tensor(init.NEURAL_B2))
     assert torch.all(model.log_scales == model.log_scales[:, :1]) and torch.all(model.quats[:, 0] == 1)
     assert torch.all(model.sh[:, 1:] == 0) and not torch.all(model.sh[:, 0] == 0)
@@ -256,13 +257,18 @@ def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
     gaussians = load_model(run_dir / "init" / init.INIT_MODEL)
     assert gaussians.kind == "gaussian" and torch.allclose(torch.sigmoid(gaussians.opacities), torch.tensor(0.1))
 
+    status = run_until("init", scene_dir, run_dir, config("train.max_primitives=150", "render.window=false"))
+    assert status["init"] == "ran" and not load_model(run_dir / "init" / init.INIT_MODEL).window
 
-def test_a_new_neural_primitive_has_opacity_one_tenth_through_its_centre():
+
+@pytest.mark.parametrize("window", [False, True])
+def test_a_new_neural_primitive_has_opacity_one_tenth_through_its_centre(window):
+    """With or without the window (whose 1.5 keeps the central chord's optical depth)."""
     means = torch.zeros(400, 3)
     w1, b1, w2, b2 = init.siren_mlp_init(400, generator=torch.Generator().manual_seed(0))
     prims = init.NeuralPrimitives(means=means, log_scales=torch.zeros(400, 3),
                                   quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(400, 1), sh=torch.zeros(400, 1, 3),
-                                  w1=w1, b1=b1, w2=w2, b2=b2.fill_(init.NEURAL_B2))
+                                  w1=w1, b1=b1, w2=w2, b2=b2.fill_(init.NEURAL_B2), window=window)
     dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=torch.Generator().manual_seed(1)), dim=1)
     depth = neural_line_integral(prims, -5 * dirs, dirs).diagonal()  # ray i through primitive i's centre
     alpha = 1 - torch.exp(-depth.clamp_min(0))

@@ -317,10 +317,12 @@ def test_a_short_run_learns_the_scene():
     assert len(log) == 60 and any("split" in i or "cloned" in i for i in log)
 
 
-@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+@pytest.mark.parametrize("kind", ["neural", "neural-window", "gaussian"])
 def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind, kill_and_resume):
     cameras, images = synthetic_views(4, 16)
-    start = (random_neural if kind == "neural" else random_gaussians)(30, sh_degree=1, extent=0.6, scale=0.15, seed=3)
+    start = (random_gaussians if kind == "gaussian" else random_neural)(30, sh_degree=1, extent=0.6, scale=0.15, seed=3)
+    if kind == "neural-window":   # the checkpoint carries the window: a resumed run that lost it would differ
+        start = dataclasses.replace(start, window=True)
     cfg = config(iterations=12, sh_degree=1, sh_increase_every=6, batch_views=2, checkpoint_every=5,
                  densify={"start": 4, "stop": 8, "every": 4})
     cfg["densify"]["gaussian"]["opacity_reset_every"] = 8
@@ -330,6 +332,7 @@ def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind, 
     saved, resumed = kill_and_resume(start, cameras, images, cfg, tmp_path / "checkpoint.safetensors", kill_at=7, **run)
     assert saved.step == 5
     assert resumed.step == whole.step == 12
+    assert resumed.window == whole.window == resumed.primitives().window == (kind == "neural-window")
     assert len(whole.params["means"]) != 30  # population control acted
     for name in whole.params:
         assert torch.equal(whole.params[name], resumed.params[name]), name
@@ -341,10 +344,10 @@ def test_checkpoint_round_trip(tmp_path):
     state = initial_state(random_neural(5, sh_degree=2), 3)
     state = TrainState(9, state.kind, state.omega0, state.params,
                        {"means": {"exp_avg": torch.ones(5, 3), "exp_avg_sq": torch.ones(5, 3), "step": torch.tensor(9.0)}},
-                       {"grad": torch.arange(5.0), "count": torch.ones(5)})
+                       {"grad": torch.arange(5.0), "count": torch.ones(5)}, window=True)
     save_checkpoint(tmp_path / "c.safetensors", state)
     back = load_checkpoint(tmp_path / "c.safetensors")
-    assert (back.step, back.kind, back.omega0) == (9, "neural", state.omega0)
+    assert (back.step, back.kind, back.omega0, back.window) == (9, "neural", state.omega0, True)
     assert back.params["sh_rest"].shape == (5, 15, 3)
     for name in state.params:
         assert torch.equal(back.params[name], state.params[name])
