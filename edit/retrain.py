@@ -74,12 +74,18 @@ def pair_density(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
     """σ_j(x_q) / max s_j (Q, P) of every primitive at every point, 0 outside its ellipsoid: the
     extinction per world unit that primitive j adds at x_q (the renderer's optical depth is its
     integral along the ray); σ windowed where prims.window."""
-    smax = prims.scales.amax(-1)
-    r2 = ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x[:, None])   # (Q, P)
-    u = (x[:, None] - prims.means[None]) / smax[:, None]
+    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
+    rel = x[:, None] - prims.means[None]                                   # (Q, P, 3)
+    inside = torch.einsum("pij,qpj->qpi", m, rel).norm(dim=-1) <= 1.0
+    u = rel / smax[:, None]
     phase = prims.omega0 * (torch.einsum("qpj,pnj->qpn", u, prims.w1) + prims.b1)
-    sigma = ((torch.cos(phase) * prims.w2).sum(-1) + prims.b2) * density_window(prims, r2)
-    return torch.where(r2 <= 1.0, sigma / smax, torch.zeros_like(sigma))
+    sigma = (torch.cos(phase) * prims.w2).sum(-1) + prims.b2
+    # the window's r² comes from the shared ellipsoid_radius_sq, the inside test stays the norm it
+    # always was: points on the sphere to rounding (unit_ball_samples puts 14 a primitive there)
+    # keep their side, so a hard-edged model's densities are bit for bit those before the window
+    if prims.window:
+        sigma = sigma * density_window(prims, ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x[:, None]))
+    return torch.where(inside, sigma / smax, torch.zeros_like(sigma))
 
 
 def field_density(prims: NeuralPrimitives, points: np.ndarray | torch.Tensor, chunk: int = 4096) -> np.ndarray:
@@ -111,11 +117,14 @@ def field_density(prims: NeuralPrimitives, points: np.ndarray | torch.Tensor, ch
 def _pair_density_1to1(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
     """σ_j(x_j) / max s_j for matched rows (primitive j, point j), 0 outside the ellipsoid; σ
     windowed where prims.window."""
-    smax = prims.scales.amax(-1)
-    r2 = ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x)
-    phase = prims.omega0 * (torch.einsum("pj,pnj->pn", (x - prims.means) / smax[:, None], prims.w1) + prims.b1)
-    sigma = ((torch.cos(phase) * prims.w2).sum(-1) + prims.b2) * density_window(prims, r2)
-    return torch.where(r2 <= 1.0, sigma / smax, torch.zeros_like(sigma))
+    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
+    rel = x - prims.means
+    inside = torch.einsum("pij,pj->pi", m, rel).norm(dim=-1) <= 1.0
+    phase = prims.omega0 * (torch.einsum("pj,pnj->pn", rel / smax[:, None], prims.w1) + prims.b1)
+    sigma = (torch.cos(phase) * prims.w2).sum(-1) + prims.b2
+    if prims.window:   # r² shared, the inside test unchanged (pair_density)
+        sigma = sigma * density_window(prims, ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x))
+    return torch.where(inside, sigma / smax, torch.zeros_like(sigma))
 
 
 # --- the teacher: rays through masked primitives ---------------------------------------------
@@ -261,18 +270,37 @@ def render_image(prims, camera: Camera, background=BACKGROUND) -> torch.Tensor:
 
 
 def _inside_pairs(prims, points: torch.Tensor, chunk: int = 4096):
-    """(point, primitive) index pairs with the point inside the primitive's ellipsoid, and the
-    point's squared ellipsoid radius r² (for the density window)."""
+    """(point, primitive) index pairs with the point inside the primitive's ellipsoid."""
     with torch.no_grad():
-        geometry = prims.means.float(), prims.log_scales.float(), prims.quats.float()
-        qs, ps, r2s = [], [], []
+        m, _ = ellipsoid_frame(prims.means.float(), prims.log_scales.float(), prims.quats.float())
+        qs, ps = [], []
         for lo in range(0, len(points), chunk):
-            r2 = ellipsoid_radius_sq(*geometry, points[lo:lo + chunk, None])     # (Q, P)
-            q, p = torch.nonzero(r2 <= 1.0, as_tuple=True)
-            qs.append(q + lo), ps.append(p), r2s.append(r2[q, p])
-    if not qs:
-        return torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), torch.zeros(0)
-    return torch.cat(qs), torch.cat(ps), torch.cat(r2s)
+            rel = points[lo:lo + chunk, None] - prims.means.float()[None]
+            inside = (torch.einsum("pij,qpj->qpi", m, rel).norm(dim=-1) <= 1.0)
+            q, p = torch.nonzero(inside, as_tuple=True)
+            qs.append(q + lo), ps.append(p)
+    return (torch.cat(qs), torch.cat(ps)) if qs else (torch.zeros(0, dtype=torch.int64),) * 2
+
+
+def _pair_window(prims, points: torch.Tensor, q_idx: torch.Tensor, p_idx: torch.Tensor):
+    """The density window (pairs,) of primitive p_idx at point q_idx: 1.5 (1 − r²) for a
+    windowed model, 1 for a hard-edged one (float32, as the stage-1 fit)."""
+    if not prims.window:
+        return 1.0
+    with torch.no_grad():
+        geometry = (t.float()[p_idx] for t in (prims.means, prims.log_scales, prims.quats))
+        return density_window(prims, ellipsoid_radius_sq(*geometry, points[q_idx]))
+
+
+def stage1_density(params: dict, omega0: float, points: torch.Tensor, q_idx: torch.Tensor, p_idx: torch.Tensor,
+                   smax: torch.Tensor, window) -> torch.Tensor:
+    """The student's density Σ_i σ_i(x_q) / max s_i (Q,) at the points, summed over the
+    (point, primitive) pairs q_idx, p_idx with the point inside (geometry fixed: the means are
+    detached), σ windowed by the pairs' `window` factors (_pair_window)."""
+    w1, b1, w2, b2 = (params[n][p_idx] for n in ("w1", "b1", "w2", "b2"))
+    u = (points[q_idx] - params["means"][p_idx].detach()) / smax[p_idx, None]
+    sigma = ((torch.cos(omega0 * ((w1 * u[:, None]).sum(-1) + b1)) * w2).sum(-1) + b2) * window
+    return torch.zeros(len(points), dtype=sigma.dtype).index_add(0, q_idx, sigma / smax[p_idx])
 
 
 def _joined(frozen, trainable: dict, base):
@@ -313,14 +341,11 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     scale = float(density_target.abs().mean()) or 1.0
     pts, tgt = density_points.float(), density_target.float()
     # the geometry is fixed in this stage: find once which point lies in which ellipsoid
-    q_idx, p_idx, r2 = _inside_pairs(student, pts)
-    window = density_window(student, r2)     # fixed too: the student's σ is windowed as the teacher's
+    q_idx, p_idx = _inside_pairs(student, pts)
+    window = _pair_window(student, pts, q_idx, p_idx)   # fixed too: the student's σ windowed as the teacher's
     smax = student.scales.amax(-1).float()
     for _ in range(steps1 if len(q_idx) else 0):
-        w1, b1, w2, b2 = (params[n][p_idx] for n in ("w1", "b1", "w2", "b2"))
-        u = (pts[q_idx] - params["means"][p_idx].detach()) / smax[p_idx, None]
-        sigma = ((torch.cos(student.omega0 * ((w1 * u[:, None]).sum(-1) + b1)) * w2).sum(-1) + b2) * window
-        density = torch.zeros(len(pts)).index_add(0, q_idx, sigma / smax[p_idx])
+        density = stage1_density(params, student.omega0, pts, q_idx, p_idx, smax, window)
         loss = (density - tgt).abs().mean() / scale
         opt.zero_grad()
         loss.backward()
