@@ -335,3 +335,22 @@ def test_model_file_and_bake_keep_the_window(tmp_path):
     assert load_model(tmp_path / "b.safetensors").window
     save_model(tmp_path / "h.safetensors", replace(prims, window=False))
     assert not load_model(tmp_path / "h.safetensors").window
+
+
+@pytest.mark.parametrize("op", [
+    {"remesh": {"select": {"sphere": {"center": [0.4, 0.4, 0.4], "radius": 0.6}}, "edge_length": 0.3, "split": True,
+                "steps": 3, "views": 2, "size": 12}},
+    {"boolean": {"op": "difference", "shape": {"halfspace": {"point": [0.05, 0, 0], "normal": [1, 0.3, 0]}},
+                 "steps": 3, "views": 2, "size": 12}},
+])
+def test_retraining_edits_of_a_windowed_field_stay_windowed(op):
+    """remesh with split and a boolean cut retrain against the windowed teacher and return a
+    windowed field (concat_prims would refuse a hard-edged fitted part)."""
+    from radfield.edit.field import box_cage
+    prims = windowed(random_neural(24, sh_degree=0, extent=0.7, scale=0.18, b2=2.0, seed=5))
+    v, t = box_cage([-1, -1, -1], [1, 1, 1], 1)
+    fld = Field(prims, v, t)
+    fld.rebind()
+    out = apply_operations(fld, parse_spec({"operations": [op]}), EditContext())
+    note = out.notes[-1]
+    assert note.get("retrained", 0) > 0 and out.prims.window
