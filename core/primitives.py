@@ -25,7 +25,8 @@ def ellipsoid_radius_sq(means: torch.Tensor, log_scales: torch.Tensor, quats: to
                         x: torch.Tensor) -> torch.Tensor:
     """r² = |S⁻¹Rᵀ(x − μ)|² (...,) of points x (..., 3) in the unit-sphere frame of the ellipsoids
     B(μ, R, s) (r² ≤ 1: inside); means, log_scales (..., 3) and quats (..., 4) broadcast against x.
-    The one place the window's radius (and the point sites' inside test) is computed."""
+    The one place the window's radius is computed (the point sites' hard inside tests keep their
+    own |S⁻¹Rᵀ(x − μ)| ≤ 1, so a hard-edged model's results stay bit for bit)."""
     rot = quat_to_rotmat(quats)
     local = ((x - means)[..., None, :] @ rot)[..., 0, :] * torch.exp(-log_scales)   # Rᵀ(x − μ) / s
     return (local * local).sum(-1)

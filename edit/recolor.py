@@ -9,9 +9,8 @@ A primitive's colour along d is c(d) = Σ_k Y_k(d) coeffs_k + 0.5 (3DGS conventi
 act on primitive centres (select.py's all/box/sphere/plane with falloff), plus
 `density_above: v` (primitives whose peak density — neural: max of σ over samples of the
 ellipsoid, in units of the primitive's size, σ windowed for a windowed model; Gaussians: sigmoid
-opacity — exceeds v). With a
-falloff of weight w the new coefficients are (1 − w)·old + w·new. Unselected primitives
-(w = 0) are left bit-identical.
+opacity — exceeds v). With a falloff of weight w the new coefficients are (1 − w)·old + w·new.
+Unselected primitives (w = 0) are left bit-identical.
 - multiply m: c' = m ⊙ c exactly for every direction: DC' = m ⊙ DC + (m − 1)·0.5 / Y_0, higher
   bands' coefficients multiplied by m.
 - hue θ: c' = H c with H the rotation by θ about the grey axis (1,1,1)/√3 (H keeps grey fixed, so
