@@ -8,6 +8,7 @@ Formats (all in the dataset's world frame):
   1-3, then G, then B; zeros past the model's degree). Gaussians are written exactly; neural
   primitives through core.moments (moment matching, `components` Gaussians each; `radfield
   export` then refines them for a run with core.moments.refine_gaussians and passes Gaussians in).
+  A windowed model (prims.window) needs no warning: the moments are those of its windowed density.
 - ``splat``     antimatter15's .splat: 32 bytes a splat, position 3×f32, linear σ 3×f32, RGBA 4×u8
   (0.5 + C0·f_dc and sigmoid(opacity), ×255 truncated), rotation 4×u8 ((q/|q|)·128 + 128, w x y z),
   in decreasing order of exp(Σ log σ)·sigmoid(opacity), as that viewer's convert.py writes it.

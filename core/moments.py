@@ -1,7 +1,8 @@
 """Neural primitives as 3D Gaussians, by moment matching (for export to 3DGS tools).
 
 A neural primitive's world-space extinction inside its ellipsoid is ρ(x) = max(0, σ(x)) / max(s)
-(σ of paper eq. 5-6; the renderer's optical depth is I = ∫ρ dℓ). Each primitive becomes K
+(σ of paper eq. 5-6, times the window 1.5 (1 − r²) of a windowed model, prims.window; the
+renderer's optical depth is I = ∫ρ dℓ). Each primitive becomes K
 Gaussians: its samples are split into K clusters (weighted k-means), and each cluster j is replaced
 by the Gaussian density with the same mass, mean and covariance,
 
@@ -29,7 +30,7 @@ import math
 
 import torch
 
-from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
+from radfield.core.primitives import Gaussians, NeuralPrimitives, density_window, quat_to_rotmat, rotmat_to_quat
 
 GRID = 14          # samples per ellipsoid axis (about 1400 inside the ball)
 LLOYD_STEPS = 8    # k-means iterations when splitting a primitive into components
@@ -67,6 +68,9 @@ def neural_density_samples(prims: NeuralPrimitives, grid: int = GRID):
     u = offset / smax[:, None, None]                                            # eq. 5: u = (x − μ)/max(s)
     phase = prims.omega0 * (torch.einsum("pnj,pkj->pnk", u, prims.w1) + prims.b1[:, None, :])
     sigma = (prims.w2[:, None, :] * torch.cos(phase)).sum(-1) + prims.b2[:, None]   # eq. 6
+    # the grid point y is x in the unit-sphere frame (x = μ + R S y): its r² is |y|², the
+    # quantity _ball_grid kept the points inside by
+    sigma = sigma * density_window(prims, (y * y).sum(-1))
     cell_volume = h**3 * s.prod(-1)
     signed = sigma / smax[:, None] * cell_volume[:, None]
     return prims.means[:, None, :] + offset, torch.clamp_min(signed, 0.0), signed.sum(-1).clamp_min(0.0), (h * s) ** 2 / 12

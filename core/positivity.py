@@ -11,7 +11,8 @@ can go negative). Eq. 6 bounds the density from below,
     σ(x) ≥ b2 − ‖W2‖₁                                                                          (1)
 
 so the convex cone C = {(W2, b2): ‖W2‖₁ ≤ b2} holds only primitives whose density is non-negative
-at every point. After every optimiser step (`train.nonnegative_density`) each primitive's (W2, b2)
+at every point, windowed or not (the window 1.5 (1 − r²) of prims.window is ≥ 0 inside the
+ellipsoid). After every optimiser step (`train.nonnegative_density`) each primitive's (W2, b2)
 is replaced by its Euclidean projection onto C (projected Adam, as the frequency cap). The
 projection's optimality conditions give
 

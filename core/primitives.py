@@ -21,6 +21,17 @@ DEFAULT_HIDDEN = 8
 WINDOW_GAIN = 1.5   # the window 1.5 (1 − r²): the central chord's optical depth is the hard-edged one's
 
 
+def ellipsoid_radius_sq(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
+                        x: torch.Tensor) -> torch.Tensor:
+    """r² = |S⁻¹Rᵀ(x − μ)|² (...,) of points x (..., 3) in the unit-sphere frame of the ellipsoids
+    B(μ, R, s) (r² ≤ 1: inside); means, log_scales (..., 3) and quats (..., 4) broadcast against x.
+    The one place the window's radius is computed (the point sites' hard inside tests keep their
+    own |S⁻¹Rᵀ(x − μ)| ≤ 1, so a hard-edged model's results stay bit for bit)."""
+    rot = quat_to_rotmat(quats)
+    local = ((x - means)[..., None, :] @ rot)[..., 0, :] * torch.exp(-log_scales)   # Rᵀ(x − μ) / s
+    return (local * local).sum(-1)
+
+
 def density_window(prims: "NeuralPrimitives", r2: torch.Tensor) -> torch.Tensor | float:
     """The factor on σ at points of squared ellipsoid radius r2 = |S⁻¹Rᵀ(x − μ)|² (inside: r2 ≤ 1):
     1.5 (1 − r2) for a windowed model, 1 for a hard-edged one. Every evaluation of a neural

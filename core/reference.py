@@ -2,7 +2,8 @@
 
 - `quadrature_optical_depth`: integrates σ along one ray numerically. The ellipsoid is found by a
   dense inside/outside scan refined by bisection (not the analytic quadratic), then composite
-  Simpson quadrature of the MLP density of eq. 5-6 — no closed form anywhere.
+  Simpson quadrature of the MLP density of eq. 5-6 — times the window 1.5 (1 − r²) at every node
+  for a windowed model (prims.window) — no closed form anywhere.
 - `reference_render`: a per-pixel loop that composites every primitive front to back (eq. 4) with
   the same rules as the fast path (sort by centre depth, α ≤ 0.99, skip α < 1/255, stop when the
   transmittance would fall below 1e-4).
@@ -17,24 +18,26 @@ import torch
 
 from radfield.core.cameras import Camera
 from radfield.core.kernels import ALPHA_MAX, ALPHA_MIN
-from radfield.core.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat
+from radfield.core.primitives import Gaussians, NeuralPrimitives, density_window, ellipsoid_radius_sq, quat_to_rotmat
 from radfield.core.rasterize import EWA_BLUR, T_MIN
 from radfield.core.sh import sh_to_color
 
 
 def neural_density(prims: NeuralPrimitives, i: int, x: torch.Tensor) -> torch.Tensor:
-    """σ_i(x) for points x (S, 3): the cos-MLP inside the bounding ellipsoid, 0 outside (eq. 5-6)."""
+    """σ_i(x) for points x (S, 3): the cos-MLP inside the bounding ellipsoid, 0 outside (eq. 5-6),
+    times the window 1.5 (1 − r²) for a windowed model."""
     mu, s = prims.means[i], torch.exp(prims.log_scales[i])
-    rot = quat_to_rotmat(prims.quats[i][None])[0]
-    inside = (((x - mu) @ rot) / s).norm(dim=-1) <= 1.0
+    r2 = ellipsoid_radius_sq(mu, prims.log_scales[i], prims.quats[i], x)
     u = (x - mu) / s.max()
     sigma = torch.cos(prims.omega0 * (u @ prims.w1[i].T + prims.b1[i])) @ prims.w2[i] + prims.b2[i]
-    return torch.where(inside, sigma, torch.zeros_like(sigma))
+    sigma = sigma * density_window(prims, r2)
+    return torch.where(r2 <= 1.0, sigma, torch.zeros_like(sigma))
 
 
 def quadrature_optical_depth(prims: NeuralPrimitives, i: int, origin: torch.Tensor, direction: torch.Tensor,
                              l_min: float = 0.0, scan: int = 4001, intervals: int = 4000) -> float:
-    """I = (1/max(s)) ∫ σ_i(o + ℓ d̂) dℓ over ℓ ≥ l_min, numerically (float64)."""
+    """I = (1/max(s)) ∫ σ_i(o + ℓ d̂) dℓ over ℓ ≥ l_min, numerically (float64); σ windowed where
+    prims.window (its integrand then falls to 0 at the chord's ends)."""
     prims = prims.to(dtype=torch.float64)
     o, d = origin.double(), direction.double() / direction.double().norm()
     mu, s = prims.means[i], torch.exp(prims.log_scales[i])
@@ -71,8 +74,10 @@ def quadrature_optical_depth(prims: NeuralPrimitives, i: int, origin: torch.Tens
         l_in = l_min  # the ray starts inside the primitive
     # composite Simpson on [l_in, l_out]; σ evaluated without the inside test (we are inside)
     t = torch.linspace(l_in, l_out, 2 * intervals + 1, dtype=torch.float64)
-    u = (o + t[:, None] * d - mu) / s.max()
+    x = o + t[:, None] * d
+    u = (x - mu) / s.max()
     sigma = torch.cos(prims.omega0 * (u @ prims.w1[i].T + prims.b1[i])) @ prims.w2[i] + prims.b2[i]
+    sigma = sigma * density_window(prims, ellipsoid_radius_sq(mu, prims.log_scales[i], prims.quats[i], x))
     weights = torch.ones_like(t)
     weights[1:-1:2], weights[2:-1:2] = 4.0, 2.0
     h = (l_out - l_in) / (2 * intervals)

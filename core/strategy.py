@@ -311,7 +311,8 @@ def _fused_statistics(state: dict, params: Params, grads: Params) -> bool:
 
 def negligible_density(w2: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:
     """Neural primitives (P,) that can never reach the renderer's α threshold: σ ≤ ‖W2‖₁ + b2
-    everywhere (paper eq. 6) and a chord is at most 2 in units of max(s), so I ≤ 2 max(0, ‖W2‖₁ + b2)."""
+    everywhere (paper eq. 6) and a chord is at most 2 in units of max(s), so I ≤ 2 max(0, ‖W2‖₁ + b2).
+    Windowed too: along any chord (1/max s) ∫ 1.5 (1 − r²) dℓ ≤ 2, its value on the longest axis."""
     return 2.0 * (w2.abs().sum(-1) + b2) < -math.log1p(-ALPHA_MIN)
 
 

@@ -30,6 +30,9 @@ level set, a mesh's triangles, a field's ε-level set of D marched on a grid —
 coloured like the densest nearby original primitives; the teacher includes the cap, so the retrained cut
 face is closed, not hollow. No analytic clipping of the integration interval (that would need
 renderer kernel changes): retraining is the method.
+
+A windowed model (prims.window): σ is the windowed density 1.5 (1 − r²) σ everywhere above (D,
+the teacher, retrain.py), the caps are windowed too, and a field operand must have the same window.
 """
 
 from __future__ import annotations
@@ -353,7 +356,8 @@ def cap_primitives(original: NeuralPrimitives, pts: np.ndarray, normal: np.ndarr
     y = torch.linalg.cross(z, x)
     rot = torch.stack([x, y, z], -1)
     means = torch.as_tensor(pts + thick * normal)
-    # optical depth across the disc at normal incidence: b2 · 2·thick / radius = 3 (α ≈ 0.95)
+    # optical depth across the disc at normal incidence: b2 · 2·thick / radius = 3 (α ≈ 0.95; the
+    # same through the centre of a windowed disc, whose gain 1.5 keeps the central chord's depth)
     b2 = 3.0 * radius / (2 * thick)
     # colour: per-channel median over the 4 densest of the 16 nearest original primitives (robust
     # to the faint dark floaters a reconstruction keeps inside objects)
@@ -376,7 +380,7 @@ def cap_primitives(original: NeuralPrimitives, pts: np.ndarray, normal: np.ndarr
         w1=(torch.rand(n, hidden, 3, generator=g, dtype=torch.float64) * 2 - 1) / 3,
         b1=(torch.rand(n, hidden, generator=g, dtype=torch.float64) * 2 - 1) / 3,
         w2=torch.zeros(n, hidden, dtype=torch.float64), b2=torch.full((n,), b2, dtype=torch.float64),
-        omega0=original.omega0, supersample=original.supersample,
+        omega0=original.omega0, supersample=original.supersample, window=original.window,
     ).to(dtype=dtype)
 
 

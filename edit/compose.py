@@ -14,7 +14,8 @@ that has none, the other's primitives get the identity metric (their optical dep
 Mismatched fields: SH degree → the lower one is padded with zero bands; hidden width → the
 narrower MLP is padded with zero units (W2 = 0 adds nothing); ω0 → the other's W1 and b1 are
 rescaled by ω0_other / ω0 (only ω0·W1 and ω0·b1 enter the density); rays per pixel
-(`supersample`) → the larger; Gaussians with neural primitives → refused.
+(`supersample`) → the larger; Gaussians with neural primitives → refused; a windowed neural field
+with a hard-edged one (their `window` differs: one model has one density) → refused.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from radfield.core.errors import RadfieldError
 from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
 from radfield.core.sh import num_sh_coeffs, rotate_sh
 from radfield.edit.field import Field
-from radfield.edit.operand import load_operand, same_kind
+from radfield.edit.operand import load_operand, same_kind, same_window
 from radfield.edit.select import number, vector
 from radfield.edit.spec import check_keys, operation
 from radfield.edit.warp import euler_rotation
@@ -76,6 +77,7 @@ def concat_prims(a, b, where: str = "compose"):
     folded into its W1 and b1 so the result keeps a's ω0."""
     if a.kind != b.kind:
         raise RadfieldError(f"{where}: cannot combine a {a.kind} model with a {b.kind} model")
+    same_window(a, b, where)
     degree = max(a.sh_degree, b.sh_degree)
     a, b = pad_sh(a, degree), pad_sh(b, degree)
     if isinstance(a, NeuralPrimitives):

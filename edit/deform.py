@@ -7,6 +7,8 @@ tet (barycentric λ of its centre) is mapped exactly by its A (DESIGN.md, "Editi
 - the bounding ellipsoid R S becomes A R S = U Σ Vᵀ (SVD): R' = U (det +1), s' = Σ;
 - the density composes with the inverse map: u = (x − μ)/max(s) and x = A⁻¹(x' − b), so
   W1 u = (max(s')/max(s)) W1 A⁻¹ u' and W1' = (max(s')/max(s)) W1 A⁻¹, with b1, W2, b2 unchanged;
+- a windowed model's window 1.5 (1 − r²) maps exactly too (the flag is kept): S'⁻¹R'ᵀ(x' − μ') =
+  Vᵀ S⁻¹Rᵀ(x − μ), so every point keeps its r²;
 - SH coefficients turn with the rotation part of A (polar decomposition A = R_p P), band by band;
 - Gaussians: Σ' = A Σ Aᵀ through the same SVD, the same SH rotation, opacity unchanged.
 
@@ -221,7 +223,9 @@ def split_primitives(prims, index: np.ndarray):
     u = (x − μ)/max(s) gives W1_c = (max(s_c)/max(s)) W1, b1_c = b1 + W1 (μ_c − μ)/max(s), and the
     per-size optical depth (1/max(s)) ∫σ keeps its value with W2, b2 scaled by max(s_c)/max(s).
     The halves' union is not exactly the parent ellipsoid (thinner at the cut, wider at the
-    quarter points): a split is a small approximation, made only where the cage bends."""
+    quarter points): a split is a small approximation, made only where the cage bends. Halves of a
+    windowed model stay windowed, each window falling to 0 on its own ellipsoid (not the parent's):
+    part of the same approximation."""
     index = torch.as_tensor(index, dtype=torch.long)
     keep = torch.ones(len(prims), dtype=torch.bool)
     keep[index] = False
@@ -247,7 +251,7 @@ def split_primitives(prims, index: np.ndarray):
         children.append(replace(par, **fields))
     parts = [prims.select(keep)] + children
     return type(prims)(**{name: torch.cat([getattr(q, name) for q in parts]) for name in prims.tensors()},
-                       **({"omega0": prims.omega0} if isinstance(prims, NeuralPrimitives) else {}),
+                       **({"omega0": prims.omega0, "window": prims.window} if isinstance(prims, NeuralPrimitives) else {}),
                        supersample=prims.supersample)
 
 

@@ -18,6 +18,19 @@ def load_operand(value, key: str, ctx) -> Field:
 
 
 def same_kind(fld: Field, other: Field, where: str) -> None:
-    """Refuse (one line) to combine neural primitives with Gaussians."""
+    """Refuse (one line) to combine neural primitives with Gaussians, or neural fields whose
+    density windows differ (`same_window`)."""
     if fld.prims.kind != other.prims.kind:
         raise RadfieldError(f"{where}: cannot combine a {fld.prims.kind} model with a {other.prims.kind} model")
+    same_window(fld.prims, other.prims, where)
+
+
+def same_window(a, b, where: str) -> None:
+    """Refuse (one line) to combine primitives whose `window` differs: a model is drawn with one
+    density, windowed 1.5 (1 − r²) σ or hard-edged σ, and converting one into the other would need
+    a retraining (Gaussians have no window)."""
+    wa, wb = getattr(a, "window", False), getattr(b, "window", False)
+    if wa != wb:
+        name = lambda w: "windowed" if w else "hard-edged"
+        raise RadfieldError(f"{where}: cannot combine a {name(wa)} neural model (window={int(wa)}) with a "
+                            f"{name(wb)} one (window={int(wb)}); a model has one density window")

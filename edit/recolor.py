@@ -8,9 +8,9 @@
 A primitive's colour along d is c(d) = Σ_k Y_k(d) coeffs_k + 0.5 (3DGS convention). Selections
 act on primitive centres (select.py's all/box/sphere/plane with falloff), plus
 `density_above: v` (primitives whose peak density — neural: max of σ over samples of the
-ellipsoid, in units of the primitive's size; Gaussians: sigmoid opacity — exceeds v). With a
-falloff of weight w the new coefficients are (1 − w)·old + w·new. Unselected primitives
-(w = 0) are left bit-identical.
+ellipsoid, in units of the primitive's size, σ windowed for a windowed model; Gaussians: sigmoid
+opacity — exceeds v). With a falloff of weight w the new coefficients are (1 − w)·old + w·new.
+Unselected primitives (w = 0) are left bit-identical.
 - multiply m: c' = m ⊙ c exactly for every direction: DC' = m ⊙ DC + (m − 1)·0.5 / Y_0, higher
   bands' coefficients multiplied by m.
 - hue θ: c' = H c with H the rotation by θ about the grey axis (1,1,1)/√3 (H keeps grey fixed, so
@@ -44,7 +44,8 @@ from radfield.edit.spec import check_keys, operation
 
 def peak_density(prims, samples: int = 128, seed: int = 0) -> torch.Tensor:
     """Per primitive: neural, the max of σ at `samples` points of its ellipsoid (its centre, the
-    ends of its axes and random points), in the primitive's own units; Gaussians, sigmoid opacity."""
+    ends of its axes and random points), in the primitive's own units (windowed where prims.window:
+    retrain.neural_sigma); Gaussians, sigmoid opacity."""
     if not isinstance(prims, NeuralPrimitives):
         return torch.sigmoid(prims.opacities.detach())
     from radfield.edit.retrain import unit_ball_samples, neural_sigma  # retraining machinery shares the sampler

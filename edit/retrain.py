@@ -9,6 +9,10 @@ teacher image composites these exactly as the renderer does (centre-depth order,
 Two stages (eq. 12): stage 1 fits the MLP of the trainable primitives to the teacher's density
 (Σ m_i σ_i / max s_i) at points sampled in their ellipsoids (L1); stage 2 fits all their parameters
 to teacher renders from views around them (L1 on colour) with the fast renderer. Neural primitives only.
+
+For a windowed model (prims.window) every σ here, at points and along rays, is the windowed
+density 1.5 (1 − r²) σ (core/primitives.py: density_window; the closed form windowed_optical_depth),
+the student's in stage 1 included, and the fitted primitives keep the flag.
 """
 
 from __future__ import annotations
@@ -21,9 +25,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from radfield.core.cameras import Camera, look_at, pixel_rays
-from radfield.core.kernels import ALPHA_MAX, ALPHA_MIN, ellipsoid_frame, neural_optical_depth, ray_ellipsoid
+from radfield.core.kernels import ALPHA_MAX, ALPHA_MIN, ellipsoid_frame, neural_optical_depth, ray_ellipsoid, windowed_optical_depth
 from radfield.core.losses import psnr
-from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat
+from radfield.core.primitives import NeuralPrimitives, density_window, ellipsoid_radius_sq, quat_to_rotmat
 from radfield.core.rasterize import T_MIN, render
 from radfield.core.sh import sh_to_color
 
@@ -54,23 +58,33 @@ def ellipsoid_points(prims, u: torch.Tensor) -> torch.Tensor:
 
 
 def neural_sigma(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
-    """Raw MLP density σ_i (P, S) of each primitive i at its own points x (P, S, 3) (no ellipsoid test)."""
+    """Density σ_i (P, S) of each primitive i at its own points x (P, S, 3), windowed where
+    prims.window (no ellipsoid test: the callers' points lie in the ellipsoids)."""
     smax = prims.scales.amax(-1)
     u = (x - prims.means[:, None]) / smax[:, None, None]
     phase = prims.omega0 * (torch.einsum("psj,pnj->psn", u, prims.w1) + prims.b1[:, None])
-    return (torch.cos(phase) * prims.w2[:, None]).sum(-1) + prims.b2[:, None]
+    sigma = (torch.cos(phase) * prims.w2[:, None]).sum(-1) + prims.b2[:, None]
+    if not prims.window:
+        return sigma
+    r2 = ellipsoid_radius_sq(prims.means[:, None], prims.log_scales[:, None], prims.quats[:, None], x)
+    return sigma * density_window(prims, r2)
 
 
 def pair_density(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
     """σ_j(x_q) / max s_j (Q, P) of every primitive at every point, 0 outside its ellipsoid: the
     extinction per world unit that primitive j adds at x_q (the renderer's optical depth is its
-    integral along the ray)."""
+    integral along the ray); σ windowed where prims.window."""
     m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
     rel = x[:, None] - prims.means[None]                                   # (Q, P, 3)
     inside = torch.einsum("pij,qpj->qpi", m, rel).norm(dim=-1) <= 1.0
     u = rel / smax[:, None]
     phase = prims.omega0 * (torch.einsum("qpj,pnj->qpn", u, prims.w1) + prims.b1)
     sigma = (torch.cos(phase) * prims.w2).sum(-1) + prims.b2
+    # the window's r² comes from the shared ellipsoid_radius_sq, the inside test stays the norm it
+    # always was: points on the sphere to rounding (unit_ball_samples puts 14 a primitive there)
+    # keep their side, so a hard-edged model's densities are bit for bit those before the window
+    if prims.window:
+        sigma = sigma * density_window(prims, ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x[:, None]))
     return torch.where(inside, sigma / smax, torch.zeros_like(sigma))
 
 
@@ -101,12 +115,15 @@ def field_density(prims: NeuralPrimitives, points: np.ndarray | torch.Tensor, ch
 
 
 def _pair_density_1to1(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
-    """σ_j(x_j) / max s_j for matched rows (primitive j, point j), 0 outside the ellipsoid."""
+    """σ_j(x_j) / max s_j for matched rows (primitive j, point j), 0 outside the ellipsoid; σ
+    windowed where prims.window."""
     m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
     rel = x - prims.means
     inside = torch.einsum("pij,pj->pi", m, rel).norm(dim=-1) <= 1.0
     phase = prims.omega0 * (torch.einsum("pj,pnj->pn", rel / smax[:, None], prims.w1) + prims.b1)
     sigma = (torch.cos(phase) * prims.w2).sum(-1) + prims.b2
+    if prims.window:   # r² shared, the inside test unchanged (pair_density)
+        sigma = sigma * density_window(prims, ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x))
     return torch.where(inside, sigma / smax, torch.zeros_like(sigma))
 
 
@@ -134,10 +151,11 @@ def ray_alphas(prims: NeuralPrimitives, origins: torch.Tensor, dirs: torch.Tenso
         j = ids[c]
         o, d = origins[r], dirs[r]
         m = m_all[j]
-        l_in, l_out, hit = ray_ellipsoid(torch.einsum("pij,pj->pi", m, o - p.means[j]), torch.einsum("pij,pj->pi", m, d))
-        l_in = torch.maximum(l_in, l_min[r])
+        d_ell = torch.einsum("pij,pj->pi", m, d)
+        l_in_raw, l_out, hit = ray_ellipsoid(torch.einsum("pij,pj->pi", m, o - p.means[j]), d_ell)
+        l_in = torch.maximum(l_in_raw, l_min[r])
         hit = hit & (l_out > l_in)
-        r, j, o, d, l_in, l_out = r[hit], j[hit], o[hit], d[hit], l_in[hit], l_out[hit]
+        r, j, o, d, d_ell, l_in_raw, l_in, l_out = (t[hit] for t in (r, j, o, d, d_ell, l_in_raw, l_in, l_out))
         depth = torch.zeros(len(r), dtype=torch.float64)
         plain = mask_id[j] < 0
         if plain.any():
@@ -145,8 +163,13 @@ def ray_alphas(prims: NeuralPrimitives, origins: torch.Tensor, dirs: torch.Tenso
             w = p.omega0 * p.w1[q]
             a = torch.einsum("pnj,pj->pn", w, d[plain])
             cc = torch.einsum("pnj,pj->pn", w, (o[plain] - p.means[q]) / smax_all[q, None]) + p.omega0 * p.b1[q]
-            depth[plain] = neural_optical_depth(l_in[plain], l_out[plain], torch.ones_like(l_in[plain], dtype=torch.bool),
-                                                a, cc, p.w2[q], p.b2[q], 1.0 / smax_all[q])
+            mlp = a, cc, p.w2[q], p.b2[q], 1.0 / smax_all[q]
+            hits = torch.ones_like(l_in[plain], dtype=torch.bool)
+            if p.window:   # the renderer's windowed closed form (near-plane clip from the unclipped entry)
+                depth[plain] = windowed_optical_depth(l_in_raw[plain], l_in[plain], l_out[plain], hits,
+                                                      (d_ell[plain] ** 2).sum(-1), *mlp)
+            else:
+                depth[plain] = neural_optical_depth(l_in[plain], l_out[plain], hits, *mlp)
         for k in torch.unique(mask_id[j][~plain]).tolist():
             sel = torch.nonzero(mask_id[j] == k).squeeze(1)
             depth[sel] = _masked_depth(p, j[sel], o[sel], d[sel], l_in[sel], l_out[sel], masks[k], samples)
@@ -160,7 +183,8 @@ def ray_alphas(prims: NeuralPrimitives, origins: torch.Tensor, dirs: torch.Tenso
 
 
 def _masked_depth(p, j, o, d, l_in, l_out, mask, samples: int) -> torch.Tensor:
-    """(1/max s) ∫ m(x) σ_j(x) dℓ over [l_in, l_out] by the midpoint rule (eq. 15 per primitive)."""
+    """(1/max s) ∫ m(x) σ_j(x) dℓ over [l_in, l_out] by the midpoint rule (eq. 15 per primitive;
+    σ windowed where p.window: neural_sigma)."""
     out = torch.zeros(len(j), dtype=torch.float64)
     step = 1 << 14
     for lo in range(0, len(j), step):
@@ -258,6 +282,27 @@ def _inside_pairs(prims, points: torch.Tensor, chunk: int = 4096):
     return (torch.cat(qs), torch.cat(ps)) if qs else (torch.zeros(0, dtype=torch.int64),) * 2
 
 
+def _pair_window(prims, points: torch.Tensor, q_idx: torch.Tensor, p_idx: torch.Tensor):
+    """The density window (pairs,) of primitive p_idx at point q_idx: 1.5 (1 − r²) for a
+    windowed model, 1 for a hard-edged one (float32, as the stage-1 fit)."""
+    if not prims.window:
+        return 1.0
+    with torch.no_grad():
+        geometry = (t.float()[p_idx] for t in (prims.means, prims.log_scales, prims.quats))
+        return density_window(prims, ellipsoid_radius_sq(*geometry, points[q_idx]))
+
+
+def stage1_density(params: dict, omega0: float, points: torch.Tensor, q_idx: torch.Tensor, p_idx: torch.Tensor,
+                   smax: torch.Tensor, window) -> torch.Tensor:
+    """The student's density Σ_i σ_i(x_q) / max s_i (Q,) at the points, summed over the
+    (point, primitive) pairs q_idx, p_idx with the point inside (geometry fixed: the means are
+    detached), σ windowed by the pairs' `window` factors (_pair_window)."""
+    w1, b1, w2, b2 = (params[n][p_idx] for n in ("w1", "b1", "w2", "b2"))
+    u = (points[q_idx] - params["means"][p_idx].detach()) / smax[p_idx, None]
+    sigma = ((torch.cos(omega0 * ((w1 * u[:, None]).sum(-1) + b1)) * w2).sum(-1) + b2) * window
+    return torch.zeros(len(points), dtype=sigma.dtype).index_add(0, q_idx, sigma / smax[p_idx])
+
+
 def _joined(frozen, trainable: dict, base):
     """The field frozen ∪ trainable as one primitive set (the renderer sorts by depth itself)."""
     out = base.map(lambda x: x)
@@ -286,6 +331,8 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     frozen = frozen.to(dtype=torch.float32)
     if set(extras) != set(frozen.tensors()) - set(LR_STAGE2):
         raise ValueError("retrain: the frozen and the trained primitives hold different per-primitive data")
+    if frozen.window != student.window:   # one field is drawn with one density (_joined keeps frozen's)
+        raise ValueError("retrain: the frozen and the trained primitives have different density windows")
     figures = {"psnr_before": _mean_psnr(_joined(frozen, {**params, **extras}, frozen), cameras, targets)}
 
     # stage 1: MLP to the teacher's density at sampled points (eq. 12, first line)
@@ -295,12 +342,10 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     pts, tgt = density_points.float(), density_target.float()
     # the geometry is fixed in this stage: find once which point lies in which ellipsoid
     q_idx, p_idx = _inside_pairs(student, pts)
+    window = _pair_window(student, pts, q_idx, p_idx)   # fixed too: the student's σ windowed as the teacher's
     smax = student.scales.amax(-1).float()
     for _ in range(steps1 if len(q_idx) else 0):
-        w1, b1, w2, b2 = (params[n][p_idx] for n in ("w1", "b1", "w2", "b2"))
-        u = (pts[q_idx] - params["means"][p_idx].detach()) / smax[p_idx, None]
-        sigma = (torch.cos(student.omega0 * ((w1 * u[:, None]).sum(-1) + b1)) * w2).sum(-1) + b2
-        density = torch.zeros(len(pts)).index_add(0, q_idx, sigma / smax[p_idx])
+        density = stage1_density(params, student.omega0, pts, q_idx, p_idx, smax, window)
         loss = (density - tgt).abs().mean() / scale
         opt.zero_grad()
         loss.backward()
@@ -308,7 +353,7 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
     figures["stage1_seconds"] = time.perf_counter() - t0
     figures["psnr_after_stage1"] = _mean_psnr(_joined(frozen, {**params, **extras}, frozen), cameras, targets)
     after1 = NeuralPrimitives(**{n: t.detach().clone().to(student.means.dtype) for n, t in {**params, **extras}.items()},
-                              omega0=student.omega0, supersample=student.supersample)
+                              omega0=student.omega0, supersample=student.supersample, window=student.window)
 
     # stage 2: every parameter of the student to teacher renders (eq. 12, second line)
     t0 = time.perf_counter()
@@ -329,7 +374,7 @@ def retrain(frozen: NeuralPrimitives, student: NeuralPrimitives, density_points:
             log(f"retrain stage 2: step {step}/{steps2}, L1 {float(loss.detach()):.4f}")
     figures["stage2_seconds"] = time.perf_counter() - t0
     fitted = NeuralPrimitives(**{n: t.detach().to(student.means.dtype) for n, t in {**params, **extras}.items()},
-                              omega0=student.omega0, supersample=student.supersample)
+                              omega0=student.omega0, supersample=student.supersample, window=student.window)
     figures["psnr_after_stage2"] = _mean_psnr(_joined(frozen, fitted.tensors(), frozen), cameras, targets)
     # never leave the field further from the teacher (on these views) than an earlier stage did
     candidates = {"before": (figures["psnr_before"], student), "stage1": (figures["psnr_after_stage1"], after1),
