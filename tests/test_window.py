@@ -17,7 +17,7 @@ from radfield.core.bake import prune, to_fp16_and_back
 from radfield.core.cameras import Camera, look_at
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model, save_model
-from radfield.core.kernels import alpha_from_optical_depth, ellipsoid_frame, ray_ellipsoid, windowed_optical_depth
+from radfield.core.kernels import alpha_from_optical_depth, neural_line_integral
 from radfield.core.moments import gaussians_from_neural, neural_density_samples
 from radfield.core.primitives import ellipsoid_radius_sq, quat_to_rotmat, random_neural
 from radfield.core.rasterize import render
@@ -83,21 +83,6 @@ def test_ellipsoid_radius_sq_is_the_unit_sphere_radius():
 
 # --- the closed form and the renderer against the references ---------------------------------
 
-def windowed_line_integral(prims, origins, dirs, l_min):
-    """core.kernels.neural_line_integral with the window: the renderer's pair inputs (M, o', d',
-    ℓ_in unclipped and clipped at l_min, a, c), into windowed_optical_depth. (R, P)."""
-    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
-    rel = origins[:, None, :] - prims.means[None]
-    o_ell = torch.einsum("pij,rpj->rpi", m, rel)
-    d_ell = torch.einsum("pij,rj->rpi", m, dirs)
-    l_in_raw, l_out, hit = ray_ellipsoid(o_ell, d_ell)
-    l_in = torch.maximum(l_in_raw, l_min[:, None])
-    w = prims.omega0 * prims.w1
-    a = torch.einsum("pnj,rj->rpn", w, dirs)
-    c = torch.einsum("pnj,rpj->rpn", w, rel / smax[:, None]) + prims.omega0 * prims.b1
-    return windowed_optical_depth(l_in_raw, l_in, l_out, hit, (d_ell * d_ell).sum(-1), a, c, prims.w2, prims.b2, 1.0 / smax)
-
-
 def rays_through(prims, i, g):
     """(origin, direction, l_min) through primitive i: through the centre, at half the
     silhouette's reach, grazing (0.999 of it), from a camera inside it, and with a near plane
@@ -127,7 +112,7 @@ def test_windowed_closed_form_matches_quadrature(seed):
     for i in range(len(prims)):
         one = prims.select([i])
         for origin, direction, l_min in rays_through(prims, i, g):
-            fast = windowed_line_integral(one, origin[None], direction[None], torch.tensor([l_min], dtype=torch.float64))
+            fast = neural_line_integral(one, origin[None], direction[None], torch.tensor([l_min], dtype=torch.float64))
             slow = quadrature_optical_depth(prims, i, origin, direction, l_min=l_min)
             assert fast.item() == pytest.approx(slow, rel=1e-6, abs=1e-10), (i, origin, direction, l_min)
     # the window matters: a central chord of the hard-edged primitive integrates another density
@@ -231,7 +216,7 @@ def test_teacher_windowed_closed_form_and_masked_quadrature():
     faint = replace(prims, b2=prims.b2 * 0.2, w2=prims.w2 * 0.2)
     origins = torch.tensor([[0.0, -2.0, 0.0], [0.05, -2.0, 0.1]], dtype=torch.float64)
     dirs = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
-    depth = windowed_line_integral(faint, origins, dirs, torch.zeros(2, dtype=torch.float64))
+    depth = neural_line_integral(faint, origins, dirs, torch.zeros(2, dtype=torch.float64))
     alpha = alpha_from_optical_depth(depth)
     expected = 1 - (1 - alpha).prod(1)
     assert ((alpha > 0).sum(1) >= 2).all() and (expected < 0.9).all()

@@ -469,6 +469,11 @@ struct ChordTile {
         windowed_pixel_backward<true>(q, j, N, gk);
       g_kappa[j] = g_I[j] * q.gain * inner[j];
     }
+    add_unit_sums(acc, N, sum_b2);
+  }
+
+  // the batch's per-unit sums (and b2's) into the primitive's gradient sums
+  void add_unit_sums(const NeuralGradRefs& acc, int64_t N, double sum_b2) const {
     *acc.b2 += sum_b2;
     for (int64_t k = 0; k < N; ++k) {
       acc.c[k] += sum_c[k];
@@ -550,14 +555,7 @@ struct ChordTile {
       g_tau[j] = gt;
       g_delta[j] = gd;
     }
-    *acc.b2 += sum_b2;
-    for (int64_t k = 0; k < N; ++k) {
-      acc.c[k] += sc[k];
-      acc.w2[k] += sw2[k];
-      acc.w_cam[3 * k] += swx[k];
-      acc.w_cam[3 * k + 1] += swy[k];
-      acc.w_cam[3 * k + 2] += swz[k];
-    }
+    add_unit_sums(acc, N, sum_b2);
   }
 
   // Step 1 backward: from g_delta and g_tau to the sums for inv_smax, m_cam and o_ell, through
