@@ -270,3 +270,8 @@ def test_bench_train_prints_every_part(cli):
     assert len(ratios) == 2 and all(len(r) == 8 and float(r[6]) > 0 for r in ratios)   # x, 5 parts, sum, train()
     code, _, err = cli("bench-train", "--sizes", "0")
     assert code == 1 and "radfield: error: --sizes" in err
+    code, out, err = cli("bench-train", "--primitives", "300", "--sizes", "32", "--steps", "1", "--quiet",
+                         "--kinds", "neural-hard")
+    assert code == 0 and [line.split()[0] for line in out.splitlines()[2:]] == ["neural-hard"], err
+    code, _, err = cli("bench-train", "--kinds", "neural,splat")
+    assert code == 1 and "radfield: error: --kinds must be among neural, neural-hard, gaussian" in err
