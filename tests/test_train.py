@@ -190,7 +190,7 @@ def neural_case():
     prims.means[:] = torch.tensor([[0.0, 0.0, float(i) * 0.1 - 0.25] for i in range(6)])
     prims.log_scales[:] = math.log(0.005)                  # small: clone (grow_scale 0.01 × extent 1)
     prims.log_scales[1] = torch.log(torch.tensor([0.1, 0.02, 0.03]))  # large: split
-    prims.log_scales[5] = math.log(0.8)                    # larger than prune_scale 0.5: prune
+    prims.log_scales[5] = math.log(1.5)                    # larger than prune_scale 1.0 (× extent 1): prune
     prims.b2[4], prims.w2[4] = -1.0, 0.01                  # density ≤ 0 everywhere: prune
     state = {"grad": torch.tensor([1e-3, 2e-3, 0.0, 0.0, 0.0, 0.0]), "count": torch.tensor([2.0, 2, 2, 0, 2, 2])}
     return prims, state
