@@ -139,8 +139,8 @@ def windowed_optical_depth(l_in_raw, l_in, l_out, hit, a_sq, a, c, w2, b2, inv_s
     φ_k = a_k τ_m + c_k, x_k = a_k Δ/2 and ½∫(1 − t²) cos(x t) dt = W (window_integral):
         I = 1.5 κ [Σ_k W2_k (cos φ_k Δ³/4 W(x_k) + e Δ²/2 (cos φ_k sinc x_k + sin φ_k x_k W(x_k)/2))
                    + b2 (Δ³/6 + e Δ²/2)],
-    the e terms vanishing where no near plane cuts the chord. Shapes as neural_optical_depth, plus l_in_raw (the unclipped entry)
-    and a_sq = A = |S⁻¹Rᵀ d̂|² (...,)."""
+    the e terms vanishing where no near plane cuts the chord. Shapes as neural_optical_depth,
+    plus l_in_raw (the unclipped entry) and a_sq = A = |S⁻¹Rᵀ d̂|² (...,)."""
     delta = torch.clamp_min(l_out - l_in, 0.0) * inv_smax
     tau_m = 0.5 * (l_in + l_out) * inv_smax
     clip = (l_in - l_in_raw) * inv_smax

@@ -23,7 +23,7 @@ The JSON of `run_info` is a stable interface (scripts and the README rely on it)
         }                                         #   sfm: registered_images, total_images, points,
       }                                           #   reprojection_error; data: images; envelope: faces;
     }                                             #   tetra: tets, vertices; train: primitives, params,
-                                                  #   iterations, train_psnr, supersample
+                                                  #   iterations, train_psnr, supersample, window
 
 Keys are only ever added, never renamed or removed. A stage shown as done may be stale if the
 config changed since (`radfield reconstruct` on the run brings it up to date).

@@ -104,6 +104,7 @@ def run(ctx: Context) -> dict[str, Any]:
         "continued_from": first_step,
         "last_test_psnr": held[-1] if held else None,
         "supersample": supersample,   # rays per pixel side the model is drawn with (radfield info shows it)
+        "window": getattr(model, "window", False),   # neural: the density window (render.window)
     }
 
 

@@ -413,6 +413,7 @@ def test_stage_writes_the_model_and_resumes_after_a_kill(tmp_path, monkeypatch):
     whole = stage_context(tmp_path, "whole")
     figures = train_stage.run(whole)
     assert figures["iterations"] == 10 and figures["primitives"] > 0 and figures["seconds_per_iteration"] > 0
+    assert figures["window"] is False   # the stage's initial model (random_neural) is hard-edged
     assert figures["params"] == load_model(whole.outputs[MODEL_FILE]).num_params()
     assert math.isfinite(figures["train_psnr"])
 
