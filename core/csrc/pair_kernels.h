@@ -412,7 +412,7 @@ struct ChordTile {
   // near plane's cut, κ = A max(s)², x_k = a_k Δ/2, W = window_integral:
   //   I = 1.5 κ [Σ_k W2_k (cos φ_k Δ³/4 W(x_k) + e Δ²/2 (cos φ_k sinc x_k + sin φ_k x_k W(x_k)/2))
   //              + b2 (Δ³/6 + e Δ²/2)];
-  // the forward needs sin φ for the cut's term, so both phases' sines and cosines come from one pass.
+  // sin φ enters only the cut's term (and the backward): a batch with no cut chord skips it.
   void windowed_optical_depth(const NeuralParams<T>& q, bool backward, int64_t N, int64_t L) {
     bool cut_any = false;  // the near plane cuts a chord of this batch: its term needs sin φ
     for (int64_t j = 0; j < n; ++j) cut_any = cut_any || clip[j] != T(0);
