@@ -76,6 +76,7 @@ def assert_same_training(run: Path, reference: Path, iterations: int = ITERATION
     ref_state = load_checkpoint(reference / "train" / "final_state.safetensors")
     ref_log = _log(reference / "train" / "log.jsonl")
     assert state.step == ref_state.step == iterations
+    assert state.window and ref_state.window   # the default density window, carried to every rank
     counts = [r["primitives"] for r in ref_log]
     assert counts[0] == 200 and counts[-1] != 200  # densification changed the population ...
     assert [r["primitives"] for r in log] == counts  # ... identically on both
