@@ -172,8 +172,9 @@ def bench_render(
     profile: Annotated[bool, typer.Option(help="Also print the torch profiler's top costs.")] = False,
     baseline: Annotated[bool, typer.Option("--baseline", help="Also time the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
-    """Benchmark (not a test): forward and forward+backward time of neural primitives and 3D
-    Gaussians on the same cameras and budgets; prints ms/frame, pairs/s and the time ratio."""
+    """Benchmark (not a test): forward and forward+backward time of neural primitives (windowed,
+    as the defaults train them, and hard-edged: neural-hard) and 3D Gaussians on the same cameras
+    and budgets; prints ms/frame, pairs/s and the time ratio."""
     from radfield.bench import run_bench
 
     if min(primitives, width, height, views, repeats) < 1:

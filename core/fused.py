@@ -321,36 +321,26 @@ def neural_prep(prims, campos, cam_rot) -> tuple:
 
 # --- the loss (core/csrc/loss_kernels.cpp) -------------------------------------------------------
 
-class _SSIMMap(torch.autograd.Function):
+class _SSIMMoments(torch.autograd.Function):
+    """An op of loss_kernels.cpp that blurs the SSIM moments of x, y (the SSIM map, or the whole
+    photometric loss): `{op}_forward(x, y, taps, a, c1, c2)` returns (output, moments), and
+    `{op}_backward(grad, x, y, taps, moments, a, c1, c2)` the gradient w.r.t. x; `a` is the op's
+    own constant (the padding, or λ of D-SSIM)."""
+
     @staticmethod
-    def forward(ctx, x, y, taps, pad, c1, c2):
+    def forward(ctx, op, x, y, taps, a, c1, c2):
         x, y, taps = x.contiguous(), y.contiguous(), taps.contiguous()
-        ssim, moments = _ops().ssim_map_forward(x, y, taps, pad, c1, c2)
-        ctx.constants = (pad, c1, c2)
+        out, moments = getattr(_ops(), f"{op}_forward")(x, y, taps, a, c1, c2)
+        ctx.op, ctx.constants = op, (a, c1, c2)
         ctx.save_for_backward(x, y, taps, moments)
-        return ssim
+        return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         x, y, taps, moments = ctx.saved_tensors
-        return _ops().ssim_map_backward(grad.contiguous(), x, y, taps, moments, *ctx.constants), None, None, None, None, None
-
-
-class _Photometric(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, y, taps, lambda_dssim, c1, c2):
-        x, y, taps = x.contiguous(), y.contiguous(), taps.contiguous()
-        loss, moments = _ops().photometric_forward(x, y, taps, lambda_dssim, c1, c2)
-        ctx.constants = (lambda_dssim, c1, c2)
-        ctx.save_for_backward(x, y, taps, moments)
-        return loss
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        x, y, taps, moments = ctx.saved_tensors
-        return _ops().photometric_backward(grad.contiguous(), x, y, taps, moments, *ctx.constants), None, None, None, None, None
+        g_x = getattr(_ops(), f"{ctx.op}_backward")(grad.contiguous(), x, y, taps, moments, *ctx.constants)
+        return None, g_x, None, None, None, None, None
 
 
 class _Anisotropy(torch.autograd.Function):
@@ -369,7 +359,7 @@ class _Anisotropy(torch.autograd.Function):
 def ssim_map(x, y, taps, pad: int, c1: float, c2: float) -> torch.Tensor:
     """The SSIM map (B, Ho, Wo, C) of images x, y (B, H, W, C) with the separable window `taps`
     (11,) and zero padding `pad` (0 or 5), differentiable w.r.t. x only; see losses.ssim."""
-    return _SSIMMap.apply(x, y, taps, int(pad), float(c1), float(c2))
+    return _SSIMMoments.apply("ssim_map", x, y, taps, int(pad), float(c1), float(c2))
 
 
 def photometric(x, y, taps, lambda_dssim: float, c1: float, c2: float) -> torch.Tensor:
@@ -377,7 +367,7 @@ def photometric(x, y, taps, lambda_dssim: float, c1: float, c2: float) -> torch.
     map (zero padding 5) and the separable window `taps` (11,), in one op (the loss of a training
     step, losses.photometric without a mask); differentiable w.r.t. x only. Its gradient is the
     composition's bit for bit; the value differs from torch's float reductions in the last bits."""
-    return _Photometric.apply(x, y, taps, float(lambda_dssim), float(c1), float(c2))
+    return _SSIMMoments.apply("photometric", x, y, taps, float(lambda_dssim), float(c1), float(c2))
 
 
 def anisotropy(log_scales) -> torch.Tensor:

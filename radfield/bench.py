@@ -117,7 +117,7 @@ def time_model(prims, cams, repeats: int, device: str) -> Timing:
 
 def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int = 4, repeats: int = 2,
               device: str = "cpu", profile: bool = False, echo=print, baseline: bool = False) -> dict:
-    """Print forward and forward+backward ms/frame of both kinds; with `baseline`, first the
+    """Print forward and forward+backward ms/frame of each kind of BENCH_KINDS; with `baseline`, first the
     reference twin's (RADFIELD_KERNELS=torch) in the same run, and the ratios."""
     models = bench_models(num)
     cams = bench_cameras(views, width, height)
