@@ -141,7 +141,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     optimizer = make_optimizer(params, cfg["lr"], extent)
     _load_moments(optimizer, state.moments, device)
     strategy = make_strategy(state.kind, cfg["densify"], extent=extent, near=near, max_primitives=max_primitives,
-                             initial_count=len(prims))
+                             initial_count=len(prims), pixels=images.shape[1] * images.shape[2])
     accumulators = {k: v.to(device) for k, v in state.strategy.items()} or strategy.init_state(len(prims), device)
     bg = torch.as_tensor(background, dtype=torch.float32, device=device)
     iterations, batch = cfg["iterations"], cfg["batch_views"]

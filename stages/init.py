@@ -7,9 +7,15 @@ the camera distance), or `auto` (mesh, else points, else random). There are exac
 `train.max_primitives` of them when a budget is set (the paper's budget protocol starts from the
 budget), else `init.num_points`: a point set is subsampled, or repeated with jitter.
 
-Every primitive starts isotropic with radius s = the mean distance to its 3 nearest neighbours (as
-3DGS), identity rotation, SH DC from the point colour when known (else 0.5 grey) and higher bands
-zero. Neural primitives: SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and
+Every primitive starts isotropic with identity rotation. A Gaussian's scale is d, the mean
+distance to its 3 nearest neighbours (as 3DGS). A neural primitive gets the same spread: its
+radius is k·d with k² the inverse per-axis variance of its density profile in the unit ball, so
+its density has the Gaussian's variance d² along every axis: k = √7 for the window 1.5 (1 − r²)
+(E[x²] = 1/7), √5 for a hard edge (uniform: E[x²] = 1/5). With radius d its density would spread
+1/√7 as far as the Gaussian's (5 % of the volume), leaving gaps between neighbours that
+densification must fill (README "Seeds, the initial radius, the SH schedule and the view size":
+k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
+SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives: SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and
 b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray through the centre crosses τ-length 2 (the diameter in units of
 max(s)) and the cos terms average out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity
 of a 3DGS Gaussian. Gaussians: opacity logit of 0.1, as 3DGS.
@@ -73,7 +79,8 @@ def run(ctx: Context) -> dict[str, Any]:
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
                             cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed,
-                            w1_bound=cfg["init"]["w1_scale"], window=cfg["render"]["window"])
+                            w1_bound=cfg["init"]["w1_scale"], window=cfg["render"]["window"],
+                            neural_radius=cfg["init"]["neural_radius"])
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
@@ -89,7 +96,7 @@ STAGE = Stage(
                  "render.hidden", "render.window", "seed"),
     inputs=(SCENE, POINTS, ENVELOPE, CAGE_NPZ),
     outputs=(INIT_MODEL, BINDING),
-    version=3,
+    version=4,
 )
 
 
@@ -102,6 +109,7 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
         if value is not None and value < 1:
             raise RadfieldError(f"config key {key} must be at least 1, got {value}")
     require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
+    require(config, "init.neural_radius", lambda x: 0 <= x <= 10, "in [0, 10] (0 = automatic)")
     require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
     require(config, "train.frequency_bound", lambda x: x >= 0, "at least 0 (0 = no bound)")
     require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
@@ -211,13 +219,22 @@ def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
     return distances[:, 1:].mean(axis=1)
 
 
+def neural_radius_factor(window: bool) -> float:
+    """k such that a neural primitive of radius k·d has a Gaussian of scale d's per-axis variance
+    d²: 1/k² = E[x²] of the density profile in the unit ball (window 1.5 (1 − r²): 1/7; hard: 1/5)."""
+    return math.sqrt(7.0) if window else math.sqrt(5.0)
+
+
 def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, hidden: int,
                     omega0: float, extent: float, seed: int, w1_bound: float = 1 / 3,
-                    window: bool = False) -> NeuralPrimitives | Gaussians:
-    """Isotropic primitives at `means` (see the module docstring for every initial value)."""
+                    window: bool = False, neural_radius: float = 0.0) -> NeuralPrimitives | Gaussians:
+    """Isotropic primitives at `means` (see the module docstring for every initial value;
+    `neural_radius`: k of a neural primitive's radius k·d, 0 = neural_radius_factor(window))."""
     num = len(means)
     radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
     radius = np.maximum(radius, 1e-6 * extent)
+    if kind == "neural":
+        radius = radius * (neural_radius or neural_radius_factor(window))
     colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
     sh = torch.zeros(num, num_sh_coeffs(sh_degree), 3)
     sh[:, 0] = rgb_to_sh_dc(colour)

@@ -208,9 +208,11 @@ def test_cut_by_a_mesh_gets_a_closed_cap(tmp_path):
     out = run(Field(shell), {"boolean": {"op": "difference", "mesh": "cutter.stl", "steps": 30, "views": 6, "size": 32}},
               base_dir=tmp_path)
     assert_closed_cut_face(out, shell)
-    # the seeded discs lie on the mesh's cut face y = 0, facing the kept side (+y)
+    # the seeded discs lie on the mesh's cut face y = 0 (within half a disc radius: the cap's training
+    # moves them a little), facing the kept side (+y)
     seeded = out.prims.select(torch.arange(len(out.prims) - out.notes[-1]["seeded"], len(out.prims)))
-    assert seeded.means[:, 1].abs().max() < 0.05
+    disc_radius = torch.exp(seeded.log_scales).amax(-1)
+    assert (seeded.means[:, 1].abs() < 0.5 * disc_radius).all()
     normal = quat_to_rotmat(seeded.quats)[:, :, 2]          # the disc's thin axis
     assert (normal[:, 1].abs() > 0.9).all()
     nocap = run(Field(shell), {"boolean": {"op": "difference", "mesh": "cutter.stl", "steps": 30, "views": 6, "size": 32,

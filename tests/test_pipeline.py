@@ -373,7 +373,7 @@ def test_defaults_hold_every_section() -> None:
     assert config["stages"] == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
     assert {"seed", "device", "data", "sfm", "envelope", "tetra", "init", "train", "render", "bake", "eval"} <= set(config)
     assert config["train"]["max_primitives"] is None
-    assert config["train"]["densify"]["grad_threshold"] == 1e-3  # exponent notation reads as a float
+    assert config["train"]["densify"]["grad_threshold"] == 5e-4  # exponent notation reads as a float
     # every call is a fresh copy: a run that edits its config cannot change the defaults of the next
     config["train"]["lr"]["means"] = -1.0
     config["stages"].append("eval")

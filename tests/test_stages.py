@@ -8,6 +8,7 @@ import json
 import math
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ import torch
 from radfield.core.errors import RadfieldError
 from radfield.core.io import load_model, save_model
 from radfield.core.kernels import neural_line_integral
+from radfield.core.primitives import density_window
 from radfield.core.trainer import load_checkpoint, save_checkpoint
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.readers import load_dataset
@@ -256,9 +258,32 @@ def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
     assert status["data"] == "cached" and status["init"] == "ran"
     gaussians = load_model(run_dir / "init" / init.INIT_MODEL)
     assert gaussians.kind == "gaussian" and torch.allclose(torch.sigmoid(gaussians.opacities), torch.tensor(0.1))
+    # the same centres; a neural primitive's radius is √7 × the Gaussian's scale (the same spread)
+    torch.testing.assert_close(model.means, gaussians.means)
+    torch.testing.assert_close(model.log_scales - gaussians.log_scales,
+                               torch.full_like(model.log_scales, math.log(math.sqrt(7))))
 
     status = run_until("init", scene_dir, run_dir, config("train.max_primitives=150", "render.window=false"))
-    assert status["init"] == "ran" and not load_model(run_dir / "init" / init.INIT_MODEL).window
+    hard = load_model(run_dir / "init" / init.INIT_MODEL)
+    assert status["init"] == "ran" and not hard.window
+    torch.testing.assert_close(hard.log_scales - gaussians.log_scales,
+                               torch.full_like(hard.log_scales, math.log(math.sqrt(5))))
+    run_until("init", scene_dir, run_dir, config("train.max_primitives=150", "init.neural_radius=1.5"))
+    torch.testing.assert_close(load_model(run_dir / "init" / init.INIT_MODEL).log_scales - gaussians.log_scales,
+                               torch.full_like(hard.log_scales, math.log(1.5)))
+
+
+@pytest.mark.parametrize("window", [False, True])
+def test_neural_radius_factor_matches_the_gaussian_variance(window):
+    """Monte Carlo: the density profile of a primitive of radius k = neural_radius_factor has
+    per-axis variance 1 (a Gaussian of scale 1's), measured with the renderer's own window."""
+    points = torch.rand(400_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1
+    r2 = (points ** 2).sum(-1)
+    points, r2 = points[r2 <= 1], r2[r2 <= 1]   # uniform in the unit ball
+    weight = torch.as_tensor(density_window(SimpleNamespace(window=window), r2), dtype=torch.float64).expand_as(r2)
+    variance = (weight[:, None] * points ** 2).sum(0) / weight.sum()   # E[x²] per axis, unit radius
+    k = init.neural_radius_factor(window)
+    torch.testing.assert_close(k ** 2 * variance, torch.ones(3, dtype=torch.float64), rtol=0.01, atol=0)
 
 
 @pytest.mark.parametrize("window", [False, True])

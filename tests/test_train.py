@@ -247,6 +247,28 @@ def test_a_population_that_starts_at_the_budget_is_left_alone():
     assert params["means"].shape[0] == 6
 
 
+def test_neural_thresholds_follow_the_view_size():
+    """Stated for 64×64 views; the signal falls as 1/√pixels, so 4× the pixels halves them.
+    Gaussians' NDC threshold is left as configured."""
+    densify = config(densify={"grad_threshold": 4e-4, "prune_threshold": 2e-6})["densify"]
+    common = dict(extent=1.0, near=0.01, max_primitives=None, initial_count=6)
+    stated = make_strategy("neural", densify, **common, pixels=64 * 64)
+    finer = make_strategy("neural", densify, **common, pixels=128 * 128)
+    assert (stated.grad_threshold, stated.prune_threshold) == (4e-4, 2e-6)
+    assert make_strategy("neural", densify, **common).grad_threshold == 4e-4   # no view size: as configured
+    assert finer.grad_threshold == pytest.approx(2e-4) and finer.prune_threshold == pytest.approx(1e-6)
+    gaussian = make_strategy("gaussian", densify, **common, pixels=128 * 128)
+    assert gaussian.grad_threshold == densify["gaussian"]["grad_threshold"]
+    # the trainer passes its views' size: a primitive with signal 3e-4 grows at 128×128, not at 64×64
+    prims, state = neural_case()
+    state["grad"] = torch.tensor([3e-4, 0, 0, 0, 0, 0]) * 2
+    params, optimizer = live_optimizer(prims)
+    assert stated.refine({k: v.clone() for k, v in state.items()}, params, optimizer, step=500,
+                         generator=torch.Generator())["cloned"] == 0
+    params, optimizer = live_optimizer(prims)
+    assert finer.refine(state, params, optimizer, step=500, generator=torch.Generator())["cloned"] == 1
+
+
 def test_visibility_and_gradient_statistics():
     camera = Camera(fx=20.0, fy=20.0, cx=10.0, cy=10.0, width=20, height=20, c2w=torch.eye(4))
     means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0], [5.0, 0.0, 2.0], [1.4, 0.0, 2.0]])
