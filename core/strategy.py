@@ -18,8 +18,9 @@ loop knows nothing about the rules:
   mean over a view's pixels, so the signal of a primitive covering k of N pixels is a mean of k
   per-pixel residual gradients weighted 1/N; at a finer resolution k grows with N and the
   residuals, largely independent, add as √k, so the signal falls as 1/√N. A threshold fixed in
-  absolute terms densifies 223×398 photos far less than 64×64 renders (fox_small full size: 3k
-  primitives and 28.2 dB val at 1e-3; scaled, 5e-4 becomes 1.1e-4: 18k, 30.0 dB. README "Seeds, …").
+  absolute terms densifies 223×398 photos far less than 64×64 renders (fox_small full size, val:
+  28.2 dB with 3k primitives at 1e-3, 30.0 dB with 18k at 1.25e-4, where the default 5e-4 scales
+  to 1.07e-4. README "Seeds, …").
 - `GaussianStrategy` (3DGS adaptive density control): the signal is the screen-space gradient of
   the projected mean, in NDC units as 3DGS (threshold 2e-4). The renderer does not expose the 2D
   means, so it is recovered from the 3D mean's gradient: in camera space ∂u/∂x = fx/z, hence

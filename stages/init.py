@@ -15,10 +15,11 @@ its density has the Gaussian's variance d² along every axis: k = √7 for the w
 1/√7 as far as the Gaussian's (5 % of the volume), leaving gaps between neighbours that
 densification must fill (README "Seeds, the initial radius, the SH schedule and the view size":
 k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
-SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives: SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and
-b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray through the centre crosses τ-length 2 (the diameter in units of
-max(s)) and the cos terms average out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity
-of a 3DGS Gaussian. Gaussians: opacity logit of 0.1, as 3DGS.
+SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives:
+SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray
+through the centre crosses τ-length 2 (the diameter in units of max(s)) and the cos terms average
+out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity of a 3DGS Gaussian. Gaussians:
+opacity logit of 0.1, as 3DGS.
 
 With an envelope (the envelope stage's envelope.ply), every centre starts inside it:
 `init.cage_fraction` of them uniformly in its volume (uniform in its bounding box, kept when

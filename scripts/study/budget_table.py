@@ -4,7 +4,8 @@ test_psnr); val where the run has a val split (eval.split=val), else –.
     usage: STUDY=/work/q .venv/bin/python scripts/study/budget_table.py [ROWS]
 ROWS: a file of lines "scene | budget | neural run | Gaussian run" replacing the rows below; a run
 given as an absolute path is read from there instead of STUDY/runs (e.g. Gaussian runs of an
-earlier study that nothing since has changed)."""
+earlier study that nothing since has changed, or the runs of `radfield bench-quality`:
+OUT/runs/neural-500 …)."""
 import json
 import os
 import sys
@@ -34,11 +35,13 @@ def figures(name):
         return None
     test = [r["test_psnr"] for r in log if r.get("test_psnr") is not None][-1]
     val = f"{metrics['psnr']:.2f}" if metrics.get("split") == "val" else "–"
-    return f"{test:.2f} | {val} | {train['train_psnr']:.2f} | {metrics['num_primitives']}"
+    return test, f"{test:.2f} | {val} | {train['train_psnr']:.2f} | {metrics['num_primitives']:,}"
 
 
-print("| scene | budget | neural held-out | val | train | primitives | Gaussian held-out | val | train | primitives |")
-print("|---|---|---|---|---|---|---|---|---|---|")
+print("| scene | budget | neural held-out | val | train | primitives | Gaussian held-out | val | train | primitives "
+      "| held-out neural − Gaussian |")
+print("|---|---|---|---|---|---|---|---|---|---|---|")
 for scene, budget, neural, gaussian in ROWS:
     a, b = figures(neural), figures(gaussian)
-    print(f"| {scene} | {budget} | {a or 'not run | | |'} | {b or 'not run | | |'} |")
+    difference = f"{a[0] - b[0]:+.2f}" if a and b else "–"
+    print(f"| {scene} | {budget} | {a[1] if a else 'not run | | |'} | {b[1] if b else 'not run | | |'} | {difference} |")
