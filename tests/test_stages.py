@@ -187,6 +187,7 @@ def test_dataset_errors_fail_first_and_leave_the_run_alone(scene_copy, tmp_path,
 @pytest.mark.parametrize("args, key", [
     (["--set", "train.iteratons=5"], "train.iterations"),  # with a suggestion
     (["--set", "init.source=bogus"], "init.source"),
+    (["--set", "init.neural_radius=-1"], "init.neural_radius"),
     (["--max-primitives", "0"], "train.max_primitives"),
     (["--primitive", "splat"], "train.primitive"),
     (["--set", "data.test_every=1"], "data.test_every"),
