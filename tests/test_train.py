@@ -259,7 +259,7 @@ def test_neural_thresholds_follow_the_view_size():
     assert finer.grad_threshold == pytest.approx(2e-4) and finer.prune_threshold == pytest.approx(1e-6)
     gaussian = make_strategy("gaussian", densify, **common, pixels=128 * 128)
     assert gaussian.grad_threshold == densify["gaussian"]["grad_threshold"]
-    # the trainer passes its views' size: a primitive with signal 3e-4 grows at 128×128, not at 64×64
+    # the scaled thresholds act in refine: a primitive with signal 3e-4 grows at 128×128, not at 64×64
     prims, state = neural_case()
     state["grad"] = torch.tensor([3e-4, 0, 0, 0, 0, 0]) * 2
     params, optimizer = live_optimizer(prims)
