@@ -2,7 +2,8 @@
 # The issue-11 quality study: run the queue file QUEUE, one `radfield reconstruct` per line
 # "NAME DATASET [reconstruct options...]", JOBS at a time (default 2), each with OMP_NUM_THREADS=1,
 # into $STUDY/runs/NAME (default STUDY=/work/q). The queue is re-read whenever a slot frees, so
-# lines may be appended while it runs; a name listed in $STUDY/started.txt is not run again.
+# lines may be appended while it runs; a `#` starts a comment, also after a line's options; a name
+# listed in $STUDY/started.txt is not run again.
 # $STUDY/done.txt gets "NAME rc=RC wall=SECONDS"; the command of each run is in $STUDY/cmds/NAME.cmd.
 #   usage: scripts/study/run_queue.sh QUEUE [JOBS]
 set -u
@@ -20,7 +21,7 @@ run() {
   echo "$name rc=$? wall=$(( $(date +%s) - start ))" >> done.txt
 }
 while true; do
-  next=$(grep -v '^\s*\(#\|$\)' "$queue" | while read -r name rest; do
+  next=$(grep -v '^\s*\(#\|$\)' "$queue" | sed 's/[[:space:]]*#.*//' | while read -r name rest; do
            grep -qx "$name" started.txt || { echo "$name $rest"; break; }; done)
   [ -z "$next" ] && break
   # slots: every study run of this checkout counts, also those of an earlier runner
