@@ -7,22 +7,23 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGE_DIRS = ("radfield", "core", "cli", "stages", "datasets", "edit")   # pyproject's package-dir
 
 
 @pytest.mark.slow
 def test_wheel_holds_every_kernel_source_and_the_defaults(tmp_path):
     source = tmp_path / "src"   # build from a copy: an in-tree build would write build/ into the checkout
     source.mkdir()
-    for name in ("pyproject.toml", "README.md", "pipeline.yaml"):
+    for name in ("pyproject.toml", "README.md"):
         shutil.copy2(ROOT / name, source / name)
-    for name in PACKAGE_DIRS:
+    package_dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    for name in set(package_dirs.values()):   # followed symlinks: radfield/pipeline.yaml is one
         shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
     built = subprocess.run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation",
                             "--quiet", "--wheel-dir", str(tmp_path / "dist")], capture_output=True, text=True)

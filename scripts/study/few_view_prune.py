@@ -8,12 +8,13 @@ import torch
 
 from radfield.core.antialias import render_model
 from radfield.core.io import load_model
+from radfield.core.metrics import psnr
 from radfield.core.strategy import in_frustum
 from radfield.datasets.scene import load_scene
 
 
 def mean_psnr(model, cameras, images, background) -> float:
-    return sum(float(-10 * torch.log10(((render_model(model, c, background=background).color.clamp(0, 1) - img) ** 2).mean()))
+    return sum(float(psnr(render_model(model, c, background=background).color.clamp(0, 1), img))
                for c, img in zip(cameras, images)) / len(cameras)
 
 

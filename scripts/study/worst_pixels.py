@@ -11,6 +11,7 @@ import torch
 
 from radfield.core.antialias import render_model
 from radfield.core.io import load_model
+from radfield.core.metrics import psnr
 from radfield.core.strategy import in_frustum
 from radfield.datasets.scene import load_scene
 
@@ -35,7 +36,7 @@ def main() -> None:
     v0, u0 = divmod(int(torch.nn.functional.avg_pool2d(error[None, None], 5, 1, 2).argmax()), error.shape[1])
     window = (slice(max(v0 - 3, 0), v0 + 4), slice(max(u0 - 3, 0), u0 + 4))
     window_error = lambda img: float(((img - truth) ** 2).mean(-1)[window].mean())  # noqa: E731
-    psnr = lambda img: float(-10 * torch.log10(((img.clamp(0, 1) - truth) ** 2).mean()))  # noqa: E731
+    view_psnr = lambda img: float(psnr(img.clamp(0, 1), truth))  # noqa: E731
     p = camera_space(model.means, camera)
     u, v = camera.fx * p[:, 0] / p[:, 2] + camera.cx, camera.fy * p[:, 1] / p[:, 2] + camera.cy
     max_scale = torch.exp(model.log_scales).amax(-1)
@@ -47,7 +48,7 @@ def main() -> None:
         keep[i] = False
         ranked.append((window_error(base) - window_error(draw(model.select(keep))), i))
     ranked.sort(reverse=True)
-    print(f"{split} view {view}: {psnr(base):.2f} dB; worst pixels around (v, u) = ({v0}, {u0}), "
+    print(f"{split} view {view}: {view_psnr(base):.2f} dB; worst pixels around (v, u) = ({v0}, {u0}), "
           f"error {window_error(base):.2e}; {len(ranked)} primitives project near them")
     train = scene.cameras("train")
     for drop, i in ranked[:8]:
@@ -60,7 +61,7 @@ def main() -> None:
               f"{nearest:.3f} from the nearest training camera")
     keep = torch.ones(len(model), dtype=torch.bool)
     keep[[i for _, i in ranked[:5]]] = False
-    print(f"without the top 5: the view {psnr(draw(model.select(keep))):.2f} dB")
+    print(f"without the top 5: the view {view_psnr(draw(model.select(keep))):.2f} dB")
 
 
 if __name__ == "__main__":
