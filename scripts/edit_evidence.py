@@ -19,12 +19,12 @@ import numpy as np
 import torch
 
 from radfield.cli.edit import load_source
-from radfield.core.cage import write_cage
-from radfield.core.rasterize import render
+from radfield.core.geometry.cage import write_cage
+from radfield.core.render.rasterize import render
 from radfield.datasets.readers import load_dataset
 from radfield.edit.deform import deform_field
 from radfield.edit.warp import axis_rotation
-from radfield.stages.info import run_dataset
+from radfield.pipeline.info import run_dataset
 
 
 def main():

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from radfield.cli.edit import load_source
-from radfield.core.primitives import quat_to_rotmat
+from radfield.core.kinds.primitives import quat_to_rotmat
 from radfield.edit import deform
 from radfield.edit.warp import axis_rotation
 
@@ -40,7 +40,7 @@ def bend(x, degrees_per_unit=45.0):
 
 def cage_map(fld, new):
     """The piecewise-linear map of the cage itself: y -> Σ λ_i v'_i of the tet holding y."""
-    from radfield.core.cage import bind_to_cage
+    from radfield.core.geometry.cage import bind_to_cage
 
     def phi(y):
         tet, bary = bind_to_cage(y, (fld.cage_vertices, fld.cage_tets))

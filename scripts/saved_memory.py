@@ -6,9 +6,9 @@ import sys
 
 import torch
 
-from radfield.bench import bench_cameras, bench_scene
-from radfield.core import fused
-from radfield.core.rasterize import render
+from radfield.bench.render import bench_cameras, bench_scene
+from radfield.core.backends import fused
+from radfield.core.render.rasterize import render
 
 
 def saved_bytes(prims, camera, max_pairs: int) -> tuple[int, dict]:

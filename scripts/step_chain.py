@@ -8,11 +8,11 @@ Run it on two trees alternately to compare them. Usage:
 import sys
 import time
 
-from radfield.bench import bench_cameras, bench_scene
-from radfield.bench_train import bench_config
-from radfield.core import trainer
-from radfield.core.rasterize import render
-from radfield.core.strategy import make_strategy
+from radfield.bench.render import bench_cameras, bench_scene
+from radfield.bench.train import bench_config
+from radfield.core.train import trainer
+from radfield.core.render.rasterize import render
+from radfield.core.train.strategy import make_strategy
 
 
 def main(kind: str) -> None:

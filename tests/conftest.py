@@ -70,7 +70,7 @@ class Killed(Exception):
 def kill_and_resume(start, cameras, images, cfg, path, *, kill_at: int = 7, **run):
     """Train `start` with checkpoints written to `path`, kill the run after step `kill_at`, and
     resume it from its last checkpoint: (the checkpoint's state, the resumed run's final state)."""
-    from radfield.core.trainer import load_checkpoint, save_checkpoint, train
+    from radfield.core.train.trainer import load_checkpoint, save_checkpoint, train
 
     def kill(step, info):
         if step == kill_at:

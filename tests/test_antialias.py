@@ -1,4 +1,4 @@
-"""Anti-aliasing of training (radfield.core.antialias): sub-pixel ray jitter and the footprint floor."""
+"""Anti-aliasing of training (radfield.core.render.antialias): sub-pixel ray jitter and the footprint floor."""
 
 import json
 import math
@@ -6,18 +6,18 @@ import math
 import pytest
 import torch
 
-from radfield.core.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
-from radfield.core.cameras import Camera, look_at, pixel_rays
-from radfield.core.io import load_model
-from radfield.core.metrics import psnr
-from radfield.core.primitives import random_gaussians, random_neural
-from radfield.core.rasterize import render
-from radfield.core.trainer import generator, load_checkpoint, mean_psnr, save_checkpoint, train
+from radfield.core.render.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
+from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
+from radfield.delivery.io import load_model
+from radfield.delivery.metrics import psnr
+from radfield.core.kinds.primitives import random_gaussians, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.train.trainer import generator, load_checkpoint, mean_psnr, save_checkpoint, train
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_scene
 from radfield.datasets.synthetic import generate_scene
 
-from radfield.stages.config import load_defaults
+from radfield.pipeline.config import load_defaults
 
 BG = (1.0, 1.0, 1.0)
 
@@ -64,7 +64,7 @@ def test_a_shifted_camera_samples_the_pixels_at_the_offset():
 
 
 def supersample_offsets(n: int) -> list[tuple[float, float]]:
-    """The sub-pixel offsets of eq. (3) of radfield.core.antialias: the n × n cell centres of a
+    """The sub-pixel offsets of eq. (3) of radfield.core.render.antialias: the n × n cell centres of a
     pixel, ((a + ½)/n − ½, (b + ½)/n − ½): the reference's shifted single-ray renders."""
     grid = [(a + 0.5) / n - 0.5 for a in range(n)]
     return [(dx, dy) for dy in grid for dx in grid]

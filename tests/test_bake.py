@@ -9,13 +9,13 @@ import math
 import pytest
 import torch
 
-from radfield.core.bake import coverage, prune, to_fp16_and_back
-from radfield.core.cameras import Camera, look_at
-from radfield.core.errors import RadfieldError
-from radfield.core.io import load_model, read_metadata, save_model
-from radfield.core.primitives import Gaussians, random_neural
-from radfield.core.rasterize import render
-from radfield.core.sh import C0, rgb_to_sh_dc
+from radfield.delivery.bake import coverage, prune, to_fp16_and_back
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.errors import RadfieldError
+from radfield.delivery.io import load_model, read_metadata, save_model
+from radfield.core.kinds.primitives import Gaussians, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.render.sh import C0, rgb_to_sh_dc
 
 SIZE = 20
 HIDDEN, OUTSIDE, VISIBLE = 3, 4, 5  # indices in `scene()`

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from radfield.bench_quality import default_iterations, parse_budgets, reconstruct_args, schedule, table
-from radfield.core.errors import RadfieldError
-from radfield.stages.config import load_config, load_defaults
+from radfield.bench.quality import default_iterations, parse_budgets, reconstruct_args, schedule, table
+from radfield.errors import RadfieldError
+from radfield.pipeline.config import load_config, load_defaults
 
 
 def sets_of(args: list[str]) -> list[str]:

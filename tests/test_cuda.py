@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.io import load_model
-from radfield.core.rasterize import render
+from radfield.delivery.io import load_model
+from radfield.core.render.rasterize import render
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets.scene import load_scene

@@ -15,8 +15,8 @@ import pycolmap
 import pytest
 import torch
 
-from radfield.core.cameras import Camera, look_at, opencv_to_opengl
-from radfield.core.errors import RadfieldError
+from radfield.core.geometry.cameras import Camera, look_at, opencv_to_opengl
+from radfield.errors import RadfieldError
 from radfield.datasets import detect_format, load_dataset, read_image, resize_area, validate, write_image
 from radfield.datasets.synthetic import LIGHT, SCENES, generate_scene, orbit_cameras, render_view, trace
 

@@ -21,8 +21,8 @@ import torch
 
 from radfield.cli import distributed as distributed_cli
 from radfield.cli.main import main
-from radfield.core.distributed import compare_checksums
-from radfield.core.trainer import load_checkpoint
+from radfield.core.train.distributed import compare_checksums
+from radfield.core.train.trainer import load_checkpoint
 from radfield.datasets.synthetic import generate_scene
 
 ITERATIONS = 40

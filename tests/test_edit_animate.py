@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cage import tet_volumes
-from radfield.core.camera_path import orbit, orbit_from_cameras, read_nerfstudio_path
-from radfield.core.cameras import Camera, look_at, opencv_to_opengl
-from radfield.core.errors import RadfieldError
+from radfield.core.geometry.cage import tet_volumes
+from radfield.core.geometry.camera_path import orbit, orbit_from_cameras, read_nerfstudio_path
+from radfield.core.geometry.cameras import Camera, look_at, opencv_to_opengl
+from radfield.errors import RadfieldError
 from radfield.edit.field import box_cage
 from radfield.edit.simulate import SoftBody, parse_simulation, simulate_cage
 

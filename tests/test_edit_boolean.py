@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cameras import Camera, look_at, pixel_rays
-from radfield.core.errors import RadfieldError
-from radfield.core.losses import psnr
-from radfield.core.primitives import NeuralPrimitives, quat_to_rotmat, random_neural
-from radfield.core.rasterize import render
-from radfield.core.sh import sh_to_color
+from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
+from radfield.errors import RadfieldError
+from radfield.core.train.losses import psnr
+from radfield.core.kinds.primitives import NeuralPrimitives, quat_to_rotmat, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.render.sh import sh_to_color
 from radfield.edit import boolean, retrain
 from radfield.edit.field import Field
 from radfield.edit.spec import EditContext, apply_operations, parse_spec

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cameras import Camera, look_at
-from radfield.core.errors import RadfieldError
-from radfield.core.primitives import random_gaussians, random_neural
-from radfield.core.rasterize import render
-from radfield.core.sh import eval_sh
-from radfield.core.sh import rotate_sh
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.errors import RadfieldError
+from radfield.core.kinds.primitives import random_gaussians, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.render.sh import eval_sh
+from radfield.core.render.sh import rotate_sh
 from radfield.edit.compose import concat_prims
 from radfield.edit.warp import euler_rotation
 from radfield.edit.field import Field

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.errors import RadfieldError
-from radfield.core.primitives import random_neural
-from radfield.core.sh import C0, eval_sh
+from radfield.errors import RadfieldError
+from radfield.core.kinds.primitives import random_neural
+from radfield.core.render.sh import C0, eval_sh
 from radfield.edit.field import Field
 from radfield.edit.recolor import hue_matrix, peak_density
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
@@ -86,8 +86,8 @@ def write_posed_images(root, prims, cams, background=(1.0, 1.0, 1.0)):
     import json
     import math
 
-    from radfield.core.cameras import opencv_to_opengl
-    from radfield.core.rasterize import render
+    from radfield.core.geometry.cameras import opencv_to_opengl
+    from radfield.core.render.rasterize import render
     from radfield.datasets.images import write_image
 
     (root / "train").mkdir(parents=True)
@@ -102,8 +102,8 @@ def write_posed_images(root, prims, cams, background=(1.0, 1.0, 1.0)):
 
 
 def test_transfer_from_posed_images(tmp_path):
-    from radfield.core.cameras import Camera, look_at
-    from radfield.core.sh import C0
+    from radfield.core.geometry.cameras import Camera, look_at
+    from radfield.core.render.sh import C0
 
     # two blobs; the photos show the right one recoloured (the paper's snowman: one region takes
     # the appearance of the photos, geometry frozen)

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cage import tet_volumes
-from radfield.core.cameras import Camera, look_at
-from radfield.core.errors import RadfieldError
-from radfield.core.losses import psnr
-from radfield.core.primitives import random_neural
-from radfield.core.rasterize import render
+from radfield.core.geometry.cage import tet_volumes
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.errors import RadfieldError
+from radfield.core.train.losses import psnr
+from radfield.core.kinds.primitives import random_neural
+from radfield.core.render.rasterize import render
 from radfield.edit.field import Field
 from radfield.edit.remesh import _EDGES, oversized
 from radfield.edit.spec import EditContext, apply_operations, parse_spec

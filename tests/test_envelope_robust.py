@@ -8,10 +8,10 @@ import pytest
 import pyvista as pv
 import torch
 
-from radfield.core import envelope as env
-from radfield.core.cage import build_cage, fallback_cage, locate_points, tet_volumes
-from radfield.core.cameras import Camera, look_at, pixel_rays
-from radfield.stages.config import load_defaults
+from radfield.core.geometry import envelope as env
+from radfield.core.geometry.cage import build_cage, fallback_cage, locate_points, tet_volumes
+from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
+from radfield.pipeline.config import load_defaults
 
 
 def cfg(**overrides) -> dict:

@@ -1,16 +1,16 @@
-"""The anti-aliasing frequency cap of neural primitives (radfield.core.frequency)."""
+"""The anti-aliasing frequency cap of neural primitives (radfield.core.train.frequency)."""
 
 import math
 
 import pytest
 import torch
 
-from radfield.core.cameras import Camera, look_at
-from radfield.core.frequency import NYQUIST, FrequencyCap, footprint, view_stack
-from radfield.core.primitives import random_neural
-from radfield.core.rasterize import render
-from radfield.core.trainer import initial_state, train
-from radfield.stages.config import load_defaults
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.train.frequency import NYQUIST, FrequencyCap, footprint, view_stack
+from radfield.core.kinds.primitives import random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.train.trainer import initial_state, train
+from radfield.pipeline.config import load_defaults
 
 BG = (1.0, 1.0, 1.0)
 

@@ -10,13 +10,13 @@ import pytest
 import pyvista as pv
 import torch
 
-from radfield.core.cameras import Camera, look_at, opengl_to_opencv, pixel_rays
-from radfield.core.errors import RadfieldError
-from radfield.stages.config import load_defaults
-from radfield.core.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
+from radfield.core.geometry.cameras import Camera, look_at, opengl_to_opencv, pixel_rays
+from radfield.errors import RadfieldError
+from radfield.pipeline.config import load_defaults
+from radfield.core.geometry.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
 from radfield.datasets.colmap import read_colmap
 from radfield.datasets.sfm import compare_poses, run_sfm
-from radfield.core.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
+from radfield.core.geometry.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
 
 
 
@@ -341,6 +341,6 @@ def test_sample_in_cage_is_volume_weighted(torus_cage):
 
 def test_run_layout_names_the_normalization_file_sfm_writes():
     from radfield.datasets import sfm
-    from radfield.stages import info
+    from radfield.pipeline import info
 
     assert info.NORMALIZATION_FILE == sfm.NORMALIZATION_FILE

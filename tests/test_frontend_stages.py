@@ -12,17 +12,17 @@ import meshio
 import numpy as np
 import pytest
 
-from radfield.core.io import load_model
+from radfield.delivery.io import load_model
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets import scene as data
-from radfield.stages.config import load_config
-from radfield.core.envelope import read_envelope, signed_distance
+from radfield.pipeline.config import load_config
+from radfield.core.geometry.envelope import read_envelope, signed_distance
 from radfield.stages.evaluate import eval_report
-from radfield.stages.info import run_dataset, run_info
-from radfield.stages.pipeline import read_manifest, run_pipeline
-from radfield.stages.registry import stages
-from radfield.core.cage import bind_to_cage, locate_points, read_cage, write_binding
+from radfield.pipeline.info import run_dataset, run_info
+from radfield.pipeline.runner import read_manifest, run_pipeline
+from radfield.pipeline.registry import stages
+from radfield.core.geometry.cage import bind_to_cage, locate_points, read_cage, write_binding
 
 FRONT = ["sfm", "data", "envelope", "tetra", "init"]
 

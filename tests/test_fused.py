@@ -1,4 +1,4 @@
-"""The fused C++ block kernels (core/fused.py) against their pure-torch twins in core/rasterize.py.
+"""The fused C++ block kernels (core/backends/fused.py) against their pure-torch twins in core/render/rasterize.py.
 
 Blocks are built directly in camera space (the camera at the origin) so that every branch of the
 kernels is hit on purpose: a camera inside an ellipsoid, an ellipsoid straddling or behind the near
@@ -14,11 +14,11 @@ from functools import partial
 import pytest
 import torch
 
-from radfield.core import fused
-from radfield.core.cameras import Camera, look_at
-from radfield.core.kernels import ray_ellipsoid
-from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
-from radfield.core.rasterize import _camera_directions, _gaussian_block, _neural_block, render
+from radfield.core.backends import fused
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.render.kernels import ray_ellipsoid
+from radfield.core.kinds.primitives import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.render.rasterize import _camera_directions, _gaussian_block, _neural_block, render
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 # outside CI a machine without a compiler skips these tests; in CI they run (and fail) regardless
@@ -350,11 +350,11 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
     assert fused.build_error() == "RuntimeError: Error building extension 'radfield_kernels'"
 
 
-# --- per-view preparation ops (core/csrc/prepare_kernels.cpp) against their torch twins ----------
+# --- per-view preparation ops (core/backends/csrc/prepare_kernels.cpp) against their torch twins ----------
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_sh_color_matches_torch_twin_and_finite_differences(degree):
-    from radfield.core.sh import sh_to_color
+    from radfield.core.render.sh import sh_to_color
 
     g = torch.Generator().manual_seed(degree)
     sh = torch.randn(12, 16, 3, generator=g, dtype=torch.float64) * 0.5
@@ -375,7 +375,7 @@ def test_sh_color_matches_torch_twin_and_finite_differences(degree):
 
 
 def test_neural_prep_matches_torch_twin_and_finite_differences():
-    from radfield.core.rasterize import _neural_view
+    from radfield.core.render.rasterize import _neural_view
 
     prims = random_neural(9, scale=0.3, seed=7).to(dtype=torch.float64)
     prims.log_scales[0] = math.log(0.2)   # an isotropic primitive: max(s) is a three-way tie
@@ -413,12 +413,12 @@ def test_neural_prep_matches_torch_twin_and_finite_differences():
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6)
 
 
-# --- the loss (core/csrc/loss_kernels.cpp) against its torch twins in core/losses.py -------------
+# --- the loss (core/backends/csrc/loss_kernels.cpp) against its torch twins in core/train/losses.py -------------
 
 @pytest.mark.parametrize("padding", ["valid", "same"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_ssim_map_matches_torch_twin_and_finite_differences(padding, dtype):
-    from radfield.core import losses
+    from radfield.core.train import losses
 
     g = torch.Generator().manual_seed(3)
     x = torch.rand(2, 19, 23, 3, generator=g, dtype=dtype)
@@ -443,7 +443,7 @@ def test_ssim_map_matches_torch_twin_and_finite_differences(padding, dtype):
 def test_losses_use_the_fused_ssim_and_anisotropy_with_a_mask(monkeypatch):
     """losses.ssim / dssim / anisotropy on the fused path equal the torch path (RADFIELD_KERNELS=torch),
     values and gradients, with a valid-pixel mask."""
-    from radfield.core import losses
+    from radfield.core.train import losses
 
     g = torch.Generator().manual_seed(4)
     img, ref = torch.rand(24, 30, 3, generator=g), torch.rand(24, 30, 3, generator=g)
@@ -467,14 +467,14 @@ def test_losses_use_the_fused_ssim_and_anisotropy_with_a_mask(monkeypatch):
     assert (fast[4][:3] == 0).all()   # no gradient reaches an invalid pixel
 
 
-# --- pixel bounds and depth order (core/csrc/prepare_kernels.cpp) against rasterize.py ----------
+# --- pixel bounds and depth order (core/backends/csrc/prepare_kernels.cpp) against rasterize.py ----------
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_bounds_and_depth_order_match_torch_twins(dtype):
     """The C++ bounds and depth order equal the torch twins' (_neural_bounds, _gaussian_bounds, a
     stable argsort of the visible primitives by depth), on primitives in front of, straddling and
     behind the near plane, off screen and on screen, with depth ties."""
-    from radfield.core.rasterize import _gaussian_bounds, _gaussian_view, _neural_bounds
+    from radfield.core.render.rasterize import _gaussian_bounds, _gaussian_view, _neural_bounds
 
     cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
     near = 0.05
@@ -507,7 +507,7 @@ def test_bounds_and_depth_order_match_torch_twins(dtype):
 def test_gaussian_prep_matches_torch_twin_and_finite_differences():
     """The EWA projection (mean2d, conic, cov) against rasterize._gaussian_view, values and
     gradients, with splats off screen (the Jacobian's clamped point) and behind the near plane."""
-    from radfield.core.rasterize import _gaussian_view
+    from radfield.core.render.rasterize import _gaussian_view
 
     near = 0.05
     prims = random_gaussians(60, extent=3.0, scale=0.3, seed=5, dtype=torch.float64)
@@ -582,7 +582,7 @@ def test_anisotropy_matches_torch_twin_over_many_chunks(dtype):
     """The fused anisotropy (scales exponentiated in SIMD chunks of 512 primitives) equals the
     torch twin, value and gradient, over a population spanning several chunks and thread ranges,
     with isotropic primitives and ties of the minimum; float64 also by finite differences."""
-    from radfield.core import losses
+    from radfield.core.train import losses
 
     g = torch.Generator().manual_seed(8)
     log_scales = (torch.randn(5003, 3, generator=g) * 0.7).to(dtype)
@@ -608,7 +608,7 @@ def test_photometric_op_matches_the_composition(dtype):
     """The fused photometric op (L1 + D-SSIM in one pass) gives the composition's gradient bit for
     bit (at a loss gradient ≠ 1 too, and with pixels where x = y), its value to rounding, and
     passes gradcheck in float64."""
-    from radfield.core import losses
+    from radfield.core.train import losses
 
     g = torch.Generator().manual_seed(5)
     x = torch.rand(2, 19, 23, 3, generator=g, dtype=dtype)

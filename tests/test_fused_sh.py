@@ -1,17 +1,17 @@
 """The fused SH colour of the trainer's two SH tensors (fused.sh_color_parts) against the torch
-twin (core/sh.py: sh_to_color of their concatenation) and by finite differences, and the renderer
-and trainer using it (core/sh.py: join_sh)."""
+twin (core/render/sh.py: sh_to_color of their concatenation) and by finite differences, and the renderer
+and trainer using it (core/render/sh.py: join_sh)."""
 
 import os
 
 import pytest
 import torch
 
-from radfield.core import fused
-from radfield.core.cameras import Camera, look_at
-from radfield.core.primitives import random_gaussians
-from radfield.core.rasterize import render
-from radfield.core.sh import join_sh, sh_parts, sh_to_color
+from radfield.core.backends import fused
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.kinds.primitives import random_gaussians
+from radfield.core.render.rasterize import render
+from radfield.core.render.sh import join_sh, sh_parts, sh_to_color
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 pytestmark = pytest.mark.skipif(not IN_CI and not fused.available(), reason="fused CPU kernels unavailable")

@@ -6,9 +6,9 @@ import os
 import pytest
 import torch
 
-from radfield.core import fused
-from radfield.core.cameras import Camera, look_at
-from radfield.core.strategy import GAUSSIAN_RADIUS_SIGMAS, in_frustum, make_strategy
+from radfield.core.backends import fused
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.train.strategy import GAUSSIAN_RADIUS_SIGMAS, in_frustum, make_strategy
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 pytestmark = pytest.mark.skipif(not IN_CI and not fused.available(), reason="fused CPU kernels unavailable")
@@ -58,7 +58,7 @@ def test_accumulate_fused_matches_torch_twin(kind, dtype, monkeypatch):
 
 def test_frustum_of_fused_accumulate_equals_in_frustum_near_the_boundary():
     """Spheres that just reach or just miss a side plane (radius = distance · (1 ± 1e-4)) decide alike."""
-    from radfield.core.strategy import side_normals
+    from radfield.core.train.strategy import side_normals
     params, grads, cam = _scene("gaussian", torch.float32, p=3000, seed=5)
     w2c = cam.w2c.float()
     p = params["means"] @ w2c[:3, :3].T + w2c[:3, 3]

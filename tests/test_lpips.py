@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.errors import RadfieldError
-from radfield.core.lpips import (
+from radfield.errors import RadfieldError
+from radfield.delivery.lpips import (
     SDIST_MEMBER,
     AlexLPIPS,
     Unavailable,

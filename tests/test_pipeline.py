@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 import yaml
 
-from radfield.core.errors import RadfieldError
-from radfield.stages.config import load_config, load_defaults, parse_set, save_resolved, section
-from radfield.stages.info import MODEL_FILE, format_info, model_path, run_info
-from radfield.stages.pipeline import INPUT, Context, NotApplicable, Stage, read_manifest, run_pipeline
+from radfield.errors import RadfieldError
+from radfield.pipeline.config import load_config, load_defaults, parse_set, save_resolved, section
+from radfield.pipeline.info import MODEL_FILE, format_info, model_path, run_info
+from radfield.pipeline.runner import INPUT, Context, NotApplicable, Stage, read_manifest, run_pipeline
 
 ORDER = ["data", "sfm", "init", "train", "eval"]
 

@@ -1,5 +1,5 @@
-"""Non-negative density of neural primitives seen from narrow view cones (radfield.core.positivity)
-and the absolute frequency bound (radfield.core.frequency, train.frequency_bound)."""
+"""Non-negative density of neural primitives seen from narrow view cones (radfield.core.train.positivity)
+and the absolute frequency bound (radfield.core.train.frequency, train.frequency_bound)."""
 
 import math
 import os
@@ -7,16 +7,16 @@ import os
 import pytest
 import torch
 
-from radfield.core import fused
-from radfield.core.cameras import Camera, look_at
-from radfield.core.errors import RadfieldError
-from radfield.core.frequency import FrequencyCap
-from radfield.core.positivity import NonNegativeDensity, project_nonnegative, view_cone_half_angle
-from radfield.core.primitives import random_neural
-from radfield.core.rasterize import render
-from radfield.core.strategy import in_frustum
-from radfield.core.trainer import train
-from radfield.stages.config import load_defaults
+from radfield.core.backends import fused
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.errors import RadfieldError
+from radfield.core.train.frequency import FrequencyCap
+from radfield.core.train.positivity import NonNegativeDensity, project_nonnegative, view_cone_half_angle
+from radfield.core.kinds.primitives import random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.train.strategy import in_frustum
+from radfield.core.train.trainer import train
+from radfield.pipeline.config import load_defaults
 from radfield.stages.init import check_config
 
 BG = (1.0, 1.0, 1.0)
@@ -192,7 +192,7 @@ def test_bad_values_are_one_line_errors(key, value):
                     reason="fused CPU kernels unavailable")   # in CI a failed build fails here
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_fused_projection_matches_the_torch_twin(dtype):
-    """core/csrc/positivity_kernels.cpp against project_nonnegative: inside rows, ties, the polar
+    """core/backends/csrc/positivity_kernels.cpp against project_nonnegative: inside rows, ties, the polar
     cone, zeros, widths 1-16; only the masked rows change."""
     g = torch.Generator().manual_seed(5)
     for width in (1, 3, 8, 16):

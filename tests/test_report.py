@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from radfield.core import lpips as lpips_metric
-from radfield.core.io import save_model
-from radfield.core.report import GAP, LABEL_HEIGHT, error_map
+from radfield.delivery import lpips as lpips_metric
+from radfield.delivery.io import save_model
+from radfield.delivery.report import GAP, LABEL_HEIGHT, error_map
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets import scene as data
 from radfield.stages import init
-from radfield.stages.config import load_config
+from radfield.pipeline.config import load_config
 
 CI = os.environ.get("CI", "").lower() == "true"
 SIZE = 32

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from radfield.core.envelope import read_envelope, signed_distance
-from radfield.core.io import load_model
+from radfield.core.geometry.envelope import read_envelope, signed_distance
+from radfield.delivery.io import load_model
 from radfield.datasets.synthetic import generate_scene, get_scene
-from radfield.stages.pipeline import read_manifest
+from radfield.pipeline.runner import read_manifest
 from radfield.stages.train import CHECKPOINT
 
 STAGES = ("sfm", "data", "envelope", "tetra", "init", "train", "eval")
@@ -156,7 +156,7 @@ def test_stage_fallbacks_are_recorded_and_printed_as_one_warning(objects, tmp_pa
     import pymeshlab
     import pytetwild
 
-    from radfield.core import envelope
+    from radfield.core.geometry import envelope
 
     def broken_wrap(*args, **kwargs):
         raise pymeshlab.PyMeshLabException("forced wrap failure")

@@ -14,21 +14,21 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.errors import RadfieldError
-from radfield.core.io import load_model, save_model
-from radfield.core.kernels import neural_line_integral
-from radfield.core.primitives import density_window
-from radfield.core.trainer import load_checkpoint, save_checkpoint
+from radfield.errors import RadfieldError
+from radfield.delivery.io import load_model, save_model
+from radfield.core.render.kernels import neural_line_integral
+from radfield.core.kinds.primitives import density_window
+from radfield.core.train.trainer import load_checkpoint, save_checkpoint
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets import scene as data
 from radfield.stages import init
-from radfield.stages.config import load_config
+from radfield.pipeline.config import load_config
 from radfield.stages.evaluate import evaluate
-from radfield.stages.info import MODEL_FILE
-from radfield.stages.pipeline import Stage, read_manifest, run_pipeline
-from radfield.stages.registry import stages
+from radfield.pipeline.info import MODEL_FILE
+from radfield.pipeline.runner import Stage, read_manifest, run_pipeline
+from radfield.pipeline.registry import stages
 
 METRIC_KEYS = {"split", "kind", "psnr", "ssim", "num_primitives", "num_params", "file_size_bytes", "fps", "views",
                "width", "height", "per_view",

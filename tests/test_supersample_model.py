@@ -12,21 +12,21 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.antialias import render_model, render_supersampled
-from radfield.core.bake import coverage
-from radfield.core.cameras import Camera, look_at
-from radfield.core.export import supersample_warning
-from radfield.core.io import load_model, read_metadata, save_model
-from radfield.core.primitives import random_gaussians, random_neural, rotmat_to_quat
+from radfield.core.render.antialias import render_model, render_supersampled
+from radfield.delivery.bake import coverage
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.delivery.export import supersample_warning
+from radfield.delivery.io import load_model, read_metadata, save_model
+from radfield.core.kinds.primitives import random_gaussians, random_neural, rotmat_to_quat
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import Normalization, load_split
 from radfield.datasets.synthetic import generate_scene
 from radfield.edit.compose import concat_prims
 from radfield.edit.deform import deform_field
 from radfield.edit.field import EDIT_MODEL, EDIT_STAGE, Field, box_cage
-from radfield.stages.config import load_defaults
+from radfield.pipeline.config import load_defaults
 from radfield.stages.train import to_normalized, to_world
-from radfield.viewer import Viewer, viser_camera
+from radfield.delivery.viewer import Viewer, viser_camera
 
 BG = (1.0, 1.0, 1.0)
 
@@ -200,7 +200,7 @@ def test_export_warns_in_one_line_for_one_ray_formats(tmp_path, cli):
 
 def test_the_eval_stage_refuses_a_model_that_disagrees_with_its_run(tmp_path):
     """A run trained at n = 2 before model files recorded n: its eval stage must not measure it at 1."""
-    from radfield.core.errors import RadfieldError
+    from radfield.errors import RadfieldError
     from radfield.stages.evaluate import check_supersample
 
     save_model(tmp_path / "old.safetensors", model(1))

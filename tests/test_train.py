@@ -10,14 +10,14 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from radfield.core.cameras import Camera, look_at
-from radfield.core.io import load_model, save_model
-from radfield.core.losses import anisotropy, density_magnitude, dssim, frequency_magnitude, photometric, psnr
-from radfield.core.metrics import ssim
-from radfield.core.primitives import quat_to_rotmat, random_gaussians, random_neural
-from radfield.core.rasterize import render
-from radfield.core.strategy import edit_rows, in_frustum, make_strategy, negligible_density
-from radfield.core.trainer import (
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.delivery.io import load_model, save_model
+from radfield.core.train.losses import anisotropy, density_magnitude, dssim, frequency_magnitude, photometric, psnr
+from radfield.delivery.metrics import ssim
+from radfield.core.kinds.primitives import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.train.strategy import edit_rows, in_frustum, make_strategy, negligible_density
+from radfield.core.train.trainer import (
     TrainState,
     initial_state,
     load_checkpoint,
@@ -28,13 +28,13 @@ from radfield.core.trainer import (
     train,
     views_for_step,
 )
-from radfield.core.trainlog import read_log
+from radfield.core.train.trainlog import read_log
 from radfield.datasets.images import write_image
 from radfield.stages import train as train_stage
-from radfield.stages.config import load_defaults, section
+from radfield.pipeline.config import load_defaults, section
 from radfield.datasets.scene import Normalization, load_scene
-from radfield.stages.info import MODEL_FILE
-from radfield.stages.pipeline import Context
+from radfield.pipeline.info import MODEL_FILE
+from radfield.pipeline.runner import Context
 
 BG = (1.0, 1.0, 1.0)
 

@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.core.cameras import Camera, look_at
-from radfield.core.io import save_model
-from radfield.core.primitives import Gaussians, random_gaussians, rotmat_to_quat
-from radfield.core.rasterize import render
-from radfield.core.sh import rgb_to_sh_dc
-from radfield.viewer import tet_edges, viser_camera
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.delivery.io import save_model
+from radfield.core.kinds.primitives import Gaussians, random_gaussians, rotmat_to_quat
+from radfield.core.render.rasterize import render
+from radfield.core.render.sh import rgb_to_sh_dc
+from radfield.delivery.viewer import tet_edges, viser_camera
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 WAIT = 90.0   # seconds, upper bound of every wait (the machine may be busy)

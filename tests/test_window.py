@@ -13,15 +13,15 @@ import pytest
 import torch
 import yaml
 
-from radfield.core.bake import prune, to_fp16_and_back
-from radfield.core.cameras import Camera, look_at
-from radfield.core.errors import RadfieldError
-from radfield.core.io import load_model, save_model
-from radfield.core.kernels import alpha_from_optical_depth, neural_line_integral
-from radfield.core.moments import gaussians_from_neural, neural_density_samples
-from radfield.core.primitives import ellipsoid_radius_sq, quat_to_rotmat, random_neural
-from radfield.core.rasterize import render
-from radfield.core.reference import neural_density, quadrature_optical_depth, reference_render
+from radfield.delivery.bake import prune, to_fp16_and_back
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.errors import RadfieldError
+from radfield.delivery.io import load_model, save_model
+from radfield.core.render.kernels import alpha_from_optical_depth, neural_line_integral
+from radfield.delivery.moments import gaussians_from_neural, neural_density_samples
+from radfield.core.kinds.primitives import ellipsoid_radius_sq, quat_to_rotmat, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.render.reference import neural_density, quadrature_optical_depth, reference_render
 from radfield.edit import boolean, retrain
 from radfield.edit.compose import concat_prims
 from radfield.edit.deform import map_primitives, split_primitives

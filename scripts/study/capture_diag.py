@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.core.frequency import footprint, view_stack
-from radfield.core.io import load_model
-from radfield.core.losses import psnr
-from radfield.core.rasterize import render
-from radfield.core.strategy import in_frustum
+from radfield.core.train.frequency import footprint, view_stack
+from radfield.delivery.io import load_model
+from radfield.core.train.losses import psnr
+from radfield.core.render.rasterize import render
+from radfield.core.train.strategy import in_frustum
 from radfield.datasets.images import write_image
 from radfield.stages.data import load_scene
 

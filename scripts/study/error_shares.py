@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.core.sh import sh_basis
+from radfield.core.render.sh import sh_basis
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import get_scene, intersect, orbit_cameras, render_view, shade
 

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import torch
 
-from radfield.core.antialias import render_model
-from radfield.core.io import load_model
-from radfield.core.metrics import psnr
-from radfield.core.strategy import in_frustum
+from radfield.core.render.antialias import render_model
+from radfield.delivery.io import load_model
+from radfield.delivery.metrics import psnr
+from radfield.core.train.strategy import in_frustum
 from radfield.datasets.scene import load_scene
 
 

@@ -7,10 +7,10 @@ import sys
 
 import torch
 from pathlib import Path
-from radfield.core.antialias import shifted
-from radfield.core.io import load_model
-from radfield.core.metrics import psnr
-from radfield.core.rasterize import render
+from radfield.core.render.antialias import shifted
+from radfield.delivery.io import load_model
+from radfield.delivery.metrics import psnr
+from radfield.core.render.rasterize import render
 from radfield.datasets.scene import load_scene
 run = Path(sys.argv[1]); ns = [int(x) for x in sys.argv[2:]] or [1, 2, 3]
 scene = load_scene(run / "data" / "scene.json")

@@ -10,7 +10,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from radfield.stages.info import run_info
+from radfield.pipeline.info import run_info
 
 run = Path(sys.argv[1])
 wall = float(sys.argv[2]) if len(sys.argv) > 2 else None

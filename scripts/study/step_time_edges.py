@@ -5,10 +5,10 @@ run's training views: what supersampling costs a step.
 import sys
 import time
 
-from radfield.core.io import load_model
-from radfield.core.trainer import train
+from radfield.delivery.io import load_model
+from radfield.core.train.trainer import train
 from radfield.datasets.scene import load_scene
-from radfield.stages.config import load_config
+from radfield.pipeline.config import load_config
 from radfield.stages.train import to_normalized
 
 runs, steps = sys.argv[1:3], int(sys.argv[3]) if len(sys.argv) > 3 else 150

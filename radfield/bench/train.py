@@ -1,0 +1,193 @@
+"""`radfield bench-train`: milliseconds per training step, split into its parts.
+
+The step is core/train/trainer.py's loop body with `batch_views: 1` and the default `train` config,
+timed part by part (the parts are run in the trainer's order, on its own functions):
+
+    render forward    assemble the primitives, render(...)
+    loss              the anisotropy regulariser's backward, the photometric loss (L1 + D-SSIM)
+                      forward and backward down to the rendered image, the logged loss and PSNR
+    render backward   from ∂L/∂image to every parameter
+    optimiser         Adam step and zero_grad
+    population        the strategy's per-view gradient statistics (accumulate) and refine
+
+Population control keeps the primitive count fixed (densification starts after the run), so
+each row measures one count: `refine` then costs its checks only. The `train()` column times the
+real `trainer.train`, end to end, as a check that the parts add up: one run of warm-up + steps
+steps, clocked by its on_step callback, gives the ms per step of the steps after the warm-up,
+with the SH degree schedule at its last stage from step 3 on (as the parts, which render at the
+full degree); the `setup` column is the rest of the call in ms: its set-up (copies of the
+parameters and images, the optimiser, the strategy) and the warm-up steps, paid once per call.
+
+The scene is bench-render's (primitives over a sphere's surface, orbit cameras); the targets are
+renders of the same scene with its colours shifted, so the loss and its gradients are not zero.
+Absolute times depend on the machine and its load: compare ratios within one run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+
+from radfield.bench.render import bench_cameras, bench_models, reference_twin
+from radfield.core.train.losses import anisotropy, photometric, psnr
+from radfield.core.render.rasterize import render
+from radfield.core.train.strategy import make_strategy
+from radfield.core.train import trainer
+
+PARTS = ("forward", "loss", "backward", "optimiser", "population")
+
+
+@dataclass
+class StepTiming:
+    ms: dict[str, float]   # mean ms per step of each part
+    train_ms: float        # marginal ms per step of trainer.train, end to end
+    setup_ms: float        # trainer.train's cost once per call
+    pairs: float           # evaluated pixel-primitive pairs per step
+
+    @property
+    def total_ms(self) -> float:
+        return sum(self.ms.values())
+
+
+def bench_config(steps: int) -> dict:
+    """The default `train` section with population control that never changes the count."""
+    from radfield.pipeline.config import load_defaults
+
+    cfg = load_defaults()["train"]
+    cfg["iterations"] = steps
+    cfg["batch_views"] = 1
+    cfg["densify"]["start"] = steps + 1          # statistics every step, no refinement
+    cfg["densify"]["stop"] = steps + 1
+    # no checkpoint within the run, and the rules that refresh what they derive from the geometry
+    # (frequency cap, view cones: strategy.refresh_interval) refresh every densify.every steps as
+    # in a default run, not every step
+    every = cfg["densify"]["every"]
+    cfg["checkpoint_every"] = every * math.ceil((steps + 1) / every)
+    return cfg
+
+
+def _targets(prims, cams, device):
+    shifted = prims.map(lambda t: t.clone())
+    shifted.sh[:, 0] += 0.4
+    with torch.no_grad():
+        return torch.stack([render(shifted.to(device), cam).color.clamp(0, 1) for cam in cams]).float()
+
+
+def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: str) -> StepTiming:
+    """Time `steps` training steps (after `warmup` untimed ones), part by part, then run
+    trainer.train for as many steps, end to end."""
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    state = trainer.initial_state(prims, cfg["sh_degree"])
+    params = {n: t.to(dev).clone().requires_grad_(True) for n, t in state.params.items()}
+    optimizer = trainer.make_optimizer(params, cfg["lr"], extent=1.0)
+    strategy = make_strategy(state.kind, cfg["densify"], extent=1.0, near=0.01, max_primitives=None,
+                             initial_count=len(prims))
+    accumulators = strategy.init_state(len(prims), dev)
+    bg = torch.ones(3, device=dev)
+    totals = dict.fromkeys(PARTS, 0.0)
+    pairs = 0.0
+    degree = cfg["sh_degree"]   # the last stage of the SH schedule: the most expensive colour
+
+    for step in range(warmup + steps):
+        spent = dict.fromkeys(PARTS, 0.0)
+        view = step % len(cams)
+
+        def clock(part, start):
+            sync()
+            now = time.perf_counter()
+            spent[part] += now - start
+            return now
+
+        t = time.perf_counter()
+        (cfg["lambda_aniso"] * anisotropy(params["log_scales"])).backward()
+        t = clock("loss", t)
+        before = {n: None if params[n].grad is None else params[n].grad.clone() for n in strategy.grad_names}
+        t = clock("population", t)
+        out = render(trainer.assemble(params, state.kind, state.omega0, state.window), cams[view], background=bg, sh_degree=degree)
+        t = clock("forward", t)
+        image = out.color.detach().requires_grad_(True)
+        loss = photometric(image, images[view], cfg["lambda_dssim"])
+        loss.backward()
+        float(loss.detach()), float(psnr(image.detach().clamp(0, 1), images[view]))
+        t = clock("loss", t)
+        out.color.backward(image.grad)
+        t = clock("backward", t)
+        grads = {n: trainer.own_gradient(params[n].grad, before[n], 1) for n in strategy.grad_names}
+        strategy.accumulate(accumulators, params, grads, cams[view], step + 1)
+        t = clock("population", t)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        t = clock("optimiser", t)
+        strategy.refine(accumulators, params, optimizer, step + 1, trainer.generator(0, 1, step))
+        clock("population", t)
+        if step >= warmup:
+            for part in PARTS:
+                totals[part] += spent[part]
+            pairs += out.meta["pairs"]
+
+    train_ms, setup_ms = time_train(prims, cams, images, steps, warmup, dev, sync)
+    return StepTiming({p: 1e3 * v / steps for p, v in totals.items()}, train_ms, setup_ms, pairs / steps)
+
+
+def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tuple[float, float]:
+    """trainer.train's ms per step after `warmup` steps, and the rest of the call (see the module
+    docstring), from one run of warmup + steps steps."""
+    cfg = bench_config(warmup + steps)
+    cfg["sh_increase_every"] = 1   # degree 3 from step 3 on: the parts' colour
+    clock = []   # the time after each step
+
+    def on_step(step, info):
+        sync()
+        clock.append(time.perf_counter())
+
+    start = time.perf_counter()
+    trainer.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device=device,
+                  on_step=on_step)
+    sync()
+    total = time.perf_counter() - start
+    warm = clock[warmup - 1] if warmup else start
+    per_step = (clock[-1] - warm) / steps
+    return 1e3 * per_step, 1e3 * (total - steps * per_step)
+
+
+def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neural", "gaussian"), steps: int = 5,
+                    warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None,
+                    baseline: bool = False) -> dict:
+    """Print one row per (kind, count, size): ms per step of each part, their sum, trainer.train's
+    marginal ms per step and its set-up ms, and evaluated pairs per second of the render forward.
+    With `baseline`, each row is preceded by the same row on the reference twins
+    (RADFIELD_KERNELS=torch, "torch") and followed by the speed-up of the sum and of train().
+    Returns the figures."""
+    cfg = bench_config(steps)
+    echo(f"bench-train: {steps} timed steps (+{warmup} warm-up) per row, {views} orbit views, device={device}, "
+         f"threads={torch.get_num_threads()}; ms per step")
+    echo(f"  {'kind':11s} {'count':>6s} {'size':>7s} {'path':>6s} " + " ".join(f"{p:>10s}" for p in PARTS)
+         + f" {'sum':>8s} {'train()':>8s} {'setup':>7s} {'Mpairs/s':>9s}")
+    results = {}
+    for kind in kinds:
+        for count in counts:
+            prims = bench_models(count, (kind,))[kind]
+            for size in sizes:
+                cams = bench_cameras(views, size, size)
+                images = _targets(prims, cams, device)
+                rows = {}
+                for path in (("torch", "fused") if baseline else ("fused",)):
+                    with reference_twin(path == "torch"):
+                        t = time_steps(prims, cams, images, cfg, steps, warmup, device)
+                    rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
+                    echo(f"  {kind:11s} {count:6d} {size:3d}x{size:<3d} {path:>6s} "
+                         + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS)
+                         + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {t.setup_ms:7.1f} {rate:9.1f}")
+                    rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "setup": t.setup_ms, "pairs": t.pairs}
+                if baseline:
+                    before, after = rows["torch"], rows["fused"]
+                    echo(f"  {'':11s} {'':6s} {'':7s} {'x':>6s} " + " ".join(f"{before[p] / after[p]:10.1f}" for p in PARTS)
+                         + f" {before['sum'] / after['sum']:8.1f} {before['train'] / after['train']:8.1f}")
+                    results[f"{kind}/{count}/{size}/torch"] = before
+                results[f"{kind}/{count}/{size}"] = rows["fused"]
+                advance()
+    return results

@@ -1,0 +1,44 @@
+"""`radfield view`: the browser viewer (delivery/viewer.py) of a run or a model file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from radfield.cli.common import parse_background, resolve_device
+from radfield.errors import RadfieldError
+
+
+def view(
+    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (model, cage and cameras) or a .safetensors model file.")],
+    port: Annotated[int, typer.Option(help="TCP port of the web viewer (the next free one if it is taken; 0: any free port).")] = 8080,
+    host: Annotated[str, typer.Option(help="Address to listen on (127.0.0.1: this machine only; 0.0.0.0: every network).")] = "127.0.0.1",
+    resolution: Annotated[int, typer.Option(help="Long side, in pixels, of the frames rendered once the camera rests.")] = 512,
+    moving_downscale: Annotated[int, typer.Option(help="Frames rendered while the camera moves are this many times smaller.")] = 4,
+    background: Annotated[Optional[str], typer.Option(help="Background R,G,B in [0, 1] (default: the run's, else 1,1,1).")] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda: where the model is rendered.")] = "cpu",
+):
+    """Open an interactive viewer in the browser (http://HOST:PORT), rendered on this machine with
+    radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums.
+    Stop it with Ctrl-C."""
+    from radfield.cli.export import load_content
+    from radfield.delivery.viewer import Viewer, ViewerScene, viewer_cameras
+
+    if not 0 <= port < 65536:
+        raise RadfieldError(f"--port must be in 0..65535, got {port}")
+    if resolution < 16 or moving_downscale < 1:
+        raise RadfieldError("--resolution must be at least 16 and --moving-downscale at least 1")
+    resolve_device(device)
+    content = load_content(target, device)
+    bg = parse_background(background) if background is not None else content.background or (1.0, 1.0, 1.0)
+    scene = ViewerScene(content.model, bg, content.cage, viewer_cameras(content.views))
+    try:
+        viewer = Viewer(scene, host=host, port=port, resolution=resolution, moving_downscale=moving_downscale,
+                        log=lambda line: typer.echo(line, err=True))
+    except OSError as error:
+        raise RadfieldError(f"cannot listen on {host}:{port} ({error.strerror or error})") from None
+    typer.echo(f"viewer: http://{host}:{viewer.server.get_port()} ({len(content.model)} {content.model.kind} primitives); Ctrl-C stops it",
+               err=True)
+    viewer.serve_forever()

@@ -1,0 +1,90 @@
+"""Pinhole cameras in the OpenCV convention (x right, y down, z forward), camera-to-world 4x4.
+
+Pixel (row i, column j) has its centre at image coordinates (j + 0.5, i + 0.5); the principal
+point (cx, cy) is given in the same continuous coordinates, so cx = W/2 is the image centre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+
+from radfield.errors import RadfieldError
+
+# OpenGL/NeRF camera axes (x right, y up, looking down -z) -> OpenCV axes: flip y and z.
+_GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One pinhole view. `c2w` is a 4x4 camera-to-world matrix (OpenCV axes), float64 on the CPU
+    so that conversions stay exact; the renderer casts it to the working dtype and device."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    c2w: torch.Tensor
+    name: str = ""
+
+    def __post_init__(self):
+        c2w = torch.as_tensor(self.c2w, dtype=torch.float64).cpu()
+        if c2w.shape != (4, 4) or not torch.isfinite(c2w).all():
+            raise RadfieldError(f"camera {self.name!r}: camera-to-world must be a finite 4x4 matrix")
+        if self.width <= 0 or self.height <= 0 or self.fx <= 0 or self.fy <= 0:
+            raise RadfieldError(f"camera {self.name!r}: width, height and focal lengths must be positive")
+        object.__setattr__(self, "c2w", c2w)
+
+    @property
+    def K(self) -> torch.Tensor:
+        return torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+    @property
+    def w2c(self) -> torch.Tensor:
+        return torch.linalg.inv(self.c2w)
+
+    @property
+    def center(self) -> torch.Tensor:
+        return self.c2w[:3, 3]
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same view at `factor` times the resolution (factor 0.5 halves width and height)."""
+        w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w, height=h)
+
+
+def opengl_to_opencv(c2w_gl: torch.Tensor) -> torch.Tensor:
+    """Camera-to-world in OpenGL axes (NeRF-synthetic, nerfstudio) -> OpenCV axes."""
+    return torch.as_tensor(c2w_gl, dtype=torch.float64) @ _GL_TO_CV
+
+
+def opencv_to_opengl(c2w_cv: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(c2w_cv, dtype=torch.float64) @ _GL_TO_CV
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
+    """OpenCV camera-to-world looking from `eye` at `target`, with `up` pointing up in the image."""
+    eye, target, up = (torch.as_tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    z = torch.nn.functional.normalize(target - eye, dim=0)
+    x = torch.nn.functional.normalize(torch.linalg.cross(z, up), dim=0)
+    y = torch.linalg.cross(z, x)
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    return c2w
+
+
+def pixel_rays(camera: Camera, dtype=torch.float32, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """World-space unit directions (H, W, 3) through every pixel centre, and the per-pixel ray
+    distance to the camera-space plane z = 1 (|K^-1 [u, v, 1]|), used to turn z-depths into ray
+    distances."""
+    j = torch.arange(camera.width, dtype=torch.float64) + 0.5
+    i = torch.arange(camera.height, dtype=torch.float64) + 0.5
+    ii, jj = torch.meshgrid(i, j, indexing="ij")
+    d_cam = torch.stack([(jj - camera.cx) / camera.fx, (ii - camera.cy) / camera.fy, torch.ones_like(ii)], -1)
+    norm = d_cam.norm(dim=-1)
+    d_world = (d_cam / norm[..., None]) @ camera.c2w[:3, :3].T
+    return d_world.to(dtype=dtype, device=device), norm.to(dtype=dtype, device=device)

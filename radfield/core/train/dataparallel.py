@@ -1,0 +1,75 @@
+"""Training over several ranks: rank 0 sends the trainer's inputs, every rank runs the trainer.
+
+Rank 0 (the one that runs the pipeline) calls `train_on_ranks` with exactly the arguments of
+radfield.core.train.trainer.train; with several ranks it first broadcasts them (cameras, images, valid
+masks, alpha channels, the initial primitives, the state to resume from, the train config) to the other ranks,
+which wait in `follow` and then run the same trainer with them. So the other ranks need no
+dataset, run directory or config file of their own (they may be on other machines), and they
+never write a file: rank 0 alone logs, checkpoints and writes the outputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import torch
+
+from radfield.core.train import distributed
+from radfield.core.geometry.cameras import Camera
+from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core.train.trainer import TrainState, state_from_tensors, state_tensors, train
+
+
+def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, extent, seed, device="cpu",
+                   near=0.01, start_state=None, masks=None, alphas=None, on_step=None, held_out=None,
+                   checkpoint=None) -> TrainState:
+    """trainer.train on every rank of distributed.current() (just trainer.train with one)."""
+    world = distributed.current()
+    kwargs = dict(background=[float(c) for c in background], extent=float(extent), seed=int(seed), near=float(near))
+    if world.size > 1:
+        dev = world.device(device)
+        tensors = {"images": train_images, **{f"prims.{n}": t for n, t in prims.tensors().items()}}
+        tensors.update({f"camera{k}.c2w": c.c2w for k, c in enumerate(train_cameras)})
+        if masks is not None:
+            tensors["masks"] = masks
+        if alphas is not None:
+            tensors["alphas"] = alphas
+        if start_state is not None:
+            tensors.update({f"start.{n}": t for n, t in state_tensors(start_state).items()})
+        meta = {"cfg": cfg, "kwargs": kwargs, "device": dev.type, "kind": prims.kind,
+                "omega0": getattr(prims, "omega0", None),
+                "window": getattr(prims, "window", False), "timeout": world.timeout, "check_every": world.check_every,
+                "cameras": [{f.name: getattr(c, f.name) for f in fields(c) if f.name != "c2w"} for c in train_cameras],
+                "start": None if start_state is None else
+                {"step": start_state.step, "kind": start_state.kind, "omega0": start_state.omega0,
+                 "window": start_state.window}}
+        distributed.send("train", meta, tensors)
+        distributed.start_training(world, dev)
+        device = dev
+    return train(prims, train_cameras, train_images, cfg, device=device, start_state=start_state, masks=masks,
+                 alphas=alphas, on_step=on_step, held_out=held_out, checkpoint=checkpoint, world=world, **kwargs)
+
+
+def follow() -> bool:
+    """A rank other than 0: train whenever rank 0 says so, until it says it is done (True) or
+    that it failed (False: it reports the error itself)."""
+    world = distributed.current()
+    while True:
+        kind, meta, tensors = distributed.receive()
+        if kind != "train":
+            return kind == "done"
+        world.timeout, world.check_every = meta["timeout"], meta["check_every"]
+        device = world.device(meta["device"])
+        cameras = [Camera(**c, c2w=tensors[f"camera{k}.c2w"]) for k, c in enumerate(meta["cameras"])]
+        prim_tensors = {n.removeprefix("prims."): t for n, t in tensors.items() if n.startswith("prims.")}
+        prims = NeuralPrimitives(**prim_tensors, omega0=meta["omega0"], window=meta["window"]) if meta["kind"] == "neural" \
+            else Gaussians(**prim_tensors)
+        start = meta["start"]
+        start_state = None if start is None else state_from_tensors(
+            start, {n.removeprefix("start."): t for n, t in tensors.items() if n.startswith("start.")})
+        distributed.start_training(world, device)
+        train(prims, cameras, tensors["images"], meta["cfg"], device=device, start_state=start_state,
+              masks=tensors.get("masks"), alphas=tensors.get("alphas"), world=world, **meta["kwargs"])
+        del tensors, prims, start_state
+        if device.type == "cuda":
+            torch.cuda.empty_cache()

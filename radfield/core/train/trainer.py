@@ -1,0 +1,389 @@
+"""The optimisation loop: primitives, cameras, images and the `train` config section in, trained
+primitives out. A pure library: no pipeline, no files except through the checkpoint helpers.
+
+Per step (3DGS's recipe with Splat the Net's regulariser, §3.3 and appendix A):
+    loss = (1 − λ) L1 + λ D-SSIM + λ_aniso · mean std(s / min(s))
+           [+ λ_w1 · mean ‖W1‖²_F + λ_density · mean (‖W2‖₁ + |b2|), neural primitives]
+over `batch_views` training views (each view's photometric loss weighted 1/batch_views); Adam
+with one group per parameter tensor (means' rate × scene extent, decaying exponentially to
+`means_lr_final_ratio` of it at the last step); the active SH degree rises by one every
+`sh_increase_every` steps; population control by radfield.core.train.strategy after the step, then
+(neural) the frequency cap of radfield.core.train.frequency (`frequency_cap`) projects W1's rows,
+with `nonnegative_density` radfield.core.train.positivity projects (W2, b2) so that σ ≥ 0 everywhere
+in the primitives whose training views lie in a narrow cone, and the footprint floor of
+radfield.core.render.antialias (`min_footprint`) raises scales below k pixels.
+With `ray_jitter` every training view is rendered with its principal point moved by a random
+sub-pixel offset (radfield.core.render.antialias): the pixels' rays sample their whole area over the run.
+
+Views with a valid-pixel mask (undistorted photos) are measured on their valid pixels only (the
+loss and the per-step PSNR, radfield.core.train.losses). With `random_background` and RGBA training
+views (`alphas`), every view of a step is composited on a fresh uniformly random colour, and
+rendered over it: a transparent pixel then has no fixed colour to be fitted by floaters. Every
+`eval_every` steps and at the last, `held_out(primitives)` (e.g. the PSNR of held-out views) is
+reported as info["test_psnr"]: for information only, it changes nothing in training.
+
+Continuing: a start_state of a finished run (its step s < the new cfg["iterations"] N) goes on
+from step s with its parameters, Adam moments and strategy accumulators, under the schedules of
+an N-step run: the means' rate is lr0 · r^(t / (N − 1)) at step t (so at step s it is back up to
+lr0 · r^(s / (N − 1)) and decays to lr0 · r at step N − 1), the SH degree and densification
+follow their step thresholds as in an N-step run. It is not the same as a fresh N-step run.
+
+Randomness (view order, split children, ray jitter) is drawn from generators seeded by (seed, step), so a
+run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
+moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
+run bit for bit on the CPU. Checkpoints are safetensors files with a JSON header, never pickles.
+
+Data parallel (`world`, radfield.core.train.distributed.StepSync): each rank renders its share of the
+step's views, one all-reduce sums the gradients and the strategy's per-step increments, and every
+rank applies the same step; with one rank the hooks are the identity.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
+
+from radfield.core.render.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
+from radfield.util.atomic import atomic_write
+from radfield.core.geometry.cameras import Camera
+from radfield.core.train.distributed import StepSync, World
+from radfield.errors import RadfieldError
+from radfield.core.train.frequency import FrequencyCap
+from radfield.core.train.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
+from radfield.core.train.positivity import NonNegativeDensity
+from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core.render.sh import join_sh, num_sh_coeffs
+from radfield.core.train.strategy import make_strategy
+
+CHECKPOINT_FORMAT = "radfield-checkpoint"
+CHECKPOINT_VERSION = 1
+ADAM_EPS = 1e-15  # as 3DGS: the moments of tiny gradients (SH rest, MLP) still move the parameters
+
+GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
+PARAM_NAMES = {"neural": GEOMETRY + ("w1", "b1", "w2", "b2"), "gaussian": GEOMETRY + ("opacities",)}
+LR_KEYS = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}  # param name -> train.lr key, if not its own
+
+_VIEWS, _REFINE, _BACKGROUND, _JITTER = 0, 1, 2, 3  # random streams
+
+
+@dataclass
+class TrainState:
+    """A snapshot of training after `step` optimiser steps.
+
+    params: {name: (P, ...) tensor}, the names of PARAM_NAMES[kind]; SH is split into sh_dc
+    (P, 1, 3) and sh_rest (P, K−1, 3) because they learn at different rates.
+    moments: {name: {"exp_avg", "exp_avg_sq", "step"}}, Adam's state per parameter.
+    strategy: the population-control accumulators {name: (P,)}.
+    """
+
+    step: int
+    kind: str
+    omega0: float | None
+    params: dict[str, torch.Tensor]
+    moments: dict[str, dict[str, torch.Tensor]]
+    strategy: dict[str, torch.Tensor]
+    window: bool = False   # neural: the density window (primitives.density_window)
+
+    def primitives(self) -> NeuralPrimitives | Gaussians:
+        """The trained primitives (detached), SH bands merged back."""
+        return assemble(self.params, self.kind, self.omega0, self.window).map(lambda t: t.detach().clone())
+
+
+def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], train_images: torch.Tensor,
+          cfg: dict, *, background: Sequence[float], extent: float, seed: int, device: str | torch.device = "cpu",
+          near: float = 0.01, max_pairs: int = 1 << 20, start_state: TrainState | None = None,
+          masks: torch.Tensor | None = None, alphas: torch.Tensor | None = None,
+          on_step: Callable[[int, dict], None] | None = None,
+          held_out: Callable[[NeuralPrimitives | Gaussians], float] | None = None,
+          checkpoint: Callable[[TrainState], None] | None = None, world: World | None = None) -> TrainState:
+    """Optimise `prims` against the views for cfg["iterations"] steps; returns the final state
+    (`.primitives()` is the trained model).
+
+    prims: the initial primitives (also when resuming: population control needs their count).
+    train_images: (N, H, W, 3) float in [0, 1], matching train_cameras.
+    masks: (N, H, W) bool valid pixels of each image, or None (all valid).
+    alphas: (N, H, W) alpha of RGBA images (train_images are composited on `background`), or
+    None; with cfg["random_background"] they are recomposited on a random colour every step.
+    cfg: the `train` config section (pipeline.yaml documents every key), and "supersample" (optional,
+    default 1): render.supersample, each training view rendered with n × n rays per pixel.
+    extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
+    start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
+    on_step(step, info): after every step; info has loss, psnr (of this step's views), primitives
+    and what population control did (and test_psnr on the steps held_out was measured).
+    held_out(primitives): measured every cfg["eval_every"] steps (0: never) and at the last step.
+    checkpoint(state): every cfg["checkpoint_every"] steps before the last.
+    world: the ranks of a data-parallel training (radfield.core.train.distributed; None: this process
+    alone). Each rank then renders its share of the step's views and the gradients are summed
+    over the ranks before the Adam step, so every rank holds the same model (radfield.core.train.dataparallel).
+    """
+    if len(train_cameras) != len(train_images) or not len(train_cameras):
+        raise ValueError(f"training needs one image per camera, got {len(train_cameras)} cameras "
+                         f"and {len(train_images)} images")
+    max_primitives = cfg["max_primitives"]
+    if max_primitives is not None and len(prims) > max_primitives:
+        raise ValueError(f"{len(prims)} initial primitives exceed train.max_primitives={max_primitives}")
+    device = torch.device(device)
+    images = train_images.to(device=device, dtype=torch.float32)
+    masks = None if masks is None else masks.to(device=device, dtype=torch.bool)
+    alphas = None if alphas is None or not cfg["random_background"] else alphas.to(device=device,
+                                                                                  dtype=torch.float32)
+    state = start_state or initial_state(prims, cfg["sh_degree"])
+    params = {name: state.params[name].detach().to(device).clone().requires_grad_(True)
+              for name in PARAM_NAMES[state.kind]}
+    optimizer = make_optimizer(params, cfg["lr"], extent)
+    _load_moments(optimizer, state.moments, device)
+    strategy = make_strategy(state.kind, cfg["densify"], extent=extent, near=near, max_primitives=max_primitives,
+                             initial_count=len(prims), pixels=images.shape[1] * images.shape[2])
+    accumulators = {k: v.to(device) for k, v in state.strategy.items()} or strategy.init_state(len(prims), device)
+    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
+    iterations, batch = cfg["iterations"], cfg["batch_views"]
+    supersample = cfg.get("supersample", 1)  # render.supersample, put into cfg by the train stage
+    means_lr = cfg["lr"]["means"] * extent
+    sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
+    sync.check(params, state.step, first=True)
+    # neural: each W1 row's frequency stays below the primitive's pixel footprint (core/train/frequency.py)
+    cap = FrequencyCap.for_training(train_cameras, cfg, omega0=state.omega0, near=near)
+    cap.apply(params, state.step)
+    # neural: σ ≥ 0 everywhere in primitives seen from a narrow cone of views (core/train/positivity.py)
+    positive = NonNegativeDensity.for_training(train_cameras, cfg, kind=state.kind, near=near)
+    positive.apply(params, state.step)
+    floor = FootprintFloor.for_training(train_cameras, cfg, near=near)  # anti-aliasing (core/render/antialias.py)
+    floor.apply(params, state.step)
+
+    for step in range(state.step, iterations):
+        optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
+        degree = min(cfg["sh_degree"], step // cfg["sh_increase_every"])
+        regulariser = regularisers(params, cfg) if sync.rank == 0 else None  # counted once over the ranks
+        if regulariser is not None:
+            regulariser.backward()
+        loss_sum = psnr_sum = 0.0
+        backgrounds = None if alphas is None else torch.rand(batch, 3, generator=generator(seed, _BACKGROUND, step))
+        offsets = jitter_offsets(cfg["ray_jitter"], batch, generator(seed, _JITTER, step))
+        gathering = strategy.gathering(step + 1)
+        gathered = sync.gather_into(accumulators, gathering)
+        tracked = strategy.grad_names if gathering else ()   # accumulate reads nothing otherwise
+        # k: the view's place in the whole batch (its random background), the same on every rank
+        for k, view in sync.share(list(enumerate(views_for_step(seed, step, batch, len(train_cameras))))):
+            before = {n: None if params[n].grad is None else params[n].grad.clone() for n in tracked}
+            view_bg, target = bg, images[view]
+            if backgrounds is not None:  # the same RGBA pixels "over" another colour
+                view_bg = backgrounds[k].to(device)
+                target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
+            camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
+            out = render_supersampled(assemble(params, state.kind, state.omega0, state.window), camera, supersample,
+                                      background=view_bg, near=near, sh_degree=degree, max_pairs=max_pairs)
+            mask = None if masks is None else masks[view]
+            loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
+            (loss / batch).backward()
+            # this view's own gradients (unscaled), what the densification statistics measure
+            grads = {n: own_gradient(params[n].grad, before[n], batch) for n in tracked}
+            strategy.accumulate(gathered, params, grads, camera, step + 1)
+            loss_sum += float(loss.detach())
+            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), target, mask))
+        loss_sum, psnr_sum = sync.reduce(params, accumulators, loss_sum, psnr_sum, step + 1)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
+        cap.apply(params, step + 1)
+        positive.apply(params, step + 1)
+        floor.apply(params, step + 1)
+        sync.check(params, step + 1)
+        info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
+        every = cfg["eval_every"]
+        if held_out is not None and ((every and (step + 1) % every == 0) or step + 1 == iterations):
+            with torch.no_grad():
+                info["test_psnr"] = float(held_out(assemble(params, state.kind, state.omega0, state.window).map(torch.Tensor.detach)))
+        if on_step is not None:
+            on_step(step + 1, info)
+        if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
+            checkpoint(snapshot(step + 1, state, params, optimizer, accumulators))
+    return snapshot(max(iterations, state.step), state, params, optimizer, accumulators)
+
+
+def own_gradient(total: torch.Tensor, before: torch.Tensor | None, batch: int) -> torch.Tensor:
+    """One view's gradient, unscaled, from the accumulated `total` and the `before` it (None: no
+    gradient yet): (total − before) · batch. Without an earlier gradient and with one view a step
+    that is `total` itself, returned without the two copies (the same values, bit for bit)."""
+    own = total if before is None else total - before
+    return own if batch == 1 else own * batch
+
+
+def regularisers(params: dict[str, torch.Tensor], cfg: dict) -> torch.Tensor | None:
+    """The weighted geometry and density regularisers of a step (None when all are off): the
+    anisotropy of the scales, and for neural primitives the frequency (‖W1‖²) and density
+    (‖W2‖₁ + |b2|) magnitudes (radfield.core.train.losses)."""
+    terms = []
+    if cfg["lambda_aniso"] > 0:
+        terms.append(cfg["lambda_aniso"] * anisotropy(params["log_scales"]))
+    if "w1" in params and cfg["lambda_w1"] > 0:
+        terms.append(cfg["lambda_w1"] * frequency_magnitude(params["w1"]))
+    if "w2" in params and cfg["lambda_density"] > 0:
+        terms.append(cfg["lambda_density"] * density_magnitude(params["w2"], params["b2"]))
+    return sum(terms) if terms else None
+
+
+# --- parameters and optimiser ----------------------------------------------------------------
+
+def initial_state(prims: NeuralPrimitives | Gaussians, sh_degree: int) -> TrainState:
+    """Step 0: the parameters of prims, SH padded with zeros (or cut) to `sh_degree`."""
+    k = num_sh_coeffs(sh_degree)
+    sh = prims.sh[:, :k]
+    sh = torch.cat([sh, sh.new_zeros(len(prims), k - sh.shape[1], 3)], 1)
+    tensors = prims.tensors()
+    params = {name: sh[:, :1] if name == "sh_dc" else sh[:, 1:] if name == "sh_rest" else tensors[name]
+              for name in PARAM_NAMES[prims.kind]}
+    omega0 = prims.omega0 if isinstance(prims, NeuralPrimitives) else None
+    return TrainState(0, prims.kind, omega0, {n: t.detach().clone() for n, t in params.items()}, {}, {},
+                      window=getattr(prims, "window", False))
+
+
+def assemble(params: dict[str, torch.Tensor], kind: str, omega0: float | None,
+             window: bool = False) -> NeuralPrimitives | Gaussians:
+    """Primitives built from the parameter tensors (differentiable: no copies)."""
+    tensors = {n: t for n, t in params.items() if n not in ("sh_dc", "sh_rest")}
+    sh = join_sh(params["sh_dc"], params["sh_rest"])   # the fused renderer reads the two parts (core/render/sh.py)
+    return NeuralPrimitives(**tensors, sh=sh, omega0=omega0, window=window) if kind == "neural" else Gaussians(**tensors, sh=sh)
+
+
+def make_optimizer(params: dict[str, torch.Tensor], lr: dict, extent: float) -> torch.optim.Adam:
+    """Adam with one named group per parameter, in the order of `params` (means first: the loop
+    schedules the rate of group 0)."""
+    groups = [{"params": [t], "name": n, "lr": lr[LR_KEYS.get(n, n)] * (extent if n == "means" else 1.0)}
+              for n, t in params.items()]
+    # the fused CPU Adam: one pass per tensor instead of ~10 ops (5 ms → 1.5 ms a step at 10k primitives)
+    fused = all(t.device.type == "cpu" for t in params.values())
+    return torch.optim.Adam(groups, eps=ADAM_EPS, fused=fused or None)
+
+
+def decayed(lr: float, final_ratio: float, step: int, iterations: int) -> float:
+    """Exponential decay from lr at step 0 to lr · final_ratio at the last step (3DGS's means schedule)."""
+    t = min(step / max(iterations - 1, 1), 1.0)
+    return lr * final_ratio**t
+
+
+def generator(seed: int, stream: int, index: int) -> torch.Generator:
+    """An independent CPU generator for (seed, stream, index): randomness as a function of the step."""
+    entropy = np.random.SeedSequence([seed, stream, index]).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(entropy[0]) << 32 | int(entropy[1]))
+
+
+def views_for_step(seed: int, step: int, batch: int, num_views: int) -> list[int]:
+    """The training views of a step: the views are walked in a fresh random order every epoch
+    (as 3DGS's viewpoint stack); the batch of step s covers positions s·batch ... s·batch + batch − 1."""
+    out = []
+    for k in range(step * batch, step * batch + batch):
+        epoch, position = divmod(k, num_views)
+        out.append(int(torch.randperm(num_views, generator=generator(seed, _VIEWS, epoch))[position]))
+    return out
+
+
+def snapshot(step: int, state: TrainState, params: dict, optimizer: torch.optim.Adam, accumulators: dict) -> TrainState:
+    """The live training objects as a TrainState (shares tensors; save or clone it before training goes on)."""
+    moments = {}
+    for group in optimizer.param_groups:
+        adam = optimizer.state.get(group["params"][0])
+        if adam:
+            moments[group["name"]] = {k: adam[k] for k in ("exp_avg", "exp_avg_sq", "step")}
+    return TrainState(step, state.kind, state.omega0, {n: p.detach() for n, p in params.items()}, moments,
+                      dict(accumulators), window=state.window)
+
+
+def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
+    for group in optimizer.param_groups:
+        if group["name"] in moments:
+            saved = moments[group["name"]]
+            optimizer.state[group["params"][0]] = {
+                "step": saved["step"].detach().clone().cpu(),  # Adam keeps its step count on the CPU
+                "exp_avg": saved["exp_avg"].detach().to(device).clone(),
+                "exp_avg_sq": saved["exp_avg_sq"].detach().to(device).clone(),
+            }
+
+
+# --- checkpoints -----------------------------------------------------------------------------
+
+def save_checkpoint(path: str | Path, state: TrainState, note: dict | None = None) -> None:
+    """Write a TrainState atomically as one safetensors file: tensors param.NAME, adam.NAME.KEY,
+    strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind,
+    omega0, window, note} (`note`: the caller's own JSON, e.g. what the state is valid for)."""
+    path = Path(path)
+    tensors = {k: t.detach().cpu().contiguous() for k, t in state_tensors(state).items()}
+    # one metadata key: safetensors writes several in a random order, and equal states should
+    # give equal bytes
+    header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
+              "omega0": state.omega0, "window": state.window, "note": note}
+    meta = {CHECKPOINT_FORMAT: json.dumps(header, sort_keys=True)}
+    atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
+
+
+def checkpoint_header(path: str | Path) -> dict:
+    """The JSON header of a checkpoint (step, kind, omega0, note) without reading its tensors."""
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            header = json.loads((f.metadata() or {}).get(CHECKPOINT_FORMAT, "{}"))
+    except (OSError, ValueError, SafetensorError) as error:
+        raise RadfieldError(f"{path}: unreadable checkpoint ({error}); remove it to start over") from None
+    if header.get("format") != CHECKPOINT_FORMAT or header.get("version") != CHECKPOINT_VERSION:
+        raise RadfieldError(f"{path}: not a version {CHECKPOINT_VERSION} radfield checkpoint")
+    return header
+
+
+def load_checkpoint(path: str | Path) -> TrainState:
+    """Read a checkpoint written by save_checkpoint (tensors on the CPU)."""
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            header = json.loads((f.metadata() or {}).get(CHECKPOINT_FORMAT, "{}"))
+            if header.get("format") != CHECKPOINT_FORMAT or header.get("version") != CHECKPOINT_VERSION:
+                raise RadfieldError(f"{path}: not a version {CHECKPOINT_VERSION} radfield checkpoint")
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (OSError, ValueError, KeyError, SafetensorError) as error:
+        raise RadfieldError(f"{path}: unreadable checkpoint ({error}); remove it to start over") from None
+    return state_from_tensors(header, tensors)
+
+
+def state_tensors(state: TrainState) -> dict[str, torch.Tensor]:
+    """The tensors of a TrainState by checkpoint name: param.NAME, adam.NAME.KEY, strategy.NAME."""
+    tensors = {f"param.{n}": t for n, t in state.params.items()}
+    tensors.update({f"adam.{n}.{k}": t for n, m in state.moments.items() for k, t in m.items()})
+    tensors.update({f"strategy.{n}": t for n, t in state.strategy.items()})
+    return tensors
+
+
+def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainState:
+    """Inverse of state_tensors; header holds step, kind and omega0."""
+    params, moments, strategy = {}, {}, {}
+    for key, t in tensors.items():
+        section, _, rest = key.partition(".")
+        if section == "param":
+            params[rest] = t
+        elif section == "adam":
+            name, _, field = rest.rpartition(".")
+            moments.setdefault(name, {})[field] = t
+        else:
+            strategy[rest] = t
+    return TrainState(header["step"], header["kind"], header["omega0"], params, moments, strategy,
+                      window=bool(header.get("window", False)))
+
+
+def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
+              background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20,
+              masks: torch.Tensor | None = None, supersample: int | None = None) -> float:
+    """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3) (over the
+    valid pixels of masks (N, H, W), when given), rendered with `supersample` × `supersample` rays
+    per pixel (default: the model's own, prims.supersample)."""
+    supersample = prims.supersample if supersample is None else supersample
+    total = 0.0
+    with torch.no_grad():
+        for k, (camera, image) in enumerate(zip(cameras, images)):
+            color = render_supersampled(prims, camera, supersample, background=background, near=near,
+                                        max_pairs=max_pairs).color
+            mask = None if masks is None else masks[k].to(color.device)
+            total += float(psnr(color.clamp(0, 1), image.to(color), mask))
+    return total / len(cameras) if len(cameras) else math.nan

@@ -1,0 +1,370 @@
+"""A dataset described once, for every later stage: the scene.json and points.npz the data stage
+writes (RUN/data/), read back as a Scene (cameras, splits, normalisation; images load lazily).
+
+``scene.json``::
+
+    {"version": 1, "format": "nerf_synthetic" | "nerfstudio" | "colmap" | "images",
+     "root": "/abs/dataset", "posed": true, "downscale": 1, "background": [r, g, b],
+     "normalization": {"center": [x, y, z], "scale": k} | null,   # null until posed
+     "extent": e | null,
+     "splits": {"train": [VIEW, ...], "test": [VIEW, ...], "val": [...] (when the dataset has one)}}
+
+    VIEW = {"name", "image": "/abs/file", "fx", "fy", "cx", "cy", "width", "height",
+            "c2w": 4x4 list, "file_width", "file_height", "distortion": [k1, k2, p1, p2(, k3)] | null}
+
+Cameras are OpenCV (x right, y down, z forward) camera-to-world in the dataset's own world frame
+(for photos: the sfm stage's output, a COLMAP dataset in its normalised frame, is the dataset);
+intrinsics and width/height are at the downscaled resolution (file_width/file_height and
+distortion describe the file, so images reload exactly as the readers load them). Unposed photos
+(format "images") have "posed": false and views with only name, image, width, height,
+file_width, file_height: the sfm stage poses them.
+
+Normalisation (used internally by training; every artifact stays in the world frame):
+x_norm = (x − center) · scale. `center` is the median of the SfM points when there are any
+(robust to stray points), else the point closest to all the train cameras' optical axes when they
+converge (object-centric captures: the middle of the object, where the mean of the camera centres
+would sit above it for a hemisphere of views), else the mean of the train camera centres.
+`scale` puts every train camera within radius 1 of the centre. `extent` = 1.1 × that radius, in
+world units (3DGS's camera extent; 1.1 in normalised units).
+
+Splits: the dataset's own (NeRF-synthetic split files, nerfstudio *_filenames lists), else every
+`data.test_every`-th view by file name is a test view (the LLFF protocol). With `data.val_every`
+N > 0 (and no val split of the dataset's own) every N-th training view becomes a "val" view,
+left out of training: tuning and selection look at val, never at test.
+
+``points.npz``: `xyz`, `rgb` (P×3 float32, world frame; SfM points, empty when the dataset has
+none) and `mesh_vertices`, `mesh_rgb`, `mesh_faces` (the dataset's `mesh.ply`: vertices, their
+colours in [0, 1] and triangles (F×3 int64); empty when there is no mesh, `mesh_rgb` also when the
+mesh has no colours, `mesh_faces` when it is a point cloud).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+
+from radfield.core.geometry.cameras import Camera
+from radfield.errors import RadfieldError
+from radfield.datasets.images import downscaled_size, image_size
+from radfield.datasets.readers import SPLITS, Dataset, View, detect_format, load_dataset, validate
+from radfield.datasets.transforms import read_json
+
+SCENE = "scene.json"
+POINTS = "points.npz"
+MESH = "mesh.ply"  # a dataset's own mesh (our synthetic scenes ship one), used to initialise
+FORMAT_VERSION = 1
+
+
+# --- describing a dataset -----------------------------------------------------------------------
+
+
+def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The scene.json content and points.npz arrays of the dataset at `path` under the `data`
+    config section. Reads every image header: any problem is a RadfieldError naming the file."""
+    path = Path(path).resolve()
+    _check_data(data)
+    background = tuple(data["background"])
+    splits = _splits(path, data["downscale"], background, data["test_every"], data["val_every"])
+    for dataset in splits.values():
+        validate(dataset)
+    train = splits["train"]
+    points = _points(train)
+    scene = {
+        "version": FORMAT_VERSION,
+        "format": train.format,
+        "root": str(train.root),
+        "posed": train.posed,
+        "downscale": train.downscale,
+        "background": list(background),
+        "normalization": None,
+        "extent": None,
+        "splits": {name: [_view_json(d, view) for view in d.views] for name, d in splits.items()},
+    }
+    if train.posed:
+        center, radius = _normalization(train.cameras, points["xyz"])
+        scene["normalization"] = {"center": center.tolist(), "scale": 1.0 / radius}
+        scene["extent"] = 1.1 * radius
+    return scene, points
+
+
+def _splits(path: Path, downscale: int, background: tuple, test_every: int, val_every: int = 0) -> dict[str, Dataset]:
+    """{"train", "test"[, "val"]: Dataset}: the dataset's own split when it has one, else every
+    `test_every`-th view (sorted by file name) held out for testing. Then, when val_every > 0 and
+    the dataset has no val split of its own, every val_every-th training view (the N-th, 2N-th, ...)
+    leaves train for a validation split: what tuning and model selection may look at."""
+    fmt = detect_format(path)
+    native = _native_splits(path, fmt)
+    if native:
+        splits = {split: load_dataset(path, split, downscale, background) for split in native}
+    else:
+        everything = load_dataset(path, "all", downscale, background)
+        views = everything.views
+        if len(views) < 2:
+            raise RadfieldError(f"{path}: {len(views)} image; a reconstruction needs at least 2 (train and test)")
+        train = tuple(view for k, view in enumerate(views) if k % test_every)
+        splits = {"train": replace(everything, split="train", views=train),
+                  "test": replace(everything, split="test", views=views[::test_every])}
+    if val_every > 0 and "val" not in splits:
+        train = splits["train"]
+        held = {k for k in range(len(train.views)) if (k + 1) % val_every == 0}
+        if len(held) == len(train.views) or not held:
+            raise RadfieldError(f"data.val_every={val_every} leaves no training or no validation view "
+                                f"({len(train.views)} training views)")
+        splits["train"] = replace(train, views=tuple(v for k, v in enumerate(train.views) if k not in held))
+        splits["val"] = replace(train, split="val", views=tuple(v for k, v in enumerate(train.views) if k in held))
+    return splits
+
+
+def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
+    """One split ('train' | 'val' | 'test' | 'all') of the dataset at `path`, as a run with the
+    `data` config section sees it (what `radfield render` uses): a split the dataset defines
+    itself (a transforms_SPLIT.json, nerfstudio's SPLIT_filenames) is read as it is; otherwise
+    every `data.test_every`-th view by file name is the test split and the rest train, as the data
+    stage splits it; with data.val_every > 0, val is carved out of train likewise. Images are
+    downscaled by data.downscale and composited on data.background."""
+    path = Path(path).resolve()
+    if split not in SPLITS:
+        raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
+    _check_data(data)
+    downscale, background = data["downscale"], tuple(data["background"])
+    fmt = detect_format(path)
+    present = _present_splits(path, fmt)
+    carved = data["val_every"] > 0 and "val" not in present and split in ("train", "val")  # val cut from train
+    if split == "all" or (split in present and not carved):
+        return load_dataset(path, split, downscale, background)
+    splits = _splits(path, downscale, background, data["test_every"], data["val_every"])
+    if split not in splits:
+        raise RadfieldError(f"{path}: the dataset has no {split!r} split (it has {', '.join(splits)}; "
+                            "data.val_every > 0 makes a val split of the training views)")
+    return splits[split]
+
+
+def _check_data(data: dict[str, Any]) -> None:
+    for key, least in (("downscale", 1), ("test_every", 2), ("val_every", 0)):
+        if data[key] < least:
+            raise RadfieldError(f"config key data.{key} must be at least {least}, got {data[key]}")
+    if not all(0.0 <= c <= 1.0 for c in data["background"]):
+        raise RadfieldError(f"config key data.background must hold numbers in [0, 1], got {list(data['background'])}")
+
+
+def _present_splits(path: Path, fmt: str) -> list[str]:
+    """The splits the dataset's files name (any of train, val, test)."""
+    if fmt == "nerf_synthetic":
+        return [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
+    if fmt == "nerfstudio":
+        meta = read_json(path if path.is_file() else path / "transforms.json")
+        return [s for s in ("train", "val", "test") if f"{s}_filenames" in meta]
+    return []
+
+
+def _native_splits(path: Path, fmt: str) -> list[str]:
+    """The splits the dataset defines itself (empty when it defines no train/test split)."""
+    present = _present_splits(path, fmt)
+    return present if {"train", "test"} <= set(present) else []
+
+
+def _view_json(dataset: Dataset, view: View) -> dict[str, Any]:
+    if view.camera is None:
+        file_width, file_height = image_size(view.image_path)
+        width, height = downscaled_size(file_width, file_height, dataset.downscale)
+        return {"name": view.image_path.stem, "image": str(view.image_path), "width": width, "height": height,
+                "file_width": file_width, "file_height": file_height}
+    cam = view.camera.scaled(1 / dataset.downscale)
+    return {
+        "name": cam.name or view.image_path.stem,
+        "image": str(view.image_path),
+        "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+        "width": cam.width, "height": cam.height,
+        "c2w": cam.c2w.tolist(),
+        "file_width": view.camera.width, "file_height": view.camera.height,
+        "distortion": None if view.distortion is None else [float(k) for k in view.distortion],
+    }
+
+
+def _points(train: Dataset) -> dict[str, np.ndarray]:
+    """SfM points of the dataset (the readers load them with every split) and its mesh's vertices."""
+    empty = np.zeros((0, 3), np.float32)
+    xyz, rgb = (empty, empty) if train.points is None else (train.points.xyz.numpy(), train.points.rgb.numpy())
+    mesh = _read_mesh(train.root / MESH) if (train.root / MESH).is_file() else {
+        "mesh_vertices": empty, "mesh_rgb": empty, "mesh_faces": np.zeros((0, 3), np.int64)}
+    return {"xyz": xyz.astype(np.float32), "rgb": rgb.astype(np.float32), **mesh}
+
+
+def _read_mesh(path: Path) -> dict[str, np.ndarray]:
+    """`mesh_vertices` (V, 3), `mesh_rgb` (V, 3) in [0, 1] or (0, 3) without colours, and
+    `mesh_faces` (F, 3) triangles (quads split in two; (0, 3) for a point cloud) of a mesh file."""
+    import meshio
+
+    try:
+        mesh = meshio.read(path)
+    except Exception as error:  # meshio raises many kinds (ReadError, ValueError, struct.error)
+        message = " ".join(str(error).split()) or type(error).__name__
+        raise RadfieldError(f"{path}: cannot read mesh ({message})") from None
+    cells = mesh.cells_dict
+    quads = cells.get("quad", np.zeros((0, 4), np.int64))
+    faces = np.concatenate([cells.get("triangle", np.zeros((0, 3), np.int64)), quads[:, :3], quads[:, [0, 2, 3]]])
+    channels = [mesh.point_data.get(name) for name in ("red", "green", "blue")]
+    if any(c is None for c in channels):
+        rgb = np.zeros((0, 3), np.float32)
+    else:
+        # meshio reads PLY `uchar` properties as int8: reinterpret the bytes
+        rgb = np.stack([c.view(np.uint8) if c.dtype == np.int8 else c for c in channels], -1)
+        rgb = rgb / 255.0 if np.issubdtype(rgb.dtype, np.integer) else rgb
+    return {"mesh_vertices": np.asarray(mesh.points, dtype=np.float32)[:, :3],
+            "mesh_rgb": np.clip(rgb, 0.0, 1.0).astype(np.float32),
+            "mesh_faces": faces.astype(np.int64)}
+
+
+def _normalization(cameras: list[Camera], points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centre and the radius of the train cameras around it (see the module docstring)."""
+    centres = np.stack([cam.center.numpy() for cam in cameras])
+    if len(points):
+        center = np.median(points.astype(np.float64), axis=0)
+    else:
+        focus = _focus_point(cameras)
+        center = centres.mean(axis=0) if focus is None else focus
+    radius = float(np.linalg.norm(centres - center, axis=1).max())
+    return center, radius if radius > 1e-9 else 1.0  # a single camera position: keep world units
+
+
+def _focus_point(cameras: list[Camera]) -> np.ndarray | None:
+    """The point nearest to every optical axis in the least-squares sense, or None when the axes
+    are close to parallel (forward-facing rigs) or the point is not in front of the cameras."""
+    c2w = np.stack([cam.c2w.numpy() for cam in cameras])
+    origins, axes = c2w[:, :3, 3], c2w[:, :3, 2]
+    projectors = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # onto each axis' normal plane
+    a, b = projectors.sum(0), (projectors @ origins[:, :, None]).sum(0)[:, 0]
+    # axes spread by less than ~20 degrees leave a nearly singular system
+    if np.linalg.eigvalsh(a)[0] < 0.1 * len(cameras):
+        return None
+    point = np.linalg.solve(a, b)
+    in_front = np.einsum("ij,ij->i", point - origins, axes) > 0
+    return point if in_front.mean() >= 0.9 else None
+
+
+# --- reading scene.json back --------------------------------------------------------------------
+
+
+class Normalization(NamedTuple):
+    """x_norm = (x − center) · scale; `center` (3,) float64 in world units."""
+
+    center: torch.Tensor
+    scale: float
+
+    def apply(self, xyz: torch.Tensor) -> torch.Tensor:
+        """World points (..., 3) -> normalised frame."""
+        return (xyz - self.center.to(xyz)) * self.scale
+
+    def invert(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Normalised points (..., 3) -> world frame."""
+        return xyz / self.scale + self.center.to(xyz)
+
+    def camera(self, camera: Camera) -> Camera:
+        """The same view in the normalised frame (rotation and intrinsics unchanged)."""
+        c2w = camera.c2w.clone()
+        c2w[:3, 3] = self.apply(c2w[:3, 3])
+        return replace(camera, c2w=c2w)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What scene.json describes; images load lazily through the dataset readers."""
+
+    path: Path
+    format: str
+    root: Path
+    posed: bool
+    downscale: int
+    background: tuple[float, float, float]
+    normalization: Normalization | None
+    extent: float | None  # world units
+    splits: dict[str, list[dict[str, Any]]]
+
+    def views(self, split: str) -> list[dict[str, Any]]:
+        if split not in self.splits:
+            raise RadfieldError(f"{self.root}: the dataset has no {split!r} split (it has {', '.join(self.splits)})")
+        return self.splits[split]
+
+    def cameras(self, split: str) -> list[Camera]:
+        if not self.posed:
+            raise RadfieldError(f"{self.root}: the photos have no camera poses (the sfm stage poses them)")
+        return [_camera(view) for view in self.views(split)]
+
+    def dataset(self, split: str) -> Dataset:
+        """The readers' Dataset of a split (loads images one by one: `load_image(i)`)."""
+        views = tuple(_dataset_view(view) for view in self.views(split))
+        return Dataset(self.root, self.format, split, views, self.downscale, self.background)
+
+    def load_images(self, split: str) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """RGB (N, H, W, 3) float32 composited on the background, and alpha (N, H, W) or None."""
+        return self.dataset(split).load_images()
+
+    @property
+    def train_cameras(self) -> list[Camera]:
+        return self.cameras("train")
+
+    @property
+    def test_cameras(self) -> list[Camera]:
+        return self.cameras("test")
+
+    def valid_masks(self, split: str) -> torch.Tensor | None:
+        """Valid pixels (N, H, W) bool of a split's undistorted images, or None when no view has
+        lens distortion (every pixel valid): training and evaluation measure these pixels only."""
+        return self.dataset(split).load_valid_masks()
+
+    def train_images(self) -> torch.Tensor:
+        return self.load_images("train")[0]
+
+    def test_images(self) -> torch.Tensor:
+        return self.load_images("test")[0]
+
+
+def load_scene(path: Path) -> Scene:
+    """Read a scene.json written by the data stage."""
+    path = Path(path)
+    try:
+        scene = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise RadfieldError(f"{path}: cannot read scene description ({error})") from None
+    if not isinstance(scene, dict) or scene.get("version") != FORMAT_VERSION:
+        raise RadfieldError(f"{path}: not a version {FORMAT_VERSION} scene description")
+    return scene_from_json(scene, path)
+
+
+def scene_from_json(scene: dict[str, Any], path: Path) -> Scene:
+    """A Scene from scene.json content (`path`: where it came from, for messages)."""
+    norm = scene["normalization"]
+    return Scene(
+        path=Path(path),
+        format=scene["format"],
+        root=Path(scene["root"]),
+        posed=scene["posed"],
+        downscale=scene["downscale"],
+        background=tuple(scene["background"]),
+        normalization=None if norm is None else Normalization(
+            torch.tensor(norm["center"], dtype=torch.float64), float(norm["scale"])),
+        extent=scene["extent"],
+        splits=scene["splits"],
+    )
+
+
+def _camera(view: dict[str, Any]) -> Camera:
+    return Camera(view["fx"], view["fy"], view["cx"], view["cy"], view["width"], view["height"],
+                  torch.tensor(view["c2w"], dtype=torch.float64), view["name"])
+
+
+def _dataset_view(view: dict[str, Any]) -> View:
+    """The readers' View (camera at the file's resolution) of a scene.json VIEW."""
+    if "c2w" not in view:
+        return View(Path(view["image"]), None)
+    sx, sy = view["file_width"] / view["width"], view["file_height"] / view["height"]
+    camera = Camera(view["fx"] * sx, view["fy"] * sy, view["cx"] * sx, view["cy"] * sy,
+                    view["file_width"], view["file_height"], torch.tensor(view["c2w"], dtype=torch.float64),
+                    view["name"])
+    distortion = None if view["distortion"] is None else np.asarray(view["distortion"], dtype=np.float64)
+    return View(Path(view["image"]), camera, distortion)

@@ -1,0 +1,170 @@
+"""Readers for `transforms*.json` camera files: NeRF-synthetic (`transforms_{train,val,test}.json`)
+and nerfstudio / instant-ngp (one `transforms.json`).
+
+Both store camera-to-world matrices in OpenGL axes (converted to OpenCV here) and intrinsics at
+file level, which nerfstudio lets each frame override. Principal points use the same continuous
+pixel coordinates as `Camera` (cx = w/2 is the centre), as instant-ngp and nerfstudio do.
+Lens distortion (k1 k2 p1 p2 [k3], OpenCV model) is recorded per view and removed on load.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from radfield.core.geometry.cameras import Camera, opengl_to_opencv
+from radfield.errors import RadfieldError
+from radfield.datasets.images import image_size
+from radfield.datasets.views import View, llff_split
+
+# Tried in this order when a `file_path` has no extension (NeRF-synthetic writes `./train/r_0`).
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+_DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV order
+_PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+_SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
+
+
+def read_json(path: Path) -> dict:
+    """A transforms file as a dict with a 'frames' list of objects; errors name the file."""
+    if not path.is_file():
+        raise RadfieldError(f"file not found: {path}")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise RadfieldError(f"{path}: invalid JSON ({e.msg} at line {e.lineno} column {e.colno})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise RadfieldError(f"cannot read {path}: {e}") from None
+    if not isinstance(meta, dict):
+        raise RadfieldError(f"{path}: expected a JSON object at the top level")
+    if "frames" not in meta:
+        raise RadfieldError(f"{path}: missing key 'frames'")
+    if not isinstance(meta["frames"], list) or not all(isinstance(f, dict) for f in meta["frames"]):
+        raise RadfieldError(f"{path}: 'frames' must be a list of objects")
+    return meta
+
+
+def read_nerf_synthetic(root: Path, split: str) -> list[View]:
+    """Views of `root/transforms_{split}.json` ('all': every split file present)."""
+    views = []
+    for name in ("train", "val", "test") if split == "all" else (split,):
+        path = root / f"transforms_{name}.json"
+        if split == "all" and not path.is_file():
+            continue
+        meta = read_json(path)
+        views += _views(meta, list(enumerate(meta["frames"])), path)
+    return views
+
+
+def read_nerfstudio(path: Path, split: str) -> list[View]:
+    """Views of a nerfstudio / instant-ngp `transforms.json`, sorted by file name. The split comes
+    from `{train,val,test}_filenames` when the file has them, else every 8th frame is 'test';
+    'all' is every frame."""
+    meta = read_json(path)
+    frames = sorted(enumerate(meta["frames"]), key=lambda item: _file_path(item[1], item[0], path))
+    if split == "all" or not any(key in meta for key in _SPLIT_KEYS.values()):
+        return _views(meta, llff_split(frames, split, path), path)
+    key = _SPLIT_KEYS[split]
+    names = meta.get(key, [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise RadfieldError(f"{path}: '{key}' must be a list of file names")
+    wanted = {os.path.normpath(n) for n in names}
+    return _views(meta, [(i, f) for i, f in frames if os.path.normpath(_file_path(f, i, path)) in wanted], path)
+
+
+def _views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[View]:
+    """Frames (index in the file, frame) -> views; size falls back to the first image's header."""
+    views = []
+    first, first_frame = frames[0] if frames else (0, {})
+    fallback_size = cache(lambda: image_size(_image_path(first_frame, first, json_path)))
+    for i, frame in frames:
+        image_path = _image_path(frame, i, json_path)
+        camera, distortion = _camera(meta, frame, i, json_path, image_path.stem, fallback_size)
+        views.append(View(image_path, camera, distortion))
+    return views
+
+
+def _file_path(frame: dict, i: int, json_path: Path) -> str:
+    if "file_path" not in frame:
+        raise RadfieldError(f"{json_path}: frames[{i}] is missing key 'file_path'")
+    if not isinstance(frame["file_path"], str):
+        raise RadfieldError(f"{json_path}: frames[{i}].file_path must be a string")
+    return frame["file_path"]
+
+
+def _image_path(frame: dict, i: int, json_path: Path) -> Path:
+    path = json_path.parent / _file_path(frame, i, json_path)
+    for candidate in (path, *(path.with_name(path.name + suffix) for suffix in _IMAGE_SUFFIXES)):
+        if candidate.is_file():
+            return candidate
+    raise RadfieldError(f"image not found: {path} (frames[{i}].file_path in {json_path})")
+
+
+def _number(meta: dict, frame: dict, i: int, key: str, json_path: Path) -> float | None:
+    """`key` from the frame, else from the file, else None; must be a finite number."""
+    value, where = (frame[key], f"frames[{i}].{key}") if key in frame else (meta.get(key), key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise RadfieldError(f"{json_path}: '{where}' must be a finite number, not {value!r:.40}")
+    return float(value)
+
+
+def _camera(
+    meta: dict, frame: dict, i: int, json_path: Path, name: str, fallback_size: Callable[[], tuple[int, int]]
+) -> tuple[Camera, np.ndarray | None]:
+    def get(key):
+        return _number(meta, frame, i, key, json_path)
+
+    model = frame.get("camera_model", meta.get("camera_model", "OPENCV"))
+    if model not in _PINHOLE_MODELS:
+        raise RadfieldError(
+            f"{json_path}: camera_model {model!r} is not supported (undistort the images to a pinhole model first)"
+        )
+    w, h = get("w"), get("h")
+    if w is None or h is None:
+        w, h = fallback_size()
+    fx, fy = get("fl_x"), get("fl_y")
+    if fx is None:
+        angle = get("camera_angle_x")
+        if angle is None:
+            raise RadfieldError(f"{json_path}: missing key 'fl_x' (or 'camera_angle_x')")
+        fx = 0.5 * w / math.tan(0.5 * angle)
+    if fy is None:
+        angle = get("camera_angle_y")
+        fy = fx if angle is None else 0.5 * h / math.tan(0.5 * angle)
+    cx, cy = get("cx"), get("cy")
+    cx = w / 2 if cx is None else cx
+    cy = h / 2 if cy is None else cy
+    if get("k4"):
+        raise RadfieldError(f"{json_path}: distortion 'k4' is not supported (fisheye?); undistort the images first")
+    coeffs = np.array([get(k) or 0.0 for k in _DISTORTION_KEYS])
+    if not coeffs[4]:
+        coeffs = coeffs[:4]  # the usual k1 k2 p1 p2
+    distortion = coeffs if coeffs.any() else None
+    c2w = opengl_to_opencv(_matrix(frame, i, json_path))
+    try:
+        return Camera(fx, fy, cx, cy, round(w), round(h), c2w, name), distortion
+    except RadfieldError as e:
+        raise RadfieldError(f"{json_path}: frames[{i}]: {e}") from None
+
+
+def _matrix(frame: dict, i: int, json_path: Path) -> torch.Tensor:
+    """frames[i].transform_matrix as a float64 4x4 (a 3x4 gets its last row)."""
+    if "transform_matrix" not in frame:
+        raise RadfieldError(f"{json_path}: frames[{i}] is missing key 'transform_matrix'")
+    try:
+        m = np.array(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.empty(0)
+    if m.shape not in ((4, 4), (3, 4)) or not np.isfinite(m).all():
+        raise RadfieldError(f"{json_path}: frames[{i}].transform_matrix must be a 4x4 matrix of numbers")
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    return torch.from_numpy(m)

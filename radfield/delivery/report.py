@@ -1,0 +1,144 @@
+"""Evaluation reports: image grids, error heat maps and Markdown tables of metrics.json.
+
+    error_map(render, photo)          mean absolute error over channels, coloured with `inferno` on a
+                                      fixed scale [0, ERROR_SCALE] (so maps of different runs compare)
+    view_grid(photo, render)          ground truth | render | error map, one (H, 3W + 2·GAP, 3) image
+    side_by_side(photo, renders, labels)   ground truth | render A | render B | ..., labelled
+    report_markdown(metrics, ...)     the report.md of one evaluation
+    compare_markdown(rows)            the table of `radfield eval --compare`
+
+Images are float (H, W, 3) numpy arrays in [0, 1]. No file is written here: that is for the
+callers, through radfield.util.atomic.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+ERROR_SCALE = 0.25  # |render − photo| (mean over RGB) shown at full brightness
+GAP = 2             # white pixels between the panels of a grid
+LABEL_HEIGHT = 14   # pixels of the caption row of side-by-side grids
+
+
+def error_map(render: np.ndarray, photo: np.ndarray) -> np.ndarray:
+    """(H, W, 3) heat map of the per-pixel mean absolute error, 0 → black, ≥ ERROR_SCALE → yellow-white."""
+    from matplotlib import colormaps
+
+    err = np.abs(np.asarray(render, np.float32) - np.asarray(photo, np.float32)).mean(-1)
+    return colormaps["inferno"](np.clip(err / ERROR_SCALE, 0.0, 1.0))[..., :3].astype(np.float32)
+
+
+def hstack(panels: Sequence[np.ndarray], gap: int = GAP) -> np.ndarray:
+    """Panels of equal height side by side, separated by white columns."""
+    height = panels[0].shape[0]
+    sep = np.ones((height, gap, 3), np.float32)
+    out = [panels[0]]
+    for panel in panels[1:]:
+        out += [sep, panel]
+    return np.concatenate([np.asarray(p, np.float32) for p in out], axis=1)
+
+
+def view_grid(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
+    return hstack([photo, render, error_map(render, photo)])
+
+
+def side_by_side(photo: np.ndarray, renders: Sequence[np.ndarray], labels: Sequence[str]) -> np.ndarray:
+    """Ground truth then each render, with a caption row ("truth", labels...) on top."""
+    panels = [_captioned(photo, "truth")] + [_captioned(r, label) for r, label in zip(renders, labels)]
+    return hstack(panels)
+
+
+def _captioned(img: np.ndarray, text: str) -> np.ndarray:
+    import cv2
+
+    img = np.asarray(img, np.float32)
+    width = img.shape[1]
+    caption = np.full((LABEL_HEIGHT, width, 3), 255, np.uint8)  # cv2 draws text on 8-bit images only
+    scale = 0.35
+    text = text.encode("ascii", "replace").decode()  # the Hershey fonts have ASCII only
+    while text and cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width - 2:
+        text = text[:-1]  # cut the caption until it fits the panel
+    cv2.putText(caption, text, (1, LABEL_HEIGHT - 4), cv2.FONT_HERSHEY_SIMPLEX,
+                scale, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([caption.astype(np.float32) / 255.0, img], axis=0)
+
+
+# --- Markdown ---------------------------------------------------------------------------------
+
+
+def _fmt(value: Any, digits: int) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def human_bytes(size: int | None) -> str:
+    if size is None:
+        return "–"
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if size < 1024 or unit == "GiB":
+            return f"{size} B" if unit == "B" else f"{size:.1f} {unit}"
+        size /= 1024
+    return str(size)
+
+
+def report_markdown(metrics: dict[str, Any], *, model: str, grids_dir: str | None, curves: Sequence[str] = ()) -> str:
+    """report.md: summary, the per-view table with its mean row, grids and training curves (links
+    relative to the report's folder)."""
+    m = metrics
+    lines = [
+        f"# Evaluation of {model}",
+        "",
+        f"{m['views']} {m['split']} views of {m['width']}×{m['height']} pixels; {m['kind']} primitives.",
+        "",
+        "| model | value |",
+        "| --- | --- |",
+        f"| primitives | {m['num_primitives']} |",
+        f"| parameters | {m['num_params']} |",
+        f"| file size | {human_bytes(m['file_size_bytes'])} ({m['file_size_bytes']} bytes) |",
+        f"| FPS (rendering, {m['width']}×{m['height']}) | {m['fps']:.2f} |",
+        "",
+        "| view | PSNR (dB) | SSIM | LPIPS | seconds |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for v in m["per_view"]:
+        lines.append(f"| {v['name']} | {v['psnr']:.2f} | {v['ssim']:.4f} | {_fmt(v.get('lpips'), 4)} | {v['seconds']:.3f} |")
+    mean_seconds = sum(v["seconds"] for v in m["per_view"]) / max(len(m["per_view"]), 1)
+    lines.append(f"| **mean** | **{m['psnr']:.2f}** | **{m['ssim']:.4f}** | **{_fmt(m.get('lpips'), 4)}** | "
+                 f"**{mean_seconds:.3f}** |")
+    lines.append("")
+    if m.get("lpips") is None and m.get("lpips_note"):
+        lines += [f"LPIPS not computed: {m['lpips_note']}.", ""]
+    lines += ["PSNR over all pixels and channels (data range 1); SSIM with the 11×11 Gaussian window (σ = 1.5); "
+              "LPIPS AlexNet v0.1 (lower is better).", ""]
+    if grids_dir is not None:
+        lines += ["## Views", "", f"ground truth | render | error |render − photo| (mean over RGB; black 0, "
+                  f"yellow ≥ {ERROR_SCALE})", ""]
+        lines += [f"![{v['name']}]({grids_dir}/{v['name']}.png)" for v in m["per_view"]]
+        lines.append("")
+    if curves:
+        lines += ["## Training", ""] + [f"![training curves]({c})" if c.endswith(".png") else f"- [{c}]({c})"
+                                        for c in curves] + [""]
+    return "\n".join(lines)
+
+
+COMPARE_COLUMNS = ("run", "kind", "PSNR (dB)", "SSIM", "LPIPS", "primitives", "parameters", "size", "FPS", "train time")
+
+
+def compare_markdown(rows: Sequence[dict[str, Any]], *, split: str, views: int, grids_dir: str | None) -> str:
+    """The `eval --compare` table. rows: {"label", "metrics" (metrics.json), "train_seconds" or None}."""
+    lines = [f"# Comparison on {views} {split} views", "",
+             "| " + " | ".join(COMPARE_COLUMNS) + " |", "|" + " --- |" * len(COMPARE_COLUMNS)]
+    for row in rows:
+        m = row["metrics"]
+        seconds = row.get("train_seconds")
+        lines.append(f"| {row['label']} | {m['kind']} | {m['psnr']:.2f} | {m['ssim']:.4f} | {_fmt(m.get('lpips'), 4)} | "
+                     f"{m['num_primitives']} | {m['num_params']} | {human_bytes(m['file_size_bytes'])} | "
+                     f"{m['fps']:.2f} | {'–' if seconds is None else f'{seconds:.0f} s'} |")
+    lines.append("")
+    if grids_dir is not None:
+        lines += ["## Views", "", "truth | " + " | ".join(r["label"] for r in rows), ""]
+        lines += [f"![{v['name']}]({grids_dir}/{v['name']}.png)" for v in rows[0]["metrics"]["per_view"]]
+        lines.append("")
+    return "\n".join(lines)
+

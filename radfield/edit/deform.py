@@ -1,0 +1,285 @@
+"""Exact cage deformation of primitives (Neural Impostor §4.1 on splattable neural primitives).
+
+Moving the cage vertices gives each tet an affine map x ↦ A x + b with A = E' E⁻¹, E and E' the
+edge matrices [v1 − v0, v2 − v0, v3 − v0] of the rest and the deformed tet. A primitive bound to a
+tet (barycentric λ of its centre) is mapped exactly by its A (DESIGN.md, "Editing"):
+- μ' = Σ λ_i v'_i (= A μ + b of its tet);
+- the bounding ellipsoid R S becomes A R S = U Σ Vᵀ (SVD): R' = U (det +1), s' = Σ;
+- the density composes with the inverse map: u = (x − μ)/max(s) and x = A⁻¹(x' − b), so
+  W1 u = (max(s')/max(s)) W1 A⁻¹ u' and W1' = (max(s')/max(s)) W1 A⁻¹, with b1, W2, b2 unchanged;
+- a windowed model's window 1.5 (1 − r²) maps exactly too (the flag is kept): S'⁻¹R'ᵀ(x' − μ') =
+  Vᵀ S⁻¹Rᵀ(x − μ), so every point keeps its r²;
+- SH coefficients turn with the rotation part of A (polar decomposition A = R_p P), band by band;
+- Gaussians: Σ' = A Σ Aᵀ through the same SVD, the same SH rotation, opacity unchanged.
+
+Which A a primitive uses (`gradient`):
+- "tet": the affine map of the tet holding its centre (exact for the piecewise-linear cage map
+  at μ, discontinuous across tet faces);
+- "centre": the deformation gradient interpolated at its centre from vertex gradients (the
+  volume-weighted mean of the A of the tets around each vertex), smooth across faces; the
+  default, as it follows bent and twisted cages more closely (README, "Editing").
+A primitive whose tet and vertex gradients are exactly the identity keeps its parameters
+bit for bit (so an identity cage, or a local edit far away, changes nothing).
+
+`preserve_opacity` (Neural Impostor's behaviour: optical depth in rest-space distance): the
+renderer's optical depth I of an edited primitive becomes I · max(s')·|A⁻¹d̂|/max(s) = I·√(d̂ᵀ G d̂)
+with G = (max(s')/max(s))² A⁻ᵀA⁻¹, stored per primitive as the optional model tensor `rest_metric`
+(P, 6: G_xx, G_yy, G_zz, G_xy, G_xz, G_yz); core/render/rasterize.py evaluates the factor at the
+direction from the camera to μ once per primitive per view (exact on that central ray).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from radfield.core.geometry.cage import bind_to_cage, tet_volumes
+from radfield.errors import RadfieldError
+from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
+from radfield.core.render.sh import rotate_sh
+from radfield.edit.field import Field
+
+GRADIENTS = ("centre", "tet")
+DEFAULT_GRADIENT = "centre"
+SPLIT_THRESHOLD = 0.5    # relative variation of A across a primitive's tets above which it is split
+MAX_SPLIT_ROUNDS = 2     # each round halves the flagged primitives along their longest axis
+
+
+# --- the cage map ---------------------------------------------------------------------------
+
+def check_deformed_cage(rest: np.ndarray, new: np.ndarray, tets: np.ndarray, where: str = "deform") -> None:
+    """One-line error naming the degenerate or inverted tets of a deformed cage (never NaNs later)."""
+    new = np.asarray(new, np.float64)
+    if new.shape != np.shape(rest):
+        raise RadfieldError(f"{where}: the deformed cage has {len(new)} vertices, the field's cage {len(rest)}")
+    if not np.isfinite(new).all():
+        raise RadfieldError(f"{where}: the deformed cage has non-finite vertex coordinates")
+    vol_rest, vol_new = tet_volumes(rest, tets), tet_volumes(new, tets)
+    bad = np.flatnonzero(vol_new <= 1e-9 * np.abs(vol_rest))
+    if bad.size:
+        kind = "inverted" if (vol_new[bad] < 0).any() else "degenerate"
+        shown = ", ".join(str(t) for t in bad[:10]) + (f", ... ({bad.size} in all)" if bad.size > 10 else "")
+        raise RadfieldError(f"{where}: {kind} tets in the deformed cage (volume <= 0): {shown}")
+
+
+def tet_maps(rest: np.ndarray, new: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per tet A (T, 3, 3), b (T, 3) with x' = A x + b, and `moved` (T,) bool. A tet whose four
+    corners did not move gets exactly A = I, b = 0."""
+    c, c2 = rest[tets], new[tets]
+    e = np.swapaxes(c[:, 1:] - c[:, :1], 1, 2)      # columns v1 − v0, v2 − v0, v3 − v0
+    e2 = np.swapaxes(c2[:, 1:] - c2[:, :1], 1, 2)
+    a = e2 @ np.linalg.inv(e)                        # A = E' E⁻¹
+    b = c2[:, 0] - np.einsum("tij,tj->ti", a, c[:, 0])
+    moved = (c != c2).any(axis=(1, 2))
+    a[~moved], b[~moved] = np.eye(3), 0.0
+    return a, b, moved
+
+
+def vertex_gradients(a: np.ndarray, moved: np.ndarray, tets: np.ndarray, rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Volume-weighted mean (V, 3, 3) of the A of the tets around each vertex, and whether it
+    differs from the identity (a vertex whose tets all stayed put gets exactly I)."""
+    n = len(rest)
+    vol = np.abs(tet_volumes(rest, tets))
+    grad = np.zeros((n, 3, 3))
+    weight = np.zeros(n)
+    for k in range(4):
+        np.add.at(grad, tets[:, k], vol[:, None, None] * a)
+        np.add.at(weight, tets[:, k], vol)
+    grad /= np.maximum(weight, 1e-300)[:, None, None]
+    changed = np.zeros(n, bool)
+    for k in range(4):
+        np.logical_or.at(changed, tets[:, k], moved)
+    grad[~changed] = np.eye(3)
+    grad[weight == 0] = np.eye(3)
+    return grad, changed
+
+
+def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT):
+    """For every primitive: A (P, 3, 3), its new centre μ' (P, 3) and whether it changes (P,)."""
+    if gradient not in GRADIENTS:
+        raise RadfieldError(f"deform: gradient must be one of {', '.join(GRADIENTS)}, got {gradient!r}")
+    rest, tets = fld.cage_vertices, fld.cage_tets
+    a_tet, _, moved = tet_maps(rest, new, tets)
+    corners = tets[fld.tet]                                   # (P, 4)
+    means = np.einsum("pk,pkd->pd", fld.bary, new[corners])   # μ' = Σ λ_i v'_i
+    if gradient == "tet":
+        return a_tet[fld.tet], means, moved[fld.tet]
+    grad, changed = vertex_gradients(a_tet, moved, tets, rest)
+    # a centre outside its tet (negative λ) would extrapolate the gradients: use the clipped weights
+    lam = np.clip(fld.bary, 0.0, None)
+    lam /= np.maximum(lam.sum(1, keepdims=True), 1e-300)
+    a = np.einsum("pk,pkij->pij", lam, grad[corners])
+    return a, means, changed[corners].any(1) | moved[fld.tet]
+
+
+# --- mapping primitives by per-primitive affine maps ----------------------------------------
+
+def polar_rotation(a: np.ndarray) -> np.ndarray:
+    """Rotation part R_p of A = R_p P (P symmetric positive definite), for det A > 0."""
+    u, _, vt = np.linalg.svd(a)
+    return u @ vt
+
+
+def map_primitives(prims, a: np.ndarray, means: np.ndarray, changed: np.ndarray | None = None,
+                   preserve_opacity: bool = False):
+    """Primitives mapped by per-primitive affine maps A (P, 3, 3) to new centres (P, 3) (module
+    docstring). Rows with changed == False keep their parameters exactly."""
+    p = len(prims)
+    a = np.broadcast_to(np.asarray(a, np.float64), (p, 3, 3))
+    changed = np.ones(p, bool) if changed is None else np.asarray(changed, bool)
+    idx = torch.from_numpy(np.flatnonzero(changed))
+    if idx.numel() == 0:
+        return prims
+    sub = prims.select(idx).to(dtype=torch.float64)
+    a_t = torch.from_numpy(np.ascontiguousarray(a[changed]))
+    rot = quat_to_rotmat(sub.quats)
+    scales = torch.exp(sub.log_scales)
+    u, sigma, _ = torch.linalg.svd(a_t @ rot * scales[:, None, :])   # A R S = U Σ Vᵀ
+    flip = torch.linalg.det(u) < 0
+    u[flip, :, 2] = -u[flip, :, 2]                                     # same ellipsoid, a proper rotation
+    new = {
+        "means": torch.from_numpy(np.ascontiguousarray(means[changed])),
+        "log_scales": torch.log(sigma),
+        "quats": rotmat_to_quat(u),
+        "sh": rotate_sh(sub.sh, torch.from_numpy(polar_rotation(a[changed]))),
+    }
+    out = prims
+    if isinstance(prims, NeuralPrimitives):
+        ratio = sigma.amax(-1) / scales.amax(-1)                     # max(s') / max(s)
+        a_inv = torch.linalg.inv(a_t)
+        new["w1"] = ratio[:, None, None] * sub.w1 @ a_inv               # W1' = (max s'/max s) W1 A⁻¹
+        if preserve_opacity or prims.rest_metric is not None:
+            if prims.rest_metric is None:                              # rest frame = the current one
+                out = replace(prims, rest_metric=metric_vector(torch.eye(3, dtype=prims.means.dtype).expand(p, 3, 3)))
+            g_old = metric_matrix(out.rest_metric[idx].double())
+            # G' = r² A⁻ᵀ G A⁻¹: composes with the metric of earlier edits
+            new["rest_metric"] = metric_vector((ratio**2)[:, None, None] * a_inv.transpose(1, 2) @ g_old @ a_inv)
+    elif not isinstance(prims, Gaussians):
+        raise TypeError(f"cannot deform {type(prims).__name__}")
+    tensors = {}
+    for name, value in new.items():
+        full = getattr(out, name).clone()
+        full[idx] = value.to(full.dtype)
+        tensors[name] = full
+    return replace(out, **tensors)
+
+
+def metric_matrix(v: torch.Tensor) -> torch.Tensor:
+    """(P, 6) xx yy zz xy xz yz -> symmetric (P, 3, 3)."""
+    xx, yy, zz, xy, xz, yz = v.unbind(-1)
+    return torch.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], -1).reshape(-1, 3, 3)
+
+
+def metric_vector(g: torch.Tensor) -> torch.Tensor:
+    return torch.stack([g[:, 0, 0], g[:, 1, 1], g[:, 2, 2], g[:, 0, 1], g[:, 0, 2], g[:, 1, 2]], -1)
+
+
+def affine_field(fld: Field, a: np.ndarray, t: np.ndarray, preserve_opacity: bool = False) -> Field:
+    """The whole field (primitives and cage) mapped by one affine map x' = A x + t, exactly."""
+    a, t = np.asarray(a, np.float64), np.asarray(t, np.float64)
+    if not np.linalg.det(a) > 0:
+        raise RadfieldError("transform: the map must keep orientation (det > 0, scale > 0)")
+    means = fld.prims.means.detach().double().numpy() @ a.T + t
+    prims = map_primitives(fld.prims, a, means, preserve_opacity=preserve_opacity)
+    verts = None if fld.cage_vertices is None else fld.cage_vertices @ a.T + t
+    return replace(fld, prims=prims, cage_vertices=verts, notes=list(fld.notes))
+
+
+# --- splitting primitives that straddle a non-uniform deformation ----------------------------
+
+def _probe_points(prims) -> np.ndarray:
+    """(P, 7, 3): the centre and the six ends of the ellipsoid's axes at 3/4 of its radii."""
+    rot = quat_to_rotmat(prims.quats.detach().double())
+    axes = (rot * torch.exp(prims.log_scales.detach().double())[:, None, :]).transpose(1, 2).numpy()  # rows R_i s_i
+    mu = prims.means.detach().double().numpy()
+    offsets = np.concatenate([np.zeros_like(axes[:, :1]), 0.75 * axes, -0.75 * axes], 1)
+    return mu[:, None, :] + offsets
+
+
+def nonuniformity(fld: Field, a_tet: np.ndarray, cache: dict | None = None) -> np.ndarray:
+    """Per primitive: max over the tets holding its probe points of |A_j − A_c|₂ / |A_c|₂, with
+    A_c the map of its centre's tet (0 for a uniform neighbourhood). `cache` (a dict kept by the
+    caller) remembers the probes' tets of a field deformed again and again (animation frames)."""
+    key = (id(fld.prims), id(fld.cage_vertices))
+    if cache is not None and key in cache:
+        tets = cache[key][1]
+    else:
+        probes = _probe_points(fld.prims)
+        tets, _ = bind_to_cage(probes.reshape(-1, 3), (fld.cage_vertices, fld.cage_tets))
+        if cache is not None:
+            cache[key] = (fld.prims, tets)   # holds the objects, so their ids stay theirs
+    p = len(fld.prims)
+    a_probe = a_tet[tets].reshape(p, 7, 3, 3)
+    a_c = a_tet[fld.tet][:, None]
+    diff = np.linalg.norm(a_probe - a_c, ord=2, axis=(-2, -1)).max(1)
+    return diff / np.linalg.norm(a_tet[fld.tet], ord=2, axis=(-2, -1))
+
+
+def split_primitives(prims, index: np.ndarray):
+    """Each primitive of `index` replaced by two halves along its longest axis e (radius a):
+    centres μ ± (a/2) e, radius a/2 along e. The density is the same function of x in each half:
+    u = (x − μ)/max(s) gives W1_c = (max(s_c)/max(s)) W1, b1_c = b1 + W1 (μ_c − μ)/max(s), and the
+    per-size optical depth (1/max(s)) ∫σ keeps its value with W2, b2 scaled by max(s_c)/max(s).
+    The halves' union is not exactly the parent ellipsoid (thinner at the cut, wider at the
+    quarter points): a split is a small approximation, made only where the cage bends. Halves of a
+    windowed model stay windowed, each window falling to 0 on its own ellipsoid (not the parent's):
+    part of the same approximation."""
+    index = torch.as_tensor(index, dtype=torch.long)
+    keep = torch.ones(len(prims), dtype=torch.bool)
+    keep[index] = False
+    par = prims.select(index)
+    rot = quat_to_rotmat(par.quats)
+    scales = torch.exp(par.log_scales)
+    axis = scales.argmax(-1)
+    e = rot.gather(2, axis[:, None, None].expand(-1, 3, 1))[..., 0]          # (S, 3) longest axis
+    radius = scales.gather(1, axis[:, None])[:, 0]
+    child_scales = scales.clone()
+    child_scales.scatter_(1, axis[:, None], (radius / 2)[:, None])
+    smax, smax_c = scales.amax(-1), child_scales.amax(-1)
+    children = []
+    for sign in (1.0, -1.0):
+        offset = sign * (radius / 2)[:, None] * e
+        fields = {"means": par.means + offset, "log_scales": torch.log(child_scales), "quats": par.quats, "sh": par.sh}
+        if isinstance(prims, NeuralPrimitives):
+            r = (smax_c / smax)
+            fields.update(w1=par.w1 * r[:, None, None], b1=par.b1 + (par.w1 @ (offset / smax[:, None])[..., None])[..., 0],
+                          w2=par.w2 * r[:, None], b2=par.b2 * r)
+        else:
+            fields["opacities"] = par.opacities
+        children.append(replace(par, **fields))
+    parts = [prims.select(keep)] + children
+    return type(prims)(**{name: torch.cat([getattr(q, name) for q in parts]) for name in prims.tensors()},
+                       **({"omega0": prims.omega0, "window": prims.window} if isinstance(prims, NeuralPrimitives) else {}),
+                       supersample=prims.supersample)
+
+
+# --- the deformation of a field ---------------------------------------------------------------
+
+def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAULT_GRADIENT,
+                 split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool = False,
+                 where: str = "deform", cache: dict | None = None) -> Field:
+    """The field with its cage moved to `new_vertices` (same topology), every primitive mapped
+    exactly (module docstring). `split`: threshold of `nonuniformity` above which a primitive is
+    halved first (None: never); `cache`: see `nonuniformity`. Appends {"op", "split", "moved_primitives", ...} to the notes."""
+    if not fld.has_cage:
+        raise RadfieldError(f"{where}: this field has no cage (its run has no tetra stage output)")
+    new = np.asarray(new_vertices, np.float64)
+    check_deformed_cage(fld.cage_vertices, new, fld.cage_tets, where)
+    a_tet, _, moved = tet_maps(fld.cage_vertices, new, fld.cage_tets)
+    n_split = 0
+    if split is not None and moved.any():
+        for _ in range(MAX_SPLIT_ROUNDS):
+            flagged = np.flatnonzero(nonuniformity(fld, a_tet, cache) > split)
+            if flagged.size == 0:
+                break
+            n_split += flagged.size
+            fld = fld.with_prims(split_primitives(fld.prims, flagged))
+    a, means, changed = primitive_maps(fld, new, gradient)
+    prims = map_primitives(fld.prims, a, means, changed, preserve_opacity)
+    out = replace(fld, prims=prims, cage_vertices=new, notes=list(fld.notes))
+    out.notes.append({"operation": where.rsplit(".", 1)[-1], "entry": where, "gradient": gradient,
+                      "split": int(n_split), "primitives": len(prims),
+                      "moved_primitives": int(changed.sum()), "moved_tets": int(moved.sum())})
+    return out

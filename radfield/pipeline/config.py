@@ -1,0 +1,312 @@
+"""The pipeline configuration: defaults from `pipeline.yaml`, user overrides, validation.
+
+The schema is not written down twice: every key, its type and (for lists) its length are read
+off the defaults in `pipeline.yaml` itself. The few facts a default value cannot express live in
+the small tables below (keys whose default is `null`, the stage list, closed sets of values).
+
+A resolved config is a plain nested dict of YAML scalars and lists. Precedence, lowest first:
+`pipeline.yaml` < `--config FILE` < `options` (the CLI's dedicated flags) < `--set key=value`.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import functools
+import importlib.resources
+import json
+import re
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from radfield.util.atomic import atomic_write_text
+from radfield.errors import RadfieldError
+
+DEFAULTS_NAME = "pipeline.yaml"
+
+# Keys whose default is null, with the type a non-null value must have.
+NULLABLE: dict[str, type] = {"train.max_primitives": int}
+# List keys whose value is any selection of the default's items, in any order (the stage list);
+# other lists keep the length of their default.
+SELECTIONS: frozenset[str] = frozenset({"stages"})
+# Keys that only take one of a few values.
+CHOICES: dict[str, tuple[str, ...]] = {
+    # COLMAP's models that undistort to a pinhole camera
+    "sfm.camera_model": ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+                         "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE"),
+    "envelope.source": ("auto", "points", "mesh", "hull", "triangulate", "none"),
+    "envelope.method": ("auto", "poisson", "ball_pivoting", "alpha", "convex"),
+    "train.primitive": ("neural", "gaussian"),
+    "init.source": ("auto", "mesh", "points", "random"),
+    "eval.split": ("train", "val", "test"),
+}
+
+_TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads `1e-5` and `1e3` as floats (YAML 1.2), as users write them."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def parse_yaml(text: str) -> Any:
+    """Parse YAML text with the project's loader (safe; YAML 1.2 floats)."""
+    return yaml.load(text, Loader=_Loader)
+
+
+def defaults_path() -> Path:
+    """Where `pipeline.yaml` is: inside the `radfield` package (pyproject's package-data ships it)."""
+    installed = Path(str(importlib.resources.files("radfield").joinpath(DEFAULTS_NAME)))
+    if installed.is_file():
+        return installed
+    raise RadfieldError(f"{DEFAULTS_NAME} not found (looked at {installed})")
+
+
+def load_defaults() -> dict[str, Any]:
+    """The defaults as a fresh nested dict."""
+    return copy.deepcopy(_schema())
+
+
+def load_config(
+    config_file: Path | None = None,
+    sets: Sequence[str] = (),
+    options: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Resolve the config: defaults, then `config_file` (partial YAML), then `options`
+    ({dotted key: value}, the CLI's own flags), then `sets` ("key=value" strings).
+
+    Raises RadfieldError naming the key and where it came from on any unknown key or bad value.
+    """
+    config = load_defaults()
+    if config_file is not None:
+        _merge(config, _read_yaml_mapping(Path(config_file)), source=str(config_file))
+    for key, value in (options or {}).items():
+        set_key(config, key, value, source="command line")
+    for text in sets:
+        key, value = parse_set(text)
+        set_key(config, key, value, source=f"--set {text}")
+    return config
+
+
+def parse_set(text: str) -> tuple[str, Any]:
+    """Split one `--set key=value` into the dotted key and its value parsed as a YAML scalar or
+    list (`500`, `1e-4`, `[1, 1, 1]`, `null`, `neural`)."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*", key):
+        raise RadfieldError(f"--set expects key=value with a dotted key such as train.iterations=500, got {text!r}")
+    try:
+        value = parse_yaml(raw)
+    except yaml.YAMLError as error:
+        raise RadfieldError(f"--set {text}: cannot parse the value of {key} ({_first_line(error)})") from error
+    if isinstance(value, dict):
+        raise RadfieldError(f"--set {text}: {key} takes a single value; set the keys inside it one by one")
+    return key, value
+
+
+def set_key(config: dict[str, Any], key: str, value: Any, source: str) -> None:
+    """Set one dotted key of a resolved config in place, validated against the defaults."""
+    parts = key.split(".")
+    node = config
+    for depth, part in enumerate(parts[:-1]):
+        if part not in node:
+            _unknown(config, key, source)
+        if not isinstance(node[part], dict):
+            raise RadfieldError(f"{source}: config key {'.'.join(parts[: depth + 1])} is a value, not a section")
+        node = node[part]
+    leaf = parts[-1]
+    if leaf not in node:
+        _unknown(config, key, source)
+    if isinstance(node[leaf], dict):
+        example = next(iter(node[leaf]))
+        raise RadfieldError(f"{source}: config key {key} is a section; set the keys inside it, e.g. {key}.{example}")
+    node[leaf] = _checked(key, value, _default_of(key), source)
+
+
+def section(config: Mapping[str, Any], keys: str | Iterable[str]) -> dict[str, Any]:
+    """The part of `config` that a stage depends on: a deep copy holding only the given dotted
+    keys, nested as in the full config.
+
+    `section(cfg, "train")` is `{"train": {...}}`; `section(cfg, ["train", "render", "seed"])` is
+    `{"train": {...}, "render": {...}, "seed": 0}`; `section(cfg, "train.lr")` is
+    `{"train": {"lr": {...}}}`. A key missing from `config` is a bug in a stage declaration
+    (KeyError).
+    """
+    out: dict[str, Any] = {}
+    for key in [keys] if isinstance(keys, str) else keys:
+        parts = key.split(".")
+        node: Any = config
+        target = out
+        for part in parts[:-1]:
+            node = node[part]
+            target = target.setdefault(part, {})
+        target[parts[-1]] = copy.deepcopy(node[parts[-1]])
+    return out
+
+
+def require(config: Mapping[str, Any], key: str, ok: Callable[[Any], bool], what: str) -> None:
+    """A range check a type cannot express: RadfieldError naming the dotted `key` unless
+    `ok(value)`, e.g. require(cfg, "sfm.max_image_size", lambda n: n >= 1, "at least 1")."""
+    value: Any = config
+    for part in key.split("."):
+        value = value[part]
+    if not ok(value):
+        raise RadfieldError(f"config key {key} must be {what}, got {_show(value)}")
+
+
+def save_resolved(config: Mapping[str, Any], path: Path) -> None:
+    """Write the resolved config as YAML, atomically (a reader never sees half a file)."""
+    atomic_write_text(Path(path), yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None))
+
+
+# --- validation -------------------------------------------------------------------------------
+
+@functools.cache
+def _schema() -> dict[str, Any]:
+    """The defaults, read once per process: they are the schema (never mutate the result)."""
+    defaults = _read_yaml_mapping(defaults_path())
+    _check_schema(defaults)
+    return defaults
+
+
+def _default_of(key: str) -> Any:
+    node: Any = _schema()
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def _merge(config: dict[str, Any], partial: Mapping[str, Any], source: str, prefix: str = "") -> None:
+    """Apply a partial nested mapping (a `--config` file) onto `config`, key by key."""
+    for name, value in partial.items():
+        key = f"{prefix}{name}"
+        try:
+            target = _default_of(key)
+        except (KeyError, TypeError):
+            target = None  # unknown: set_key reports it with a suggestion
+        if isinstance(target, dict) and value is None:
+            continue  # `train:` with every key commented out overrides nothing
+        if isinstance(target, dict) and isinstance(value, dict):
+            _merge(config, value, source, prefix=f"{key}.")
+        else:
+            set_key(config, key, value, source)
+
+
+def _checked(key: str, value: Any, default: Any, source: str) -> Any:
+    """`value` if it fits the type of `default` (ints widened to float), else RadfieldError."""
+    if value is None:
+        if key in NULLABLE:
+            return None
+        raise RadfieldError(f"{source}: config key {key} must be {_describe(default, key)}, got null")
+    if isinstance(default, list):
+        if not isinstance(value, list) or (key not in SELECTIONS and len(value) != len(default)):
+            raise RadfieldError(f"{source}: config key {key} must be {_describe(default, key)}, got {_show(value)}")
+        items = [_checked_scalar(key, item, type(default[0]), default, source, whole=value) for item in value]
+        if key in SELECTIONS:
+            _check_selection(key, items, default, source)
+        return items
+    expected = NULLABLE[key] if default is None else type(default)
+    checked = _checked_scalar(key, value, expected, default, source, whole=value)
+    if key in CHOICES and checked not in CHOICES[key]:
+        raise RadfieldError(f"{source}: config key {key} must be one of {', '.join(CHOICES[key])}, got {_show(value)}")
+    return checked
+
+
+def _checked_scalar(key: str, value: Any, expected: type, default: Any, source: str, whole: Any) -> Any:
+    # bool is a subclass of int in Python; a config never means True when it says 1.
+    if isinstance(value, bool) != (expected is bool):
+        ok = False
+    elif expected is float:
+        ok = isinstance(value, (int, float))
+    else:
+        ok = isinstance(value, expected)
+    if not ok:
+        raise RadfieldError(f"{source}: config key {key} must be {_describe(default, key)}, got {_show(whole)}")
+    return float(value) if expected is float else value
+
+
+def _check_selection(key: str, items: list[Any], default: list[Any], source: str) -> None:
+    for item in items:
+        if item not in default:
+            close = difflib.get_close_matches(item, default, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise RadfieldError(f"{source}: config key {key}: unknown entry {_show(item)}{hint}; "
+                                f"choose from {', '.join(default)}")
+    if len(set(items)) != len(items):
+        raise RadfieldError(f"{source}: config key {key} lists an entry twice: {_show(items)}")
+
+
+def _show(value: Any) -> str:
+    """A value as the user wrote it in YAML/JSON (true, not True)."""
+    return json.dumps(value, default=str)
+
+
+def _describe(default: Any, key: str) -> str:
+    if isinstance(default, list):
+        length = "" if key in SELECTIONS else f"{len(default)} "
+        return f"a list of {length}{_TYPE_NAMES[type(default[0])].split(' ', 1)[1]}s"
+    if default is None:
+        return f"{_TYPE_NAMES[NULLABLE[key]]} or null"
+    return _TYPE_NAMES[type(default)]
+
+
+def _unknown(config: Mapping[str, Any], key: str, source: str) -> None:
+    """Raise the unknown-key error, with the closest valid key as a suggestion."""
+    valid = list(_all_keys(config))
+    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    raise RadfieldError(f"{source}: unknown config key {key}{hint}")
+
+
+def _all_keys(config: Mapping[str, Any], prefix: str = "") -> Iterable[str]:
+    for name, value in config.items():
+        yield f"{prefix}{name}"
+        if isinstance(value, dict):
+            yield from _all_keys(value, prefix=f"{prefix}{name}.")
+
+
+def _check_schema(defaults: Mapping[str, Any], prefix: str = "") -> None:
+    """Catch a `pipeline.yaml` that cannot serve as a schema (a bug, not a user error)."""
+    for name, value in defaults.items():
+        key = f"{prefix}{name}"
+        if isinstance(value, dict):
+            _check_schema(value, prefix=f"{key}.")
+        elif value is None and key not in NULLABLE:
+            raise ValueError(f"{DEFAULTS_NAME}: {key} is null but not listed in NULLABLE")
+        elif isinstance(value, list) and (not value or len({type(item) for item in value}) != 1):
+            raise ValueError(f"{DEFAULTS_NAME}: {key} must be a non-empty list of one type")
+        elif value is not None and not isinstance(value, (bool, int, float, str, list)):
+            raise ValueError(f"{DEFAULTS_NAME}: {key} has unsupported type {type(value).__name__}")
+
+
+def _read_yaml_mapping(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise RadfieldError(f"config file {path} not found") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise RadfieldError(f"config file {path} cannot be read: {error}") from error
+    try:
+        data = parse_yaml(text)
+    except yaml.YAMLError as error:
+        raise RadfieldError(f"config file {path} is not valid YAML: {_first_line(error)}") from error
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise RadfieldError(f"config file {path} must hold a mapping of keys, got {type(data).__name__}")
+    return data
+
+
+def _first_line(error: yaml.YAMLError) -> str:
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    return f"{problem} at line {mark.line + 1}" if mark is not None else problem

@@ -1,0 +1,76 @@
+"""Stage "envelope": `envelope.ply`, the closed coarse surface around the object that the cage fills
+and the initial primitives are sampled in (radfield.core.geometry.envelope builds it), and `envelope.png`,
+the envelope over the first training view, for a user to check.
+
+Built from, by `envelope.source`: `points` (the SfM points of points.npz), `mesh` (the dataset's
+mesh.ply), `hull` (the alpha masks of the training images), `triangulate` (features matched across
+the posed training images: posed photos without points), `auto` (the first of these the dataset
+has) or `none` (no envelope and no cage, on purpose: this stage and tetra are not applicable).
+When `auto` ends at `triangulate` and too few points come out, the run has no envelope either.
+A fallback (convex hull, box) is recorded in the figures and printed as one warning line.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import numpy as np
+
+from radfield.core.geometry.envelope import (MIN_POINTS, build_envelope, choose_source, overlay_picture, visual_hull,
+                                    write_envelope)
+from radfield.errors import RadfieldError
+from radfield.pipeline.config import require
+from radfield.datasets.scene import POINTS, SCENE, load_scene
+from radfield.pipeline.runner import Context, NotApplicable, Stage
+from radfield.datasets.sfm import triangulate
+
+ENVELOPE = "envelope.ply"
+OVERLAY = "envelope.png"
+
+
+def run(ctx: Context) -> dict[str, Any]:
+    cfg = ctx.config["envelope"]
+    if cfg["source"] == "none":
+        raise NotApplicable("envelope.source is none: no envelope and no cage, on purpose")
+    scene = load_scene(ctx.inputs[SCENE])
+    with np.load(ctx.inputs[POINTS]) as stored:
+        points = {name: stored[name] for name in stored.files}
+    train = scene.dataset("train")
+    masked = train.load_image(0)[1] is not None  # the first image tells: datasets are RGB or RGBA throughout
+    source = choose_source(cfg["source"], len(points["xyz"]) > 0, len(points["mesh_vertices"]) > 0, masked)
+    if source == "triangulate":
+        points["xyz"], _ = triangulate(train.cameras, train.load_images()[0].numpy(), ctx.config["sfm"],
+                                       seed=ctx.seed, log=ctx.log)
+        if len(points["xyz"]) < MIN_POINTS:
+            why = f"only {len(points['xyz'])} points triangulated from the {len(train)} posed training views"
+            raise NotApplicable(why) if cfg["source"] == "auto" else RadfieldError(why)
+    if source in ("points", "triangulate"):
+        v, f, figures = build_envelope(points["xyz"], cfg)
+    elif source == "mesh":  # a mesh.ply without faces is a point cloud
+        mesh = points["mesh_vertices"]
+        v, f, figures = build_envelope((mesh, points["mesh_faces"]) if len(points["mesh_faces"]) else mesh, cfg)
+    else:
+        _, masks = train.load_images()  # views without alpha count as all foreground
+        v, f, figures = visual_hull(train.cameras, list(masks.numpy()), cfg)
+    write_envelope(ctx.outputs[ENVELOPE], v, f)
+    overlay_picture(v, f, train.cameras[0], train.load_image(0)[0].numpy(), ctx.outputs[OVERLAY])
+    ctx.log(f"{figures['faces']} faces from the {source} ({figures['method']}), margin {figures['margin']:.3g}")
+    if figures["fallback"]:
+        print(f"radfield: warning: envelope: fell back to the {figures['fallback']} ({figures['fallback_reason']})",
+              file=sys.stderr, flush=True)
+    return {"source": source, **figures}
+
+
+STAGE = Stage("envelope", run, config_keys=("envelope", "sfm", "seed"), inputs=(SCENE, POINTS),
+              outputs=(ENVELOPE, OVERLAY), version=2)
+
+
+def check_config(config: dict[str, Any]) -> None:
+    """The `envelope` settings a user can get wrong, checked before anything runs."""
+    for key in ("offset", "wrap_alpha", "outlier_std"):
+        require(config, f"envelope.{key}", lambda x: x > 0, "positive")
+    require(config, "envelope.poisson_depth", lambda n: 1 <= n <= 16, "between 1 and 16")
+    require(config, "envelope.target_faces", lambda n: n >= 20, "at least 20")
+    require(config, "envelope.hull_resolution", lambda n: n >= 8, "at least 8")
+    require(config, "envelope.num_threads", lambda n: n >= 1, "at least 1")

@@ -1,0 +1,253 @@
+"""Stage "init": the primitives training starts from, written as a model file in the world frame.
+
+Centres come from `init.source`: `mesh` (uniform samples over the area of the dataset's mesh.ply,
+as the paper resamples its meshes; the vertices for a point cloud), `points` (SfM points),
+`random` (uniform in a ball of radius 0.5 in normalised units around the scene centre, i.e. half
+the camera distance), or `auto` (mesh, else points, else random). There are exactly
+`train.max_primitives` of them when a budget is set (the paper's budget protocol starts from the
+budget), else `init.num_points`: a point set is subsampled, or repeated with jitter.
+
+Every primitive starts isotropic with identity rotation. A Gaussian's scale is d, the mean
+distance to its 3 nearest neighbours (as 3DGS). A neural primitive gets the same spread: its
+radius is k·d with k² the inverse per-axis variance of its density profile in the unit ball, so
+its density has the Gaussian's variance d² along every axis: k = √7 for the window 1.5 (1 − r²)
+(E[x²] = 1/7), √5 for a hard edge (uniform: E[x²] = 1/5). With radius d its density would spread
+1/√7 as far as the Gaussian's (5 % of the volume), leaving gaps between neighbours that
+densification must fill (README "Seeds, the initial radius, the SH schedule and the view size":
+k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
+SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives:
+SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray
+through the centre crosses τ-length 2 (the diameter in units of max(s)) and the cos terms average
+out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity of a 3DGS Gaussian. Gaussians:
+opacity logit of 0.1, as 3DGS.
+
+With an envelope (the envelope stage's envelope.ply), every centre starts inside it:
+`init.cage_fraction` of them uniformly in its volume (uniform in its bounding box, kept when
+inside: this covers what the points miss, such as textureless parts without SfM points), the rest
+from the source, keeping only the points inside the envelope; anything the source cannot fill is
+sampled in the volume too, as are all centres of the `random` source. Volume samples start grey.
+The centres depend on the envelope and the seed only, never on the cage: fTetWild's cage differs
+from run to run, and the same command must give the same model. `binding.npz` (radfield.core.geometry.cage)
+then records every primitive's tet in the cage (the tetra stage's cage.npz) and the barycentric
+coordinates of its centre, for the editor (a centre just outside the cage's surface, which
+approximates the envelope's, extrapolates from the nearest tet); without a cage `tet` is -1
+throughout.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from radfield.errors import RadfieldError
+from radfield.delivery.io import save_model
+from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
+from radfield.core.render.sh import num_sh_coeffs, rgb_to_sh_dc
+from radfield.pipeline.config import require
+from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
+from radfield.pipeline.runner import Context, Stage
+from radfield.core.geometry.cage import CAGE_NPZ, write_binding
+from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
+from radfield.stages.envelope import ENVELOPE
+
+INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
+BINDING = "binding.npz"  # the initial primitives' tets and barycentric coordinates in the cage
+SOURCES = ("auto", "mesh", "points", "random")
+INITIAL_ALPHA = 0.1  # a new primitive's opacity through its centre, 3DGS's initial opacity
+NEURAL_B2 = -math.log(1.0 - INITIAL_ALPHA) / 2.0
+GAUSSIAN_OPACITY = math.log(INITIAL_ALPHA / (1.0 - INITIAL_ALPHA))  # logit
+RANDOM_RADIUS = 0.5  # normalised units: the cameras lie within radius 1
+
+
+def run(ctx: Context) -> dict[str, Any]:
+    cfg = ctx.config
+    scene = load_scene(ctx.inputs[SCENE])
+    with np.load(ctx.inputs[POINTS]) as points:
+        point_sets = {name: points[name] for name in points.files}
+    budget = cfg["train"]["max_primitives"]
+    count = cfg["init"]["num_points"] if budget is None else budget
+    rng = np.random.default_rng(ctx.seed)
+    cage_file, envelope_file = ctx.inputs[CAGE_NPZ], ctx.inputs[ENVELOPE]
+    if envelope_file is None:
+        source, means, rgb = initial_centres(scene, point_sets, cfg["init"]["source"], count, rng)
+        in_volume = 0
+    else:
+        source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
+                                                            cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
+    prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
+                            cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed,
+                            w1_bound=cfg["init"]["w1_scale"], window=cfg["render"]["window"],
+                            neural_radius=cfg["init"]["neural_radius"])
+    save_model(ctx.outputs[INIT_MODEL], prims)
+    write_binding(ctx.outputs[BINDING], means, cage_file)
+    ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
+            + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
+    return {"primitives": len(prims), "params": prims.num_params(), "source": source,
+            "cage_samples": in_volume, "bound": cage_file is not None}
+
+
+STAGE = Stage(
+    "init",
+    run,
+    config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0",
+                 "render.hidden", "render.window", "seed"),
+    inputs=(SCENE, POINTS, ENVELOPE, CAGE_NPZ),
+    outputs=(INIT_MODEL, BINDING),
+    version=4,
+)
+
+
+def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: bool = True) -> None:
+    """The init settings a user can get wrong, checked before anything runs (`points`: the data
+    stage's points.npz arrays; for unposed photos, whose points the sfm stage makes, only a
+    mesh source can be missing)."""
+    for key, value in (("init.num_points", config["init"]["num_points"]),
+                       ("train.max_primitives", config["train"]["max_primitives"])):
+        if value is not None and value < 1:
+            raise RadfieldError(f"config key {key} must be at least 1, got {value}")
+    require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
+    require(config, "init.neural_radius", lambda x: 0 <= x <= 10, "in [0, 10] (0 = automatic)")
+    require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
+    require(config, "train.frequency_bound", lambda x: x >= 0, "at least 0 (0 = no bound)")
+    require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
+    require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
+    require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
+    require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
+    if posed or config["init"]["source"] == "mesh":
+        choose_source(config["init"]["source"], points)
+
+
+def choose_source(source: str, points: dict[str, np.ndarray]) -> str:
+    """The point set `source` stands for ("auto" resolved); RadfieldError if the dataset lacks it."""
+    if source not in SOURCES:
+        raise RadfieldError(f"config key init.source must be one of {', '.join(SOURCES)}, got {source!r}")
+    if source == "auto":
+        return "mesh" if len(points["mesh_vertices"]) else "points" if len(points["xyz"]) else "random"
+    if source != "random" and not len(points["mesh_vertices" if source == "mesh" else "xyz"]):
+        what = "mesh.ply" if source == "mesh" else "SfM points"
+        raise RadfieldError(f"config key init.source is {source} but the dataset has no {what}")
+    return source
+
+
+def initial_centres(scene: Scene, points: dict[str, np.ndarray], source: str, count: int,
+                    rng: np.random.Generator) -> tuple[str, np.ndarray, np.ndarray | None]:
+    """(source used, centres (count, 3), colours (count, 3) or None) in the world frame."""
+    source = choose_source(source, points)
+    if source == "random":
+        radius = RANDOM_RADIUS / scene.normalization.scale
+        direction = rng.normal(size=(count, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        r = radius * rng.random(count) ** (1 / 3)  # uniform in the ball's volume
+        return source, scene.normalization.center.numpy() + direction * r[:, None], None
+    xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
+    xyz, rgb = xyz.astype(np.float64), rgb if len(rgb) == len(xyz) else None
+    if source == "mesh" and len(points["mesh_faces"]):
+        return source, *surface_samples(xyz, points["mesh_faces"], rgb, count, rng)
+    return source, *resample(xyz, rgb, count, rng)
+
+
+def centres_in_envelope(envelope: tuple[np.ndarray, np.ndarray], points: dict[str, np.ndarray], source: str,
+                        count: int, volume_fraction: float,
+                        rng: np.random.Generator) -> tuple[str, np.ndarray, np.ndarray | None, int]:
+    """(source used, centres (count, 3) inside the envelope (vertices, faces), their colours or
+    None, how many of them were sampled in the envelope's volume); see the module docstring."""
+    source = choose_source(source, points)
+    wanted = 0 if source == "random" else count - round(volume_fraction * count)
+    means, rgb = np.zeros((0, 3)), None
+    if wanted:
+        xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
+        xyz, rgb = xyz.astype(np.float64), rgb if len(rgb) == len(xyz) else None
+        if source == "mesh" and len(points["mesh_faces"]):
+            xyz, rgb = surface_samples(xyz, points["mesh_faces"], rgb, wanted, rng)
+        else:
+            xyz, rgb = _inside(envelope, xyz, rgb)
+            if len(xyz):
+                xyz, rgb = resample(xyz, rgb, wanted, rng)
+        means, rgb = _inside(envelope, xyz, rgb)  # jittered copies and surface samples may lie just outside
+    # the configured share of volume samples, plus whatever the source could not fill
+    volume = sample_in_envelope(*envelope, count - len(means), rng)
+    if rgb is not None:
+        rgb = np.concatenate([rgb, np.full((len(volume), 3), 0.5)])
+    return source, np.concatenate([means, volume]), rgb, len(volume)
+
+
+def _inside(envelope: tuple[np.ndarray, np.ndarray], xyz: np.ndarray,
+            rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points (and their colours) that lie inside the envelope."""
+    keep = inside_envelope(xyz, *envelope)
+    return xyz[keep], None if rgb is None else rgb[keep]
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, rgb: np.ndarray | None, count: int,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
+    """`count` points spread uniformly over a triangle mesh's area, colours interpolated from the
+    vertices: the paper resamples its meshes to each budget, and vertices crowd where a mesh is
+    finely tessellated (a box's large faces have none inside)."""
+    corners = vertices[faces]  # (F, 3 corners, 3)
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    face = rng.choice(len(faces), count, p=area / area.sum())
+    root, v = np.sqrt(rng.random(count)), rng.random(count)
+    weights = np.stack([1 - root, root * (1 - v), root * v], -1)  # uniform barycentric coordinates
+    means = np.einsum("pc,pcx->px", weights, corners[face])
+    return means, None if rgb is None else np.einsum("pc,pcx->px", weights, rgb[faces[face]])
+
+
+def resample(xyz: np.ndarray, rgb: np.ndarray | None, count: int,
+             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
+    """`count` points from a point set: a random subset, or every point plus copies jittered by a
+    fraction of the local spacing when the set is smaller (coincident centres would get zero scale)."""
+    xyz, first = np.unique(xyz, axis=0, return_index=True)  # meshes repeat vertices along seams
+    rgb = None if rgb is None else rgb[first]
+    n = len(xyz)
+    if n >= count:
+        index = np.sort(rng.choice(n, count, replace=False))
+        return xyz[index], None if rgb is None else rgb[index]
+    index = np.concatenate([np.arange(n), rng.choice(n, count - n)])
+    spacing = neighbour_distance(xyz)[index[n:]] if n > 1 else np.ones(count - n)
+    means = xyz[index]
+    means[n:] += rng.normal(size=(count - n, 3)) * 0.3 * spacing[:, None]
+    return means, None if rgb is None else rgb[index]
+
+
+def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """Mean distance of every point to its k nearest other points."""
+    k = min(k, len(xyz) - 1)
+    distances, _ = cKDTree(xyz).query(xyz, k=k + 1)  # the nearest is the point itself
+    return distances[:, 1:].mean(axis=1)
+
+
+def neural_radius_factor(window: bool) -> float:
+    """k such that a neural primitive of radius k·d has a Gaussian of scale d's per-axis variance
+    d²: 1/k² = E[x²] of the density profile in the unit ball (window 1.5 (1 − r²): 1/7; hard: 1/5)."""
+    return math.sqrt(7.0) if window else math.sqrt(5.0)
+
+
+def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, hidden: int,
+                    omega0: float, extent: float, seed: int, w1_bound: float = 1 / 3,
+                    window: bool = False, neural_radius: float = 0.0) -> NeuralPrimitives | Gaussians:
+    """Isotropic primitives at `means` (see the module docstring for every initial value;
+    `neural_radius`: k of a neural primitive's radius k·d, 0 = neural_radius_factor(window))."""
+    num = len(means)
+    radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
+    radius = np.maximum(radius, 1e-6 * extent)
+    if kind == "neural":
+        radius = radius * (neural_radius or neural_radius_factor(window))
+    colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
+    sh = torch.zeros(num, num_sh_coeffs(sh_degree), 3)
+    sh[:, 0] = rgb_to_sh_dc(colour)
+    geometry = {
+        "means": torch.as_tensor(means, dtype=torch.float32),
+        "log_scales": torch.log(torch.as_tensor(radius, dtype=torch.float32))[:, None].repeat(1, 3),
+        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(num, 1),
+        "sh": sh,
+    }
+    if kind == "gaussian":
+        return Gaussians(**geometry, opacities=torch.full((num,), GAUSSIAN_OPACITY))
+    w1, b1, w2, b2 = siren_mlp_init(num, hidden, omega0, generator=torch.Generator().manual_seed(seed),
+                                    w1_bound=w1_bound)
+    return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0,
+                            window=window)
