@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.cli.edit import load_source
+from radfield.edit.source import load_source
 from radfield.core.geometry.cage import write_cage
 from radfield.core.render.rasterize import render
 from radfield.datasets.readers import load_dataset
 from radfield.edit.deform import deform_field
 from radfield.edit.warp import axis_rotation
-from radfield.pipeline.info import run_dataset
+from radfield.run import Run
 
 
 def main():
@@ -51,7 +51,7 @@ def main():
 
     twisted = deform_field(fld, poses[-1])
     print(f"most twisted frame: {twisted.notes[-1]}")
-    cam = load_dataset(run_dataset(args.run), split="test").cameras[0]
+    cam = load_dataset(Run(args.run).dataset(), split="test").cameras[0]
     models = {"original": fld.prims, "twisted": twisted.prims}
     times = {name: [] for name in models}
     with torch.no_grad():

@@ -19,8 +19,8 @@ import sys
 import numpy as np
 import torch
 
-from radfield.cli.edit import load_source
-from radfield.core.kinds.primitives import quat_to_rotmat
+from radfield.edit.source import load_source
+from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.edit import deform
 from radfield.edit.warp import axis_rotation
 

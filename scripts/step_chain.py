@@ -27,7 +27,7 @@ def main(kind: str) -> None:
 
     def step(i: int, render_too: bool) -> None:
         if render_too:
-            render(trainer.assemble(params, kind, state.omega0), cams[i % 4], sh_degree=3).color.sum().backward()
+            render(trainer.assemble(params, kind, state.attrs), cams[i % 4], sh_degree=3).color.sum().backward()
         strategy.accumulate(accumulators, params, {n: params[n].grad for n in strategy.grad_names}, cams[i % 4], 1)
         if render_too:
             for p in params.values():
@@ -44,7 +44,7 @@ def main(kind: str) -> None:
 
     step(0, True)
     chain = best(True)
-    render(trainer.assemble(params, kind, state.omega0), cams[0], sh_degree=3).color.sum().backward()
+    render(trainer.assemble(params, kind, state.attrs), cams[0], sh_degree=3).color.sum().backward()
     print(f"{kind}: assemble + render forward + backward + statistics {chain:.2f} ms, statistics alone "
           f"{best(False):.3f} ms (CPU time per step)")
 

@@ -10,7 +10,7 @@ from radfield.core.render.antialias import FootprintFloor, jitter_offsets, rende
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
 from radfield.delivery.io import load_model
 from radfield.delivery.metrics import psnr
-from radfield.core.kinds.primitives import random_gaussians, random_neural
+from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train.trainer import generator, load_checkpoint, mean_psnr, save_checkpoint, train
 from radfield.datasets.images import read_image

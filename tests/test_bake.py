@@ -13,7 +13,7 @@ from radfield.delivery.bake import coverage, prune, to_fp16_and_back
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
 from radfield.delivery.io import load_model, read_metadata, save_model
-from radfield.core.kinds.primitives import Gaussians, random_neural
+from radfield.core.kinds import Gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import C0, rgb_to_sh_dc
 

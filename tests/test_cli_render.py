@@ -13,7 +13,7 @@ from safetensors import safe_open
 
 from radfield.core.geometry.cameras import look_at, opencv_to_opengl
 from radfield.delivery.io import save_model
-from radfield.core.kinds.primitives import NeuralPrimitives, siren_mlp_init
+from radfield.core.kinds import NeuralPrimitives, siren_mlp_init
 from radfield.datasets.images import read_image, write_image
 
 SIZE = 40

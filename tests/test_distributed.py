@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from radfield.cli import distributed as distributed_cli
 from radfield.cli.main import main
+from radfield.core.train import launch
 from radfield.core.train.distributed import compare_checksums
 from radfield.core.train.trainer import load_checkpoint
 from radfield.datasets.synthetic import generate_scene
@@ -76,7 +76,7 @@ def assert_same_training(run: Path, reference: Path, iterations: int = ITERATION
     ref_state = load_checkpoint(reference / "train" / "final_state.safetensors")
     ref_log = _log(reference / "train" / "log.jsonl")
     assert state.step == ref_state.step == iterations
-    assert state.window and ref_state.window   # the default density window, carried to every rank
+    assert state.attrs["window"] and ref_state.attrs["window"]   # the default density window, carried to every rank
     counts = [r["primitives"] for r in ref_log]
     assert counts[0] == 200 and counts[-1] != 200  # densification changed the population ...
     assert [r["primitives"] for r in log] == counts  # ... identically on both
@@ -191,13 +191,13 @@ def test_failure_line_prefers_the_root_cause(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("TORCHELASTIC_ERROR_FILE", str(error_file))
     monkeypatch.setenv("RADFIELD_LAUNCHER", "1")
     with pytest.raises(SystemExit) as exit_:
-        with distributed_cli._reported():
-            raise distributed_cli.RadfieldError("train: rank 0: the gradient all-reduce at step 7 failed")
+        with launch._reported():
+            raise launch.RadfieldError("train: rank 0: the gradient all-reduce at step 7 failed")
     assert exit_.value.code == 1 and capsys.readouterr().err == ""
     reported = ProcessFailure(0, 100, 1, str(error_file))
     terminated = ProcessFailure(1, 101, -signal.SIGTERM, "<N/A>")
     killed = ProcessFailure(2, 102, -signal.SIGKILL, "<N/A>")
-    line = distributed_cli.failure_line
+    line = launch.failure_line
     assert line({0: reported, 1: terminated}, tmp_path) == "train: rank 0: the gradient all-reduce at step 7 failed"
     assert line({0: reported, 1: terminated, 2: killed}, tmp_path).startswith("rank 2 (pid 102) was killed by SIGKILL")
     assert line({1: terminated}, tmp_path).startswith("rank 1 (pid 101) was killed by SIGTERM")

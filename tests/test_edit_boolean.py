@@ -10,7 +10,7 @@ import torch
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
 from radfield.errors import RadfieldError
 from radfield.core.train.losses import psnr
-from radfield.core.kinds.primitives import NeuralPrimitives, quat_to_rotmat, random_neural
+from radfield.core.kinds import NeuralPrimitives, quat_to_rotmat, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import sh_to_color
 from radfield.edit import boolean, retrain

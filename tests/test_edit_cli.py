@@ -16,7 +16,7 @@ from radfield.core.geometry.cage import write_binding, write_cage
 from radfield.core.geometry.camera_path import orbit
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.delivery.io import load_model, save_model
-from radfield.core.kinds.primitives import random_neural
+from radfield.core.kinds import random_neural
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import generate_scene
 from radfield.edit.field import box_cage

@@ -6,7 +6,7 @@ import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import random_gaussians, random_neural
+from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import eval_sh
 from radfield.core.render.sh import rotate_sh

@@ -12,7 +12,7 @@ import torch
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
 from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
-from radfield.core.kinds.primitives import random_gaussians, random_neural
+from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import T_MIN, render
 from radfield.core.render.reference import quadrature_optical_depth
 from radfield.core.render.sh import eval_sh, rotate_sh, sh_to_color
@@ -90,7 +90,7 @@ def _pulled_back_reference(rest, a, b, camera, background, preserve_opacity=Fals
     o = c2w[:3, 3]
     depth = (mu_new - o) @ c2w[:3, 2]
     order = torch.argsort(depth).tolist()
-    from radfield.core.kinds.primitives import quat_to_rotmat
+    from radfield.core.kinds import quat_to_rotmat
     rs = a_t @ quat_to_rotmat(rest.quats) * torch.exp(rest.log_scales)[:, None, :]
     smax_new = torch.linalg.svdvals(rs).amax(-1)
     colors = sh_to_color(rest.sh, torch.nn.functional.normalize(mu_new - o, dim=-1) @ rot, rest.sh_degree)
@@ -195,7 +195,7 @@ def test_split_keeps_the_density_inside_each_half():
     # child i (rows 2 and 3 hold the halves of primitive 1): same density at points inside it
     for child in (2, 3):
         mu, s = halves.means[child], torch.exp(halves.log_scales[child])
-        from radfield.core.kinds.primitives import quat_to_rotmat
+        from radfield.core.kinds import quat_to_rotmat
         rot = quat_to_rotmat(halves.quats[child][None])[0]
         z = torch.nn.functional.normalize(torch.randn(50, 3, dtype=torch.float64), dim=-1) * torch.rand(50, 1, dtype=torch.float64) * 0.9
         x = mu + (z * s) @ rot.T

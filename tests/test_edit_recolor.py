@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import random_neural
+from radfield.core.kinds import random_neural
 from radfield.core.render.sh import C0, eval_sh
 from radfield.edit.field import Field
 from radfield.edit.recolor import hue_matrix, peak_density

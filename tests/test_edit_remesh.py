@@ -8,7 +8,7 @@ from radfield.core.geometry.cage import tet_volumes
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
 from radfield.core.train.losses import psnr
-from radfield.core.kinds.primitives import random_neural
+from radfield.core.kinds import random_neural
 from radfield.core.render.rasterize import render
 from radfield.edit.field import Field
 from radfield.edit.remesh import _EDGES, oversized

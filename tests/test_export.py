@@ -18,10 +18,10 @@ from radfield.core.geometry.cameras import Camera, look_at
 from radfield.delivery.export import Content, export, read_gaussian_ply
 from radfield.delivery.io import save_model
 from radfield.delivery.moments import gaussians_from_neural
-from radfield.core.kinds.primitives import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.datasets.synthetic import generate_scene
-from radfield.datasets.transforms import read_nerfstudio
+from radfield.datasets.formats.nerfstudio import read_nerfstudio
 from radfield.pipeline.config import load_config
 from radfield.datasets.scene import load_scene
 from radfield.pipeline.runner import run_pipeline

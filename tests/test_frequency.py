@@ -7,7 +7,7 @@ import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.train.frequency import NYQUIST, FrequencyCap, footprint, view_stack
-from radfield.core.kinds.primitives import random_neural
+from radfield.core.kinds import random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train.trainer import initial_state, train
 from radfield.pipeline.config import load_defaults

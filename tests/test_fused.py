@@ -1,4 +1,6 @@
-"""The fused C++ block kernels (core/backends/fused.py) against their pure-torch twins in core/render/rasterize.py.
+"""The fused C++ kernels (core/backends/fused.py) against their pure-torch twins in the kinds' modules
+(core/kinds/neural.py, gaussian.py, base.py) and core/train/losses.py, op by op (whole renders and
+the backend seam's choice: tests/test_backends.py).
 
 Blocks are built directly in camera space (the camera at the origin) so that every branch of the
 kernels is hit on purpose: a camera inside an ellipsoid, an ellipsoid straddling or behind the near
@@ -17,8 +19,12 @@ import torch
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.render.kernels import ray_ellipsoid
-from radfield.core.kinds.primitives import quat_to_rotmat, random_gaussians, random_neural
-from radfield.core.render.rasterize import _camera_directions, _gaussian_block, _neural_block, render
+from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.kinds import ViewFrame
+from radfield.core.kinds.base import camera_directions as _camera_directions, ellipsoid_bounds
+from radfield.core.kinds.gaussian import ewa_view as _gaussian_view, pair_alpha as _gaussian_block, splat_bounds as _gaussian_bounds
+from radfield.core.kinds.neural import pair_alpha as _neural_block, view_tensors as _neural_view
+from radfield.core.render.rasterize import render
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 # outside CI a machine without a compiler skips these tests; in CI they run (and fail) regardless
@@ -270,70 +276,6 @@ def _render_scene(kind, dtype, hidden=8):
     return prims.to(dtype=dtype), cam
 
 
-def _render_with_grads(prims, cam, monkeypatch, kernels):
-    with monkeypatch.context() as m:
-        if kernels == "torch":
-            m.setenv("RADFIELD_KERNELS", "torch")
-        params = prims.map(lambda t: t.clone().requires_grad_(True))
-        out = render(params, cam, background=(0.2, 0.3, 0.4), near=0.05)
-        g = torch.Generator().manual_seed(0)
-        weights = [torch.randn(t.shape, generator=g, dtype=torch.float64).to(t.dtype) for t in (out.color, out.alpha, out.depth)]
-        loss = sum((w * t).sum() for w, t in zip(weights, (out.color, out.alpha, out.depth)))
-        names = list(params.tensors())
-        grads = torch.autograd.grad(loss, [params.tensors()[n] for n in names])
-    return out, dict(zip(names, grads))
-
-
-@pytest.mark.parametrize("kind", ["neural", "neural-window", "gaussian"])
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_render_fused_equals_torch(kind, dtype, monkeypatch):
-    prims, cam = _render_scene(kind, dtype)
-    fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
-    slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
-    assert slow.meta["contributing_pairs"] > 100
-    # evaluated pairs differ by design (the fused kernel skips a pixel as soon as it terminates,
-    # the torch twin only between chunks); everything else is the same count
-    evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
-    assert fast.meta == slow.meta and evaluated[0] <= evaluated[1]
-    tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
-    for name in ("color", "alpha", "depth"):
-        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **tol)
-    for name, gs in grads_slow.items():
-        scale = gs.abs().max().clamp_min(1.0)
-        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **tol, msg=lambda m: f"d/d{name}: {m}")
-
-
-def test_render_fused_equals_torch_at_another_width(monkeypatch):
-    """The view kernels unroll the default 8 hidden units; any other width takes the run-time
-    loop, which must agree with the torch twin as well (images and every gradient, float64)."""
-    prims, cam = _render_scene("neural", torch.float64, hidden=5)
-    assert prims.hidden == 5
-    fast, grads_fast = _render_with_grads(prims, cam, monkeypatch, "fused")
-    slow, grads_slow = _render_with_grads(prims, cam, monkeypatch, "torch")
-    assert slow.meta["contributing_pairs"] > 100
-    for name in ("color", "alpha", "depth"):
-        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-9, atol=1e-10)
-    for name, gs in grads_slow.items():
-        scale = gs.abs().max().clamp_min(1.0)
-        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, rtol=1e-9, atol=1e-10,
-                                   msg=lambda m: f"d/d{name}: {m}")
-
-
-def test_render_uses_fused_kernels(monkeypatch):
-    calls = []
-    for name in ("neural_view", "gaussian_view"):
-        original = getattr(fused, name)
-        monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name, **k: calls.append(_n) or _f(*a, **k))
-    for kind in ("neural", "neural-window", "gaussian"):
-        render(*_render_scene(kind, torch.float32))
-    assert calls == ["neural_view", "neural_view", "gaussian_view"]
-    calls.clear()
-    monkeypatch.setenv("RADFIELD_KERNELS", "torch")
-    assert not fused.available()
-    render(*_render_scene("neural", torch.float32))
-    assert not calls
-
-
 def test_failed_build_warns_once_and_falls_back(monkeypatch):
     def broken_build():
         raise RuntimeError("Error building extension 'radfield_kernels'\nmore compiler output")
@@ -375,8 +317,6 @@ def test_sh_color_matches_torch_twin_and_finite_differences(degree):
 
 
 def test_neural_prep_matches_torch_twin_and_finite_differences():
-    from radfield.core.render.rasterize import _neural_view
-
     prims = random_neural(9, scale=0.3, seed=7).to(dtype=torch.float64)
     prims.log_scales[0] = math.log(0.2)   # an isotropic primitive: max(s) is a three-way tie
     cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
@@ -440,42 +380,13 @@ def test_ssim_map_matches_torch_twin_and_finite_differences(padding, dtype):
         assert torch.autograd.gradcheck(lambda a: fused.ssim_map(a, y[:1, :13, :12], w, pad, 1e-4, 9e-4), (small,))
 
 
-def test_losses_use_the_fused_ssim_and_anisotropy_with_a_mask(monkeypatch):
-    """losses.ssim / dssim / anisotropy on the fused path equal the torch path (RADFIELD_KERNELS=torch),
-    values and gradients, with a valid-pixel mask."""
-    from radfield.core.train import losses
-
-    g = torch.Generator().manual_seed(4)
-    img, ref = torch.rand(24, 30, 3, generator=g), torch.rand(24, 30, 3, generator=g)
-    mask = torch.ones(24, 30, dtype=torch.bool)
-    mask[:3] = False
-    log_scales = torch.randn(50, 3, generator=g)
-    log_scales[0] = 0.1                  # isotropic: std 0, and a three-way tie of the minimum
-    log_scales[1, 1:] = -0.4             # a two-way tie
-
-    def run():
-        x, x2, ls = (t.clone().requires_grad_() for t in (img, img, log_scales))
-        values = [losses.ssim(x, ref, "valid", mask), losses.dssim(x, ref, mask), losses.ssim(x2, ref), losses.anisotropy(ls)]
-        sum(values).backward()
-        return [v.detach() for v in values] + [x.grad, x2.grad, ls.grad]
-
-    fast = run()
-    monkeypatch.setenv("RADFIELD_KERNELS", "torch")
-    slow = run()
-    for f, s in zip(fast, slow):
-        torch.testing.assert_close(f, s, rtol=1e-5, atol=1e-6)
-    assert (fast[4][:3] == 0).all()   # no gradient reaches an invalid pixel
-
-
-# --- pixel bounds and depth order (core/backends/csrc/prepare_kernels.cpp) against rasterize.py ----------
+# --- pixel bounds and depth order (core/backends/csrc/prepare_kernels.cpp) against the kinds' twins ------
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_bounds_and_depth_order_match_torch_twins(dtype):
-    """The C++ bounds and depth order equal the torch twins' (_neural_bounds, _gaussian_bounds, a
+    """The C++ bounds and depth order equal the torch twins' (ellipsoid_bounds, splat_bounds, a
     stable argsort of the visible primitives by depth), on primitives in front of, straddling and
     behind the near plane, off screen and on screen, with depth ties."""
-    from radfield.core.render.rasterize import _gaussian_bounds, _gaussian_view, _neural_bounds
-
     cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)))
     near = 0.05
     for make in (random_neural, random_gaussians):
@@ -488,7 +399,7 @@ def test_bounds_and_depth_order_match_torch_twins(dtype):
         intrinsics = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, near], dtype=dtype)
         if make is random_neural:
             bounds, order = fused.neural_bounds(means_cam, prims.log_scales, prims.quats, w2c[:3, :3], intrinsics, W, H, near)
-            twin, visible = _neural_bounds(prims, cam, w2c, means_cam, near)
+            twin, visible = ellipsoid_bounds(prims, ViewFrame(cam, c2w, w2c, c2w[:3, 3], means_cam, depth, intrinsics, near))
         else:
             view, cov = _gaussian_view(prims, cam, w2c, means_cam, near)
             bounds, order = fused.gaussian_bounds(view[0], torch.stack(cov, -1), depth, W, H, near)
@@ -505,10 +416,8 @@ def test_bounds_and_depth_order_match_torch_twins(dtype):
 
 
 def test_gaussian_prep_matches_torch_twin_and_finite_differences():
-    """The EWA projection (mean2d, conic, cov) against rasterize._gaussian_view, values and
+    """The EWA projection (mean2d, conic, cov) against kinds/gaussian.py: ewa_view, values and
     gradients, with splats off screen (the Jacobian's clamped point) and behind the near plane."""
-    from radfield.core.render.rasterize import _gaussian_view
-
     near = 0.05
     prims = random_gaussians(60, extent=3.0, scale=0.3, seed=5, dtype=torch.float64)
     prims.means[0] = torch.tensor([0.6, -6.0, 1.0], dtype=torch.float64)     # behind the camera

@@ -9,7 +9,7 @@ import torch
 
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.kinds.primitives import random_gaussians
+from radfield.core.kinds import random_gaussians
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import join_sh, sh_parts, sh_to_color
 

@@ -9,7 +9,7 @@ from safetensors.torch import save_file
 
 from radfield.errors import RadfieldError
 from radfield.delivery.io import load_model, read_metadata, save_model
-from radfield.core.kinds.primitives import NeuralPrimitives, random_gaussians, random_neural
+from radfield.core.kinds import NeuralPrimitives, random_gaussians, random_neural
 
 
 @pytest.mark.parametrize("make", [lambda: random_neural(7, sh_degree=2, omega0=20.0),

@@ -13,8 +13,9 @@ import yaml
 
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config, load_defaults, parse_set, save_resolved, section
-from radfield.pipeline.info import MODEL_FILE, format_info, model_path, run_info
+from radfield.pipeline.info import format_info, run_info
 from radfield.pipeline.runner import INPUT, Context, NotApplicable, Stage, read_manifest, run_pipeline
+from radfield.run import MODEL_FILE, Run
 
 ORDER = ["data", "sfm", "init", "train", "eval"]
 
@@ -165,9 +166,9 @@ def test_run_dir_inside_the_dataset_does_not_invalidate_it(toy: Toy, dataset: Pa
 def test_deleted_output_reruns_its_stage(toy: Toy, tmp_path: Path, dataset: Path) -> None:
     run_dir = tmp_path / "run"
     run(toy, run_dir, dataset)
-    model_path(run_dir).unlink()
+    Run(run_dir).model.unlink()
     assert run(toy, run_dir, dataset) == {**dict.fromkeys(ORDER, "cached"), "train": "ran"}
-    assert model_path(run_dir).is_file()
+    assert Run(run_dir).model.is_file()
 
 
 def test_force_from_and_until(toy: Toy, tmp_path: Path, dataset: Path) -> None:
@@ -199,13 +200,13 @@ def test_failing_stage_keeps_its_previous_output(toy: Toy, tmp_path: Path, datas
     run_dir = tmp_path / "run"
     config = base_config()
     run(toy, run_dir, dataset, config)
-    model_before = model_path(run_dir).read_text()
+    model_before = Run(run_dir).model.read_text()
     manifest_before = read_manifest(run_dir / "train")
     config["train"]["iterations"] = 10
     toy.fail_train_at = 7
     with pytest.raises(KeyboardInterrupt):
         run(toy, run_dir, dataset, config)
-    assert model_path(run_dir).read_text() == model_before
+    assert Run(run_dir).model.read_text() == model_before
     assert read_manifest(run_dir / "train") == manifest_before
     assert not list(run_dir.glob("*.tmp-*"))
     assert "eval" not in toy.calls
@@ -228,7 +229,7 @@ def test_killed_training_resumes_from_its_checkpoint(toy: Toy, tmp_path: Path, d
     toy.fail_train_at = None
     assert run(toy, run_dir, dataset) == {**dict.fromkeys(ORDER, "cached"), "train": "ran", "eval": "ran"}
     assert toy.train_started_at == [0, 2]
-    assert model_path(run_dir).read_text() == model_path(tmp_path / "reference").read_text()
+    assert Run(run_dir).model.read_text() == Run(tmp_path / "reference").model.read_text()
     assert not leftover.exists() and not (run_dir / "train.work").exists()
 
 
@@ -356,7 +357,7 @@ def test_info_json_shape(toy: Toy, tmp_path: Path, dataset: Path) -> None:
     assert stages["train"]["iterations"] == 4 and stages["train"]["train_psnr"] == 30.5
     assert stages["eval"] == {"done": False, "seconds": None, "applicable": None}
     text = format_info(info)
-    for expected in ["data", "images=5", "n/a: the dataset has poses", "not run", str(model_path(run_dir).name)]:
+    for expected in ["data", "images=5", "n/a: the dataset has poses", "not run", str(Run(run_dir).model.name)]:
         assert expected in text
 
 

@@ -7,12 +7,13 @@ import os
 import pytest
 import torch
 
+from radfield.core import kinds
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
 from radfield.core.train.frequency import FrequencyCap
 from radfield.core.train.positivity import NonNegativeDensity, project_nonnegative, view_cone_half_angle
-from radfield.core.kinds.primitives import random_neural
+from radfield.core.kinds import random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train.strategy import in_frustum
 from radfield.core.train.trainer import train
@@ -154,10 +155,14 @@ def test_only_narrow_view_cones_are_projected_and_a_resumed_run_is_the_same(tmp_
 
 
 def test_gaussians_are_not_projected():
+    """The projection is a training rule of the neural kind alone (radfield.core.kinds)."""
     cfg = load_defaults()["train"]
     cfg["nonnegative_density"] = 180.0
-    assert not NonNegativeDensity.for_training(views(), cfg, kind="gaussian", near=0.01).enabled
-    assert NonNegativeDensity.for_training(views(), cfg, kind="neural", near=0.01).enabled
+    assert not any(isinstance(rule, NonNegativeDensity)
+                   for rule in kinds.get("gaussian").training_rules(views(), cfg, {}, near=0.01))
+    rules = kinds.get("neural").training_rules(views(), cfg, {"omega0": 30.0, "window": False}, near=0.01)
+    assert [rule.enabled for rule in rules if isinstance(rule, NonNegativeDensity)] == [True]
+    assert NonNegativeDensity.for_training(views(), cfg, near=0.01).enabled
     with pytest.raises(ValueError):
         NonNegativeDensity(views(), threshold=200.0, near=0.01)
 

@@ -7,7 +7,7 @@ import torch
 
 from radfield.core.geometry.cameras import Camera, look_at, opengl_to_opencv
 from radfield.core.render.kernels import neural_line_integral
-from radfield.core.kinds.primitives import NeuralPrimitives, quat_to_rotmat, random_gaussians, random_neural, rotmat_to_quat
+from radfield.core.kinds import NeuralPrimitives, quat_to_rotmat, random_gaussians, random_neural, rotmat_to_quat
 from radfield.core.render.rasterize import render
 from radfield.core.render.reference import quadrature_optical_depth, reference_render
 from radfield.core.render.sh import eval_sh
@@ -252,26 +252,3 @@ def test_quaternion_round_trip():
     torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(100, 3, 3))
     torch.testing.assert_close(torch.linalg.det(r), torch.ones(100, dtype=torch.float64))
     torch.testing.assert_close(quat_to_rotmat(rotmat_to_quat(r)), r)
-
-
-def test_bench_train_prints_every_part(cli):
-    code, out, err = cli("bench-train", "--primitives", "300", "--sizes", "32", "--steps", "1", "--quiet", "--baseline")
-    assert code == 0, err
-    header = next(line for line in out.splitlines() if "forward" in line and "population" in line)
-    rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["neural"], ["gaussian"])]
-    ratios = [line.split() for line in out.splitlines() if line.split()[:1] == ["x"]]
-    assert len(rows) == 4 and "train()" in header and [r[3] for r in rows] == ["torch", "fused"] * 2
-    for row in rows:   # kind, count, size, path, 5 parts, sum, train(), setup, Mpairs/s
-        parts = [float(x) for x in row[4:9]]
-        assert row[1] == "300" and row[2] == "32x32" and all(p >= 0 for p in parts)
-        # every figure is printed to 0.1 ms: six roundings of up to 0.05 each separate the sum from its parts
-        assert float(row[9]) == pytest.approx(sum(parts), abs=0.3 + 1e-9) and float(row[10]) > 0
-        assert float(row[11]) > 0 and float(row[12]) >= 0   # trainer.train's set-up, pairs per second
-    assert len(ratios) == 2 and all(len(r) == 8 and float(r[6]) > 0 for r in ratios)   # x, 5 parts, sum, train()
-    code, _, err = cli("bench-train", "--sizes", "0")
-    assert code == 1 and "radfield: error: --sizes" in err
-    code, out, err = cli("bench-train", "--primitives", "300", "--sizes", "32", "--steps", "1", "--quiet",
-                         "--kinds", "neural-hard")
-    assert code == 0 and [line.split()[0] for line in out.splitlines()[2:]] == ["neural-hard"], err
-    code, _, err = cli("bench-train", "--kinds", "neural,splat")
-    assert code == 1 and "radfield: error: --kinds must be among neural, neural-hard, gaussian" in err

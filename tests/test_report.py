@@ -38,7 +38,7 @@ def models(scene_dir, tmp_path_factory) -> dict[str, Path]:
     for kind in ("neural", "gaussian"):
         _, means, rgb = init.initial_centres(scene, points, "mesh", 150, np.random.default_rng(0))
         out[kind] = folder / f"{kind}.safetensors"
-        save_model(out[kind], init.make_primitives(means, rgb, kind, 0, 8, 30.0, scene.extent, 0))
+        save_model(out[kind], init.make_primitives(means, rgb, kind, 0, scene.extent, 0))
     return out
 
 

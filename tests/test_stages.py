@@ -17,7 +17,7 @@ import torch
 from radfield.errors import RadfieldError
 from radfield.delivery.io import load_model, save_model
 from radfield.core.render.kernels import neural_line_integral
-from radfield.core.kinds.primitives import density_window
+from radfield.core.kinds import density_window, neural
 from radfield.core.train.trainer import load_checkpoint, save_checkpoint
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.readers import load_dataset
@@ -26,7 +26,7 @@ from radfield.datasets import scene as data
 from radfield.stages import init
 from radfield.pipeline.config import load_config
 from radfield.stages.evaluate import evaluate
-from radfield.pipeline.info import MODEL_FILE
+from radfield.stages.train import MODEL_FILE
 from radfield.pipeline.runner import Stage, read_manifest, run_pipeline
 from radfield.pipeline.registry import stages
 
@@ -250,7 +250,7 @@ def test_init_stage_budget_and_initial_values(scene_dir, tmp_path):
     model = load_model(run_dir / "init" / init.INIT_MODEL)
     assert model.kind == "neural" and model.sh_degree == 3 and model.omega0 == 10.0 and model.hidden == 8
     assert model.window   # render.window's default
-    assert torch.all(model.b2 == torch.tensor(init.NEURAL_B2))
+    assert torch.all(model.b2 == torch.tensor(neural.NEURAL_B2))
     assert torch.all(model.log_scales == model.log_scales[:, :1]) and torch.all(model.quats[:, 0] == 1)
     assert torch.all(model.sh[:, 1:] == 0) and not torch.all(model.sh[:, 0] == 0)
 
@@ -283,7 +283,7 @@ def test_neural_radius_factor_matches_the_gaussian_variance(window):
     points, r2 = points[r2 <= 1], r2[r2 <= 1]   # uniform in the unit ball
     weight = torch.as_tensor(density_window(SimpleNamespace(window=window), r2), dtype=torch.float64).expand_as(r2)
     variance = (weight[:, None] * points ** 2).sum(0) / weight.sum()   # E[x²] per axis, unit radius
-    k = init.neural_radius_factor(window)
+    k = neural.neural_radius_factor(window)
     torch.testing.assert_close(k ** 2 * variance, torch.ones(3, dtype=torch.float64), rtol=0.01, atol=0)
 
 
@@ -291,10 +291,10 @@ def test_neural_radius_factor_matches_the_gaussian_variance(window):
 def test_a_new_neural_primitive_has_opacity_one_tenth_through_its_centre(window):
     """With or without the window (whose 1.5 keeps the central chord's optical depth)."""
     means = torch.zeros(400, 3)
-    w1, b1, w2, b2 = init.siren_mlp_init(400, generator=torch.Generator().manual_seed(0))
-    prims = init.NeuralPrimitives(means=means, log_scales=torch.zeros(400, 3),
+    w1, b1, w2, b2 = neural.siren_mlp_init(400, generator=torch.Generator().manual_seed(0))
+    prims = neural.NeuralPrimitives(means=means, log_scales=torch.zeros(400, 3),
                                   quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(400, 1), sh=torch.zeros(400, 1, 3),
-                                  w1=w1, b1=b1, w2=w2, b2=b2.fill_(init.NEURAL_B2), window=window)
+                                  w1=w1, b1=b1, w2=w2, b2=b2.fill_(neural.NEURAL_B2), window=window)
     dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=torch.Generator().manual_seed(1)), dim=1)
     depth = neural_line_integral(prims, -5 * dirs, dirs).diagonal()  # ray i through primitive i's centre
     alpha = 1 - torch.exp(-depth.clamp_min(0))
@@ -319,7 +319,7 @@ def test_evaluate_metrics(blobs, scene_dir, tmp_path):
     scene, points = blobs
     model_file = tmp_path / "model.safetensors"
     _, means, rgb = init.initial_centres(scene, points, "mesh", 300, np.random.default_rng(0))
-    save_model(model_file, init.make_primitives(means, rgb, "gaussian", 1, 8, 30.0, scene.extent, 0))
+    save_model(model_file, init.make_primitives(means, rgb, "gaussian", 1, scene.extent, 0))
     metrics = evaluate(model_file, scene, "test", tmp_path / "renders")
     assert set(metrics) == METRIC_KEYS and metrics["split"] == "test" and metrics["kind"] == "gaussian"
     assert (metrics["num_primitives"], metrics["num_params"]) == (300, 300 * (3 + 3 + 4 + 1 + 12))

@@ -17,14 +17,15 @@ from radfield.delivery.bake import coverage
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.delivery.export import supersample_warning
 from radfield.delivery.io import load_model, read_metadata, save_model
-from radfield.core.kinds.primitives import random_gaussians, random_neural, rotmat_to_quat
+from radfield.core.kinds import random_gaussians, random_neural, rotmat_to_quat
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import Normalization, load_split
 from radfield.datasets.synthetic import generate_scene
 from radfield.edit.compose import concat_prims
 from radfield.edit.deform import deform_field
-from radfield.edit.field import EDIT_MODEL, EDIT_STAGE, Field, box_cage
+from radfield.edit.field import Field, box_cage
 from radfield.pipeline.config import load_defaults
+from radfield.run import Run
 from radfield.stages.train import to_normalized, to_world
 from radfield.delivery.viewer import Viewer, viser_camera
 
@@ -118,7 +119,9 @@ def test_an_edited_model_keeps_n_and_is_rendered_with_it(tmp_path, cli, data, te
     save_model(tmp_path / "m.safetensors", model(2))
     code, _, err = cli("edit", tmp_path / "m.safetensors", "-o", tmp_path / "edited", "--translate", "0.05,0,0", "-q")
     assert code == 0, err
-    edited = load_model(tmp_path / "edited" / EDIT_STAGE / EDIT_MODEL)
+    run = Run.open(tmp_path / "edited")
+    assert run.is_edited
+    edited = load_model(run.model)
     assert edited.supersample == 2
     # the edited run itself (edited from a model file: no config, no dataset of its own)
     code, _, err = cli("render", tmp_path / "edited", "-o", tmp_path / "frames", "-q")

@@ -127,7 +127,7 @@ def test_studio_highlights_are_moderate_and_follow_the_view():
 
 
 def test_glossy_is_unchanged():
-    """The study scene's images are as before `studio` (README "Quality" was measured on them):
+    """The study scene's images are as before `studio` (docs/studies/quality-omega0.md was measured on them):
     2x2 regular rays, no shadows, constant ambient, and one view's figures as recorded then."""
     glossy = SCENES["glossy"]
     assert glossy.samples == 2 and not glossy.jitter and not glossy.lighting.shadows and glossy.lighting.sky == 0

@@ -14,7 +14,7 @@ from radfield.core.geometry.cameras import Camera, look_at
 from radfield.delivery.io import load_model, save_model
 from radfield.core.train.losses import anisotropy, density_magnitude, dssim, frequency_magnitude, photometric, psnr
 from radfield.delivery.metrics import ssim
-from radfield.core.kinds.primitives import quat_to_rotmat, random_gaussians, random_neural
+from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train.strategy import edit_rows, in_frustum, make_strategy, negligible_density
 from radfield.core.train.trainer import (
@@ -33,7 +33,7 @@ from radfield.datasets.images import write_image
 from radfield.stages import train as train_stage
 from radfield.pipeline.config import load_defaults, section
 from radfield.datasets.scene import Normalization, load_scene
-from radfield.pipeline.info import MODEL_FILE
+from radfield.stages.train import MODEL_FILE
 from radfield.pipeline.runner import Context
 
 BG = (1.0, 1.0, 1.0)
@@ -116,12 +116,12 @@ def test_frequency_and_density_penalties():
     prims = random_neural(10)
     params = {"w1": prims.w1, "w2": prims.w2, "b2": prims.b2, "log_scales": prims.log_scales}
     off = config(lambda_aniso=0.0)
-    assert regularisers(params, off) is None
-    both = regularisers(params, config(lambda_aniso=0.0, lambda_w1=0.5, lambda_density=2.0))
+    assert regularisers(params, off, "neural") is None
+    both = regularisers(params, config(lambda_aniso=0.0, lambda_w1=0.5, lambda_density=2.0), "neural")
     assert float(both) == pytest.approx(0.5 * float(frequency_magnitude(prims.w1))
                                         + 2.0 * float(density_magnitude(prims.w2, prims.b2)), rel=1e-6)
     gaussian = {"log_scales": prims.log_scales, "opacities": torch.zeros(10)}  # neural-only terms skip Gaussians
-    assert regularisers(gaussian, config(lambda_aniso=0.0, lambda_w1=0.5, lambda_density=2.0)) is None
+    assert regularisers(gaussian, config(lambda_aniso=0.0, lambda_w1=0.5, lambda_density=2.0), "gaussian") is None
 
 
 def test_random_background_recomposites_the_rgba_targets():
@@ -165,7 +165,7 @@ def test_loss_gradients_are_finite(make):
 def live_optimizer(prims, extent=1.0):
     """Params and an Adam that has taken one step, with every moment row tagged by its row index."""
     params = {n: t.requires_grad_() for n, t in initial_state(prims, prims.sh_degree).params.items()}
-    optimizer = make_optimizer(params, load_defaults()["train"]["lr"], extent)
+    optimizer = make_optimizer(params, load_defaults()["train"]["lr"], extent, prims.kind)
     for p in params.values():
         p.grad = torch.zeros_like(p)
     optimizer.step()
@@ -354,7 +354,8 @@ def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind, 
     saved, resumed = kill_and_resume(start, cameras, images, cfg, tmp_path / "checkpoint.safetensors", kill_at=7, **run)
     assert saved.step == 5
     assert resumed.step == whole.step == 12
-    assert resumed.window == whole.window == getattr(resumed.primitives(), "window", False) == (kind == "neural-window")
+    window = lambda state: state.attrs.get("window", False)
+    assert window(resumed) == window(whole) == getattr(resumed.primitives(), "window", False) == (kind == "neural-window")
     assert len(whole.params["means"]) != 30  # population control acted
     for name in whole.params:
         assert torch.equal(whole.params[name], resumed.params[name]), name
@@ -364,12 +365,12 @@ def test_resuming_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path, kind, 
 
 def test_checkpoint_round_trip(tmp_path):
     state = initial_state(random_neural(5, sh_degree=2), 3)
-    state = TrainState(9, state.kind, state.omega0, state.params,
+    state = TrainState(9, state.kind, {**state.attrs, "window": True}, state.params,
                        {"means": {"exp_avg": torch.ones(5, 3), "exp_avg_sq": torch.ones(5, 3), "step": torch.tensor(9.0)}},
-                       {"grad": torch.arange(5.0), "count": torch.ones(5)}, window=True)
+                       {"grad": torch.arange(5.0), "count": torch.ones(5)})
     save_checkpoint(tmp_path / "c.safetensors", state)
     back = load_checkpoint(tmp_path / "c.safetensors")
-    assert (back.step, back.kind, back.omega0, back.window) == (9, "neural", state.omega0, True)
+    assert (back.step, back.kind, back.attrs) == (9, "neural", {"omega0": state.attrs["omega0"], "window": True})
     assert back.params["sh_rest"].shape == (5, 15, 3)
     for name in state.params:
         assert torch.equal(back.params[name], state.params[name])

@@ -22,7 +22,7 @@ import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.delivery.io import save_model
-from radfield.core.kinds.primitives import Gaussians, random_gaussians, rotmat_to_quat
+from radfield.core.kinds import Gaussians, random_gaussians, rotmat_to_quat
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import rgb_to_sh_dc
 from radfield.delivery.viewer import tet_edges, viser_camera

@@ -19,7 +19,7 @@ from radfield.errors import RadfieldError
 from radfield.delivery.io import load_model, save_model
 from radfield.core.render.kernels import alpha_from_optical_depth, neural_line_integral
 from radfield.delivery.moments import gaussians_from_neural, neural_density_samples
-from radfield.core.kinds.primitives import ellipsoid_radius_sq, quat_to_rotmat, random_neural
+from radfield.core.kinds import ellipsoid_radius_sq, quat_to_rotmat, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.render.reference import neural_density, quadrature_optical_depth, reference_render
 from radfield.edit import boolean, retrain
@@ -254,7 +254,7 @@ def test_retrained_primitives_keep_the_window(monkeypatch, best):
 def test_boolean_density_teacher_and_caps_are_windowed():
     student = windowed(scene64(4, seed=9))
     keep_all = [lambda p: np.ones(len(p), bool)]
-    pts, target = boolean._density_teacher(student, 4, np.zeros(4, int), keep_all, seed=0, per_prim=12)
+    pts, target = boolean.density_teacher(student, 4, np.zeros(4, int), keep_all, seed=0, per_prim=12)
     r2, sigma = brute_r2(student, pts), brute_sigma(student, pts)
     expected = torch.where(r2 <= 1, sigma * 1.5 * (1 - r2) / student.log_scales.exp().amax(-1), 0.0).sum(1)
     torch.testing.assert_close(target, expected)

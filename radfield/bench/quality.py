@@ -96,6 +96,7 @@ def reconstruct_args(dataset: Path, run: Path, kind: str, budget: int | None, it
 
 def run_one(dataset: Path, out: Path, kind: str, budget: int | None, iterations: int, sets: Sequence[str]) -> dict[str, Any]:
     from radfield.pipeline.info import run_info
+    from radfield.run import Run
 
     run = out / RUNS / run_name(kind, budget)
     row: dict[str, Any] = {"kind": kind, "budget": budget, "run": str(run)}
@@ -106,7 +107,7 @@ def run_one(dataset: Path, out: Path, kind: str, budget: int | None, iterations:
     if proc.returncode != 0:
         lines = proc.stderr.strip().splitlines()
         return {**row, "error": lines[-1] if lines else f"exit code {proc.returncode}"}
-    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    metrics = json.loads(Run(run).metrics.read_text())
     stages = run_info(run)["stages"]
     train = stages.get("train", {})
     seconds = {name: info["seconds"] for name, info in stages.items() if info.get("seconds") is not None}

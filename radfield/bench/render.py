@@ -1,11 +1,11 @@
 """`radfield bench-render`: time the renderer on neural primitives and 3D Gaussians side by side.
 
 The scene imitates a trained object: primitives scattered over a unit sphere's surface (where
-training puts them), seen from cameras on an orbit. Both representations get the same centres,
-rotations, SH and cameras, and the same footprint: a neural primitive's ellipsoid has radii s and
-the Gaussian σ = s/3, so the Gaussian's 3σ splat covers the same pixels. Neural primitives are
-timed with the windowed density of the defaults (render.window) and with the hard-edged ellipsoid
-("neural-hard"). The figures that matter
+training puts them), seen from cameras on an orbit. Every kind of the registry (radfield.core.kinds:
+`bench_models`) gets the same centres, rotations, SH and cameras, and the same footprint: a neural
+primitive's ellipsoid has radii s and the Gaussian σ = s/3, so the Gaussian's 3σ splat covers the
+same pixels. Neural primitives are timed with the windowed density of the defaults (render.window)
+and with the hard-edged ellipsoid ("neural-hard"). The figures that matter
 are ratios measured in one run; absolute times depend on the machine and its load. On CUDA the
 device is synchronised before every clock reading (radfield.util.timing), so a time is the work's.
 """
@@ -15,12 +15,12 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 
+from radfield.core import kinds as registry
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import num_sh_coeffs
 from radfield.util.timing import clock
@@ -42,31 +42,33 @@ def reference_twin(enabled: bool = True):
             os.environ["RADFIELD_KERNELS"] = saved
 
 
-def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0):
+# the rows of the benchmarks: every registered kind's variants ("neural" (the windowed density of
+# the defaults), "neural-hard" (the paper's hard-edged ellipsoid), "gaussian")
+BENCH_KINDS = tuple(variant for kind in registry.registered() for variant in kind.bench_variants)
+
+
+def bench_models(num: int, kinds=BENCH_KINDS, scale: float = 0.04, sh_degree: int = 3, seed: int = 0) -> dict:
+    """{variant: primitives} of the benchmark scene for the variants `kinds`: one set of centres,
+    rotations, SH and radii s, which each registered kind turns into its primitives (in registration
+    order, drawing what it needs from the scene's generator)."""
     g = torch.Generator().manual_seed(seed)
     means = torch.nn.functional.normalize(torch.randn(num, 3, generator=g), dim=-1)
     means = means * (1 + 0.02 * torch.randn(num, 1, generator=g))
     log_scales = torch.log(scale * (0.5 + torch.rand(num, 3, generator=g)))
     quats = torch.randn(num, 4, generator=g)
     sh = torch.randn(num, num_sh_coeffs(sh_degree), 3, generator=g) * 0.3
-    w1, b1, w2, _ = siren_mlp_init(num, generator=g)
-    # windowed, as a trained model with the defaults (render.window); bench_models adds the hard edge
-    neural = NeuralPrimitives(means=means, log_scales=log_scales, quats=quats, sh=sh, w1=w1, b1=b1,
-                              w2=w2 * 10, b2=torch.full((num,), 1.0), window=True)
-    gauss = Gaussians(means=means, log_scales=log_scales - math.log(3.0), quats=quats, sh=sh,
-                      opacities=torch.full((num,), 1.0))
-    return neural, gauss
+    scene = {"means": means, "log_scales": log_scales, "quats": quats, "sh": sh}
+    models = {}
+    for kind in registry.registered():
+        models.update(kind.bench_models(scene, g))
+    return {variant: models[variant] for variant in kinds}
 
 
-BENCH_KINDS = ("neural", "neural-hard", "gaussian")
-
-
-def bench_models(num: int, kinds=BENCH_KINDS) -> dict:
-    """{kind: primitives} of bench_scene for `kinds`: "neural" (the windowed density of the
-    defaults), "neural-hard" (the same primitives with the paper's hard-edged ellipsoid), "gaussian"."""
-    neural, gauss = bench_scene(num)
-    models = {"neural": neural, "neural-hard": replace(neural, window=False), "gaussian": gauss}
-    return {kind: models[kind] for kind in kinds}
+def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0):
+    """(windowed neural primitives, Gaussians) of the benchmark scene (bench_models), as the
+    distributed benchmark and the study scripts compare them."""
+    models = bench_models(num, ("neural", "gaussian"), scale, sh_degree, seed)
+    return models["neural"], models["gaussian"]
 
 
 def bench_cameras(count: int, width: int, height: int) -> list[Camera]:

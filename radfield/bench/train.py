@@ -83,7 +83,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     state = trainer.initial_state(prims, cfg["sh_degree"])
     params = {n: t.to(dev).clone().requires_grad_(True) for n, t in state.params.items()}
-    optimizer = trainer.make_optimizer(params, cfg["lr"], extent=1.0)
+    optimizer = trainer.make_optimizer(params, cfg["lr"], extent=1.0, kind=state.kind)
     strategy = make_strategy(state.kind, cfg["densify"], extent=1.0, near=0.01, max_primitives=None,
                              initial_count=len(prims))
     accumulators = strategy.init_state(len(prims), dev)
@@ -107,7 +107,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = clock("loss", t)
         before = {n: None if params[n].grad is None else params[n].grad.clone() for n in strategy.grad_names}
         t = clock("population", t)
-        out = render(trainer.assemble(params, state.kind, state.omega0, state.window), cams[view], background=bg, sh_degree=degree)
+        out = render(trainer.assemble(params, state.kind, state.attrs), cams[view], background=bg, sh_degree=degree)
         t = clock("forward", t)
         image = out.color.detach().requires_grad_(True)
         loss = photometric(image, images[view], cfg["lambda_dssim"])

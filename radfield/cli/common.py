@@ -1,15 +1,34 @@
-"""Helpers that every command module of the CLI shares: option parsing, device and model
-resolution, the progress bar. Raise RadfieldError for user mistakes; main() prints them."""
+"""Helpers that the command modules of the CLI share: option parsing, device and model resolution,
+the progress bar. Raise RadfieldError for user mistakes; main() prints them. Nothing here imports
+torch at module level: `radfield --help` must not pay for it."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
 
 from radfield.errors import RadfieldError
 from radfield.util.progress import progress_bar
 
-__all__ = ["parse_background", "progress_bar", "resolve_device", "resolve_model"]
+__all__ = ["Background", "Dataset", "Device", "Downscale", "Quiet", "data_options", "parse_background", "progress_bar",
+           "resolve_device", "resolve_model"]
+
+# options shared by eval and bake
+Dataset = Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth and the cameras (default: the run's input; its SfM output for photos).")]
+Downscale = Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")]
+Background = Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")]
+Device = Annotated[str, typer.Option(help="cpu or cuda.")]
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")]
+
+
+def data_options(downscale: int | None, background: str | None) -> dict:
+    options = {"data.downscale": downscale,
+               "data.background": list(parse_background(background)) if background is not None else None}
+    return {k: v for k, v in options.items() if v is not None}
+
 
 
 def parse_background(text: str) -> tuple[float, float, float]:
@@ -35,13 +54,6 @@ def resolve_device(name: str):
 
 def resolve_model(path: Path) -> Path:
     """A model file, or a run directory whose final model is used."""
-    from radfield.pipeline.info import model_path
+    from radfield.run import model_file
 
-    if path.is_dir():
-        model = model_path(path)
-        if not model.is_file():
-            raise RadfieldError(f"{path}: run directory has no trained model yet ({model} is missing)")
-        return model
-    if not path.exists():
-        raise RadfieldError(f"{path}: no such model file or run directory")
-    return path
+    return model_file(path)

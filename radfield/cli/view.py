@@ -1,4 +1,4 @@
-"""`radfield view`: the browser viewer (delivery/viewer.py) of a run or a model file."""
+"""`radfield view`: the browser viewer (radfield.delivery.viewer) of a run or a model file."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def view(
     """Open an interactive viewer in the browser (http://HOST:PORT), rendered on this machine with
     radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums.
     Stop it with Ctrl-C."""
-    from radfield.cli.export import load_content
+    from radfield.delivery.content import load_content
     from radfield.delivery.viewer import Viewer, ViewerScene, viewer_cameras
 
     if not 0 <= port < 65536:
@@ -31,7 +31,7 @@ def view(
     if resolution < 16 or moving_downscale < 1:
         raise RadfieldError("--resolution must be at least 16 and --moving-downscale at least 1")
     resolve_device(device)
-    content = load_content(target, device)
+    content = load_content(target, device, parts=("cage", "cameras"))
     bg = parse_background(background) if background is not None else content.background or (1.0, 1.0, 1.0)
     scene = ViewerScene(content.model, bg, content.cage, viewer_cameras(content.views))
     try:

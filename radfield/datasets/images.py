@@ -1,4 +1,6 @@
-"""Image files through OpenImageIO: read, header-only size check, atomic write, area downscale.
+"""Image files through OpenImageIO: list a folder's, read, header-only size check, atomic write,
+area downscale. OpenImageIO and cv2 are imported by the functions that touch pixels or headers,
+not by this module, so that importing the datasets package (and detecting a dataset) stays cheap.
 
 Alpha convention: arrays with an alpha channel (2 or 4 channels) hold colour *premultiplied* by
 alpha, OpenImageIO's convention for every format (EXR stores it that way; PNG stores straight
@@ -10,26 +12,43 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
-import OpenImageIO as oiio
 
 from radfield.util.atomic import atomic_write
 from radfield.errors import RadfieldError
 
+if TYPE_CHECKING:
+    import OpenImageIO as oiio
+
 # Formats written as 8/16-bit integers (everything else, e.g. EXR, is written as float32).
 _INTEGER_FORMATS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
+# Photo formats picked up from a plain folder (OIIO reads them all).
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp"}
 
 
-def _oiio_error(source=oiio) -> str:
-    """The pending error of an ImageInput/ImageOutput, else OIIO's global one, as one line
-    (reading it clears it, so OIIO does not print it at exit)."""
-    message = source.geterror() if source is not oiio else ""
+def list_images(folder: Path) -> list[Path]:
+    """Image files directly in `folder`, sorted by name (hidden files skipped)."""
+    if not folder.is_dir():
+        return []
+    return sorted(
+        p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()
+    )
+
+
+def _oiio_error(source=None) -> str:
+    """The pending error of an ImageInput/ImageOutput (`source`), else OIIO's global one, as one
+    line (reading it clears it, so OIIO does not print it at exit)."""
+    import OpenImageIO as oiio
+
+    message = source.geterror() if source is not None else ""
     return " ".join((message or oiio.geterror()).split()) or "unknown error"
 
 
 def _open(path: Path) -> oiio.ImageInput:
+    import OpenImageIO as oiio
+
     if not path.is_file():
         raise RadfieldError(f"image not found: {path}")
     inp = oiio.ImageInput.open(str(path))
@@ -65,9 +84,11 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
 
 
 def write_image(path: str | os.PathLike, array: np.ndarray, bits: int = 8) -> None:
-    """Write float (H, W) or (H, W, C) pixels atomically (core.atomic). PNG/JPEG/TIFF are quantised to `bits` (8 or 16) with rounding after clipping to
-    [0, 1]; EXR is written as float32. Alpha (C = 2 or 4) is taken as premultiplied, as read_image
+    """Write float (H, W) or (H, W, C) pixels atomically (util/atomic.py). PNG/JPEG/TIFF are
+    quantised to `bits` (8 or 16) with rounding after clipping to [0, 1]; EXR is written as float32. Alpha (C = 2 or 4) is taken as premultiplied, as read_image
     returns it; it is un-premultiplied here in float so that low-alpha pixels keep their colour."""
+    import OpenImageIO as oiio
+
     path = Path(path)
     pixels = np.asarray(array, dtype=np.float32)
     if pixels.ndim == 2:
@@ -110,6 +131,8 @@ def resize_area(img: np.ndarray, factor: int) -> np.ndarray:
     stay consistent."""
     if factor == 1:
         return img
+    import cv2
+
     height, width = img.shape[:2]
     out = cv2.resize(img, downscaled_size(width, height, factor), interpolation=cv2.INTER_AREA)
     # cv2 drops a trailing channel axis of size 1.

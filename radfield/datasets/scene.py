@@ -3,7 +3,7 @@ writes (RUN/data/), read back as a Scene (cameras, splits, normalisation; images
 
 ``scene.json``::
 
-    {"version": 1, "format": "nerf_synthetic" | "nerfstudio" | "colmap" | "images",
+    {"version": 1, "format": "nerf_synthetic" | "nerfstudio" | "colmap" | "images" (a datasets/formats name),
      "root": "/abs/dataset", "posed": true, "downscale": 1, "background": [r, g, b],
      "normalization": {"center": [x, y, z], "scale": k} | null,   # null until posed
      "extent": e | null,
@@ -50,11 +50,12 @@ import torch
 
 from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
+from radfield.datasets import formats
 from radfield.datasets.images import downscaled_size, image_size
-from radfield.datasets.readers import SPLITS, Dataset, View, detect_format, load_dataset, validate
-from radfield.datasets.transforms import read_json
+from radfield.datasets.readers import SPLITS, Dataset, View, load_dataset, validate
+from radfield import run as layout
 
-SCENE = "scene.json"
+SCENE = layout.SCENE_FILE
 POINTS = "points.npz"
 MESH = "mesh.ply"  # a dataset's own mesh (our synthetic scenes ship one), used to initialise
 FORMAT_VERSION = 1
@@ -97,8 +98,7 @@ def _splits(path: Path, downscale: int, background: tuple, test_every: int, val_
     `test_every`-th view (sorted by file name) held out for testing. Then, when val_every > 0 and
     the dataset has no val split of its own, every val_every-th training view (the N-th, 2N-th, ...)
     leaves train for a validation split: what tuning and model selection may look at."""
-    fmt = detect_format(path)
-    native = _native_splits(path, fmt)
+    native = _native_splits(path)
     if native:
         splits = {split: load_dataset(path, split, downscale, background) for split in native}
     else:
@@ -132,8 +132,7 @@ def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
         raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
     _check_data(data)
     downscale, background = data["downscale"], tuple(data["background"])
-    fmt = detect_format(path)
-    present = _present_splits(path, fmt)
+    present = formats.detect(path).splits(path)
     carved = data["val_every"] > 0 and "val" not in present and split in ("train", "val")  # val cut from train
     if split == "all" or (split in present and not carved):
         return load_dataset(path, split, downscale, background)
@@ -152,20 +151,10 @@ def _check_data(data: dict[str, Any]) -> None:
         raise RadfieldError(f"config key data.background must hold numbers in [0, 1], got {list(data['background'])}")
 
 
-def _present_splits(path: Path, fmt: str) -> list[str]:
-    """The splits the dataset's files name (any of train, val, test)."""
-    if fmt == "nerf_synthetic":
-        return [s for s in ("train", "val", "test") if (path / f"transforms_{s}.json").is_file()]
-    if fmt == "nerfstudio":
-        meta = read_json(path if path.is_file() else path / "transforms.json")
-        return [s for s in ("train", "val", "test") if f"{s}_filenames" in meta]
-    return []
-
-
-def _native_splits(path: Path, fmt: str) -> list[str]:
+def _native_splits(path: Path) -> tuple[str, ...]:
     """The splits the dataset defines itself (empty when it defines no train/test split)."""
-    present = _present_splits(path, fmt)
-    return present if {"train", "test"} <= set(present) else []
+    present = formats.detect(path).splits(path)
+    return present if {"train", "test"} <= set(present) else ()
 
 
 def _view_json(dataset: Dataset, view: View) -> dict[str, Any]:

@@ -10,8 +10,8 @@ run never leaves a half-written folder):
     images/              undistorted images (PINHOLE, same names as the inputs)
     sparse/              COLMAP binary model (cameras.bin, images.bin, points3D.bin, rigs.bin,
                          frames.bin) of those images, in NORMALISED world coordinates
-                         (world-to-camera poses in OpenCV axes; `radfield.datasets.colmap` reads
-                         the folder as a dataset)
+                         (world-to-camera poses in OpenCV axes; the colmap format,
+                         datasets/formats/colmap.py, reads the folder as a dataset)
     points.ply           sparse points (x, y, z float; red, green, blue uchar), normalised coordinates
     normalization.json   {"center": [3], "scale": s}: x_normalised = scale * (x_sfm - center); every
                          later artifact of the run (envelope, cage, models) is in the normalised
@@ -24,6 +24,9 @@ and matching, triangulated with the dataset's own cameras held fixed.
 Matching is exhaustive up to `exhaustive_max_images` images and sequential (neighbours in file-name
 order) above. COLMAP's vocabulary-tree matching and sequential loop detection need a vocabulary
 file that COLMAP downloads on first use; this tool runs offline, so neither is used.
+
+pycolmap and OpenImageIO are imported inside the functions that use them: importing this module
+(the sfm and envelope stages do) must work on a machine without pycolmap as long as no SfM runs.
 """
 
 from __future__ import annotations
@@ -37,19 +40,20 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import OpenImageIO as oiio
-import pycolmap
 
 from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
-from radfield.datasets.images import write_image
-from radfield.datasets.readers import list_images
+from radfield.datasets.images import list_images, write_image
+from radfield import run as layout
+
+if TYPE_CHECKING:
+    import pycolmap
 
 FIGURES = ("registered_images", "total_images", "points", "reprojection_error")
-NORMALIZATION_FILE = "normalization.json"  # in the output folder: how its frame relates to COLMAP's
+NORMALIZATION_FILE = layout.NORMALIZATION_FILE  # in the output folder: how its frame relates to COLMAP's
 
 
 def run_sfm(image_dir, out_dir, cfg: dict[str, Any], seed: int = 0,
@@ -76,6 +80,8 @@ def run_sfm(image_dir, out_dir, cfg: dict[str, Any], seed: int = 0,
 def _reconstruct(image_dir: Path, names: list[str], one_size: bool, work: Path, cfg: dict, seed: int,
                  log: Callable[[str], None]) -> dict:
     """The COLMAP steps, all inside `work`; the finished output ends up in `work/result`."""
+    import pycolmap
+
     pycolmap.set_random_seed(seed)
     database = work / "database.db"
     timings = {}
@@ -151,6 +157,8 @@ def _extract(database: Path, image_dir: Path, names: list[str], mode: pycolmap.C
              cfg: dict) -> None:
     """SIFT features of the named images into a new COLMAP database, on the CPU; RadfieldError
     naming the images COLMAP could not read."""
+    import pycolmap
+
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     extraction = pycolmap.FeatureExtractionOptions()
@@ -170,6 +178,8 @@ def _extract(database: Path, image_dir: Path, names: list[str], mode: pycolmap.C
 def _match(database: Path, count: int, cfg: dict, log: Callable[[str], None]) -> str:
     """Match and verify the features of `count` images (exhaustive or sequential, see the module
     docstring); returns the matcher used."""
+    import pycolmap
+
     threads = int(cfg["num_threads"])
     matcher = "exhaustive" if count <= cfg["exhaustive_max_images"] else "sequential"
     log(f"matching ({matcher})")
@@ -193,6 +203,8 @@ def triangulate(cameras: list[Camera], images: np.ndarray, cfg: dict, seed: int 
     features matched across `images` (N, H, W, 3), float in [0, 1], undistorted, one per pinhole
     camera, are triangulated with the cameras held fixed (COLMAP's point triangulator), so the
     points are in the cameras' world frame. Settings: the `sfm` section `cfg`."""
+    import pycolmap
+
     pycolmap.set_random_seed(seed)
     names = [f"{k:05d}.png" for k in range(len(cameras))]
     with tempfile.TemporaryDirectory(prefix="radfield-triangulate-") as scratch, _colmap_errors_only():
@@ -246,6 +258,8 @@ def compare_poses(recovered: list[Camera], reference: list[Camera]) -> dict:
     (angle between aligned and reference camera orientations) and `position_pct_{mean,median,max}`
     (centre distance as a percentage of the rig radius = mean distance of the reference centres
     from their centroid)."""
+    import pycolmap
+
     by_name = {Path(c.name).stem: c for c in reference}
     pairs = [(c, by_name[Path(c.name).stem]) for c in recovered if Path(c.name).stem in by_name]
     if len(pairs) < 3:
@@ -280,6 +294,8 @@ def _list_images(image_dir: Path) -> list[str]:
 
 def _image_sizes(image_dir: Path, names: list[str]) -> dict[str, tuple[int, int]]:
     """(width, height) of every image from its header; names the files that cannot be opened."""
+    import OpenImageIO as oiio
+
     sizes, unreadable = {}, []
     for name in names:
         inp = oiio.ImageInput.open(str(image_dir / name))
@@ -313,6 +329,8 @@ def _replace_dir(src: Path, dst: Path) -> None:
 @contextlib.contextmanager
 def _colmap_errors_only():
     """COLMAP logs every step at INFO level; keep only its errors (the stage logs the steps)."""
+    import pycolmap
+
     previous = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2
     try:

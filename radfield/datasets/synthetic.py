@@ -378,10 +378,11 @@ def write_mesh(scene: Scene, path: Path) -> None:
 
 def generate_scene(
     name: str, out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None, size: int = 64,
-    seed: int = 0,
+    seed: int = 0, mesh: bool = True,
 ) -> Path:
     """Render scene `name` into a new NeRF-synthetic folder `out_dir` (see the module docstring);
     n_train / n_test default to the scene's own counts (Scene.train_views / test_views).
+    mesh=False leaves out `mesh.ply` (its writer needs pyvista, which a GPU machine may lack).
     Written to a temporary sibling folder and renamed, so `out_dir` is either complete or absent;
     an existing non-empty `out_dir` is refused."""
     scene = get_scene(name)
@@ -400,7 +401,7 @@ def generate_scene(
         train, test = orbit_cameras(n_train, n_test, size, seed)
         for split, cameras in (("train", train), ("test", test)):
             _write_split(scene, tmp, split, cameras, seed)
-        if scene.mesh:
+        if scene.mesh and mesh:
             write_mesh(scene, tmp / "mesh.ply")
         (tmp / "scene.json").write_text(json.dumps(_describe(scene, seed), indent=2))
         tmp.chmod(0o755)  # mkdtemp makes it private

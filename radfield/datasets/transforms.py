@@ -1,5 +1,7 @@
-"""Readers for `transforms*.json` camera files: NeRF-synthetic (`transforms_{train,val,test}.json`)
-and nerfstudio / instant-ngp (one `transforms.json`).
+"""The `transforms*.json` camera files shared by two formats: NeRF-synthetic
+(`transforms_{train,val,test}.json`, formats/nerf_synthetic.py) and nerfstudio / instant-ngp (one
+`transforms.json`, formats/nerfstudio.py). This module parses a file and turns its frames into
+views; which file holds which split is each format's business.
 
 Both store camera-to-world matrices in OpenGL axes (converted to OpenCV here) and intrinsics at
 file level, which nerfstudio lets each frame override. Principal points use the same continuous
@@ -11,7 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Callable
 from functools import cache
 from pathlib import Path
@@ -22,13 +23,12 @@ import torch
 from radfield.core.geometry.cameras import Camera, opengl_to_opencv
 from radfield.errors import RadfieldError
 from radfield.datasets.images import image_size
-from radfield.datasets.views import View, llff_split
+from radfield.datasets.views import View
 
 # Tried in this order when a `file_path` has no extension (NeRF-synthetic writes `./train/r_0`).
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV order
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
-_SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
 
 
 def read_json(path: Path) -> dict:
@@ -50,35 +50,7 @@ def read_json(path: Path) -> dict:
     return meta
 
 
-def read_nerf_synthetic(root: Path, split: str) -> list[View]:
-    """Views of `root/transforms_{split}.json` ('all': every split file present)."""
-    views = []
-    for name in ("train", "val", "test") if split == "all" else (split,):
-        path = root / f"transforms_{name}.json"
-        if split == "all" and not path.is_file():
-            continue
-        meta = read_json(path)
-        views += _views(meta, list(enumerate(meta["frames"])), path)
-    return views
-
-
-def read_nerfstudio(path: Path, split: str) -> list[View]:
-    """Views of a nerfstudio / instant-ngp `transforms.json`, sorted by file name. The split comes
-    from `{train,val,test}_filenames` when the file has them, else every 8th frame is 'test';
-    'all' is every frame."""
-    meta = read_json(path)
-    frames = sorted(enumerate(meta["frames"]), key=lambda item: _file_path(item[1], item[0], path))
-    if split == "all" or not any(key in meta for key in _SPLIT_KEYS.values()):
-        return _views(meta, llff_split(frames, split, path), path)
-    key = _SPLIT_KEYS[split]
-    names = meta.get(key, [])
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise RadfieldError(f"{path}: '{key}' must be a list of file names")
-    wanted = {os.path.normpath(n) for n in names}
-    return _views(meta, [(i, f) for i, f in frames if os.path.normpath(_file_path(f, i, path)) in wanted], path)
-
-
-def _views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[View]:
+def frame_views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[View]:
     """Frames (index in the file, frame) -> views; size falls back to the first image's header."""
     views = []
     first, first_frame = frames[0] if frames else (0, {})
@@ -90,7 +62,8 @@ def _views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[
     return views
 
 
-def _file_path(frame: dict, i: int, json_path: Path) -> str:
+def file_path(frame: dict, i: int, json_path: Path) -> str:
+    """frames[i].file_path as written (relative to the JSON file's folder)."""
     if "file_path" not in frame:
         raise RadfieldError(f"{json_path}: frames[{i}] is missing key 'file_path'")
     if not isinstance(frame["file_path"], str):
@@ -99,7 +72,7 @@ def _file_path(frame: dict, i: int, json_path: Path) -> str:
 
 
 def _image_path(frame: dict, i: int, json_path: Path) -> Path:
-    path = json_path.parent / _file_path(frame, i, json_path)
+    path = json_path.parent / file_path(frame, i, json_path)
     for candidate in (path, *(path.with_name(path.name + suffix) for suffix in _IMAGE_SUFFIXES)):
         if candidate.is_file():
             return candidate

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -15,10 +14,7 @@ from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
 from radfield.datasets.images import read_image, resize_area
 
-FORMATS = ("nerf_synthetic", "nerfstudio", "colmap", "images")
 SPLITS = ("train", "val", "test", "all")
-# The usual LLFF/NeRF protocol for datasets without split information.
-TEST_EVERY = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,21 +42,11 @@ class Points:
         return self.xyz.shape[0]
 
 
-def llff_split(items: list, split: str, source: Path) -> list:
-    """Split `items` (already sorted by file name) by the LLFF/NeRF protocol: every 8th is a test
-    view, the rest train; 'all' keeps everything. Such datasets have no validation views."""
-    if split == "val":
-        raise RadfieldError(
-            f"{source}: no 'val' split (no split information: every {TEST_EVERY}th view is 'test', the rest 'train')"
-        )
-    if split == "all":
-        return list(items)
-    return [item for k, item in enumerate(items) if (k % TEST_EVERY == 0) == (split == "test")]
-
-
 def undistort(img: np.ndarray, camera: Camera, coeffs: np.ndarray) -> np.ndarray:
     """Remove OpenCV lens distortion from (H, W, C) pixels, keeping the intrinsics matrix (pixels
     that map outside the source come out 0: black, or transparent with alpha)."""
+    import cv2
+
     K = camera.K.numpy().copy()
     # cv2 puts pixel centres at integer coordinates, Camera at +0.5.
     K[:2, 2] -= 0.5

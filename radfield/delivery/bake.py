@@ -25,13 +25,13 @@ import torch
 
 from radfield.core.render.antialias import render_model
 from radfield.core.geometry.cameras import Camera
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core.kinds import Primitives
 from radfield.core.render.sh import C0
 
 DEFAULT_MIN_WEIGHT = 1.0 / 255.0  # below one 8-bit level in every pixel of every training view
 
 
-def coverage(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], *, background=(1.0, 1.0, 1.0),
+def coverage(prims: Primitives, cameras: Sequence[Camera], *, background=(1.0, 1.0, 1.0),
              near: float = 0.01, on_view: Callable[[], None] | None = None) -> torch.Tensor:
     """(P,) max over the views of W_iv = Σ_p T α (module docstring), on the model's device."""
     best = torch.zeros(len(prims), device=prims.means.device, dtype=prims.means.dtype)
@@ -48,12 +48,12 @@ def coverage(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], *, 
     return best
 
 
-def prune(prims: NeuralPrimitives | Gaussians, weights: torch.Tensor, min_weight: float = DEFAULT_MIN_WEIGHT):
+def prune(prims: Primitives, weights: torch.Tensor, min_weight: float = DEFAULT_MIN_WEIGHT):
     """(kept primitives, boolean keep mask (P,)): those with coverage at least `min_weight`."""
     keep = weights >= min_weight
     return prims.select(keep), keep
 
 
-def to_fp16_and_back(prims: NeuralPrimitives | Gaussians) -> NeuralPrimitives | Gaussians:
+def to_fp16_and_back(prims: Primitives) -> Primitives:
     """The model as a float16 file holds it (what a reader of that file renders)."""
     return prims.map(lambda t: t.to(torch.float16).to(t.dtype))

@@ -20,8 +20,8 @@ from radfield.delivery import report
 from radfield.util.atomic import atomic_folder, atomic_write_text
 from radfield.errors import RadfieldError
 from radfield.datasets.images import read_image, write_image
+from radfield.run import MODEL_STAGE, Run
 from radfield.stages.evaluate import GRIDS, REPORT, RENDERS, eval_report, resolve_target
-from radfield.pipeline.info import run_info
 
 COMPARISON = "comparison.json"
 
@@ -70,4 +70,4 @@ def compare(targets: Sequence[Path], out_dir: Path, *, dataset: Path | None, spl
 def _train_seconds(run_dir: Path | None) -> float | None:
     if run_dir is None:
         return None
-    return run_info(run_dir)["stages"].get("train", {}).get("seconds")
+    return (Run(run_dir).manifest(MODEL_STAGE) or {}).get("seconds")

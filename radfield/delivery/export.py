@@ -6,14 +6,14 @@ Formats (all in the dataset's world frame):
   vertex ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3`` (float32), opacity as
   a logit, log σ scales, w x y z quaternion, ``f_rest`` channel-major (all R coefficients of bands
   1-3, then G, then B; zeros past the model's degree). Gaussians are written exactly; neural
-  primitives through core.moments (moment matching, `components` Gaussians each; `radfield
-  export` then refines them for a run with core.moments.refine_gaussians and passes Gaussians in).
+  primitives through their kind (delivery/moments.py: moment matching, `components` Gaussians each; `radfield
+  export` then refines them for a run with delivery/moments.py: refine_gaussians and passes Gaussians in).
   A windowed model (prims.window) needs no warning: the moments are those of its windowed density.
 - ``splat``     antimatter15's .splat: 32 bytes a splat, position 3×f32, linear σ 3×f32, RGBA 4×u8
   (0.5 + C0·f_dc and sigmoid(opacity), ×255 truncated), rotation 4×u8 ((q/|q|)·128 + 128, w x y z),
   in decreasing order of exp(Σ log σ)·sigmoid(opacity), as that viewer's convert.py writes it.
   Other tools draw these with one ray per pixel: a model trained with `render.supersample` = n > 1
-  (its pixels the mean of n × n rays, README) cannot be drawn so, and `radfield export` warns
+  (its pixels the mean of n × n rays, docs/usage.md) cannot be drawn so, and `radfield export` warns
   (`supersample_warning`; a run's refinement fits the Gaussians to the model's n × n renders).
 - ``points``    a PLY point cloud of the primitive centres with uchar ``red green blue`` from SH DC.
 - ``cage``      the cage as a tetrahedral mesh, ``.vtk`` (legacy VTK) or ``.msh`` (Gmsh 2.2), meshio.
@@ -35,8 +35,8 @@ import torch
 from radfield.util.atomic import atomic_write, atomic_write_bytes, atomic_write_text
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.errors import RadfieldError
-from radfield.delivery.moments import gaussians_from_neural
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core import kinds
+from radfield.core.kinds.gaussian import Gaussians
 from radfield.core.render.sh import C0, num_sh_coeffs
 
 MODEL_FORMATS = ("ply-3dgs", "splat", "points")      # need only a model
@@ -48,7 +48,7 @@ REST_COEFFS = num_sh_coeffs(3) - 1  # 15 per channel: the 45 f_rest of a degree-
 ONE_RAY_FORMATS = ("ply-3dgs", "splat")  # drawn by other tools with one ray per pixel
 
 
-def supersample_warning(model: NeuralPrimitives | Gaussians, format: str) -> str | None:
+def supersample_warning(model: kinds.Primitives, format: str) -> str | None:
     """One line when `format` cannot hold how the model is drawn (its n × n rays a pixel), else None."""
     n = model.supersample
     if format not in ONE_RAY_FORMATS or n == 1:
@@ -64,7 +64,7 @@ class Content:
     (scene radius, world units). Missing parts are
     None, and `missing` says why (for the error message)."""
 
-    model: NeuralPrimitives | Gaussians
+    model: kinds.Primitives
     cage: tuple[np.ndarray, np.ndarray] | None = None
     envelope: tuple[np.ndarray, np.ndarray] | None = None
     views: dict[str, list[dict]] | None = None
@@ -119,12 +119,10 @@ def check_target(format: str, path: str | Path) -> Path:
     return path
 
 
-def as_gaussians(model: NeuralPrimitives | Gaussians, components: int = 1) -> Gaussians:
-    """The model as 3D Gaussians: itself, or moment-matched from neural primitives."""
-    if isinstance(model, Gaussians):
-        return model
-    with torch.no_grad():
-        return gaussians_from_neural(model, components=components)
+def as_gaussians(model: kinds.Primitives, components: int = 1) -> Gaussians:
+    """The model as 3D Gaussians, as its kind converts it (radfield.core.kinds: to_gaussians):
+    Gaussians as they are, neural primitives moment-matched (`components` Gaussians each)."""
+    return kinds.of(model).to_gaussians(model, components)
 
 
 def _cpu(t: torch.Tensor) -> np.ndarray:
@@ -207,7 +205,7 @@ def splat_bytes(g: Gaussians) -> bytes:
     return record[order].tobytes()
 
 
-def points_ply_bytes(model: NeuralPrimitives | Gaussians) -> bytes:
+def points_ply_bytes(model: kinds.Primitives) -> bytes:
     """Primitive centres with their SH DC colour (uchar, rounded)."""
     means = _cpu(model.means)
     rgb = np.round(np.clip(0.5 + C0 * _cpu(model.sh[:, 0, :]), 0, 1) * 255).astype(np.uint8)

@@ -1,13 +1,14 @@
-"""The model file: one safetensors file, documented in the README ("Model file format").
+"""The model file: one safetensors file, documented in docs/formats.md ("The model file").
 
-Neural primitives: float32 `means` (P,3), `log_scales` (P,3), `quats` (P,4, w x y z), `w1` (P,N,3),
-`b1` (P,N), `w2` (P,N), `b2` (P,), `sh` (P,K,3); metadata format=radfield, kind=neural, version,
-omega0, sh_degree. Gaussians: same geometry and `sh`, plus `opacities` (P,) logits, kind=gaussian.
-Both: optional metadata `supersample` (an integer 1..4 as a string, written only when > 1; absent
-means 1): the rays per pixel side the model was trained with (render.supersample), carried as
-`prims.supersample` and honoured by every render of the model (core/antialias.render_model).
-Neural: optional metadata `window` ("1", written only when set; absent means "0"): the density
-window of render.window (`prims.window`, core/kinds/primitives.py: density_window).
+Every kind: float32 `means` (P,3), `log_scales` (P,3), `quats` (P,4, w x y z), the kind's own
+tensors, `sh` (P,K,3); metadata format=radfield, kind, version, sh_degree, and what the kind writes
+(radfield.core.kinds: its `schema`, `optional`, `write_metadata` and `read_metadata` say it).
+Neural primitives: `w1` (P,N,3), `b1` (P,N), `w2` (P,N), `b2` (P,), optional `rest_metric` (P,6);
+metadata omega0, and `window` ("1", written only when set; absent means "0"): the density window
+of render.window (`prims.window`, core/kinds/neural.py: density_window). Gaussians: `opacities`
+(P,) logits. Every kind: optional metadata `supersample` (an integer 1..4 as a string, written only
+when > 1; absent means 1): the rays per pixel side the model was trained with (render.supersample),
+carried as `prims.supersample` and honoured by every render of the model (core/render/antialias.py: render_model).
 Tensors may also be stored as float16 (`radfield bake --fp16` writes all of them so); readers
 accept float32 and float16 and return float32. Readers check everything and never
 unpickle anything.
@@ -22,30 +23,21 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save
 
+from radfield.core import kinds
+from radfield.core.kinds.base import int_metadata
 from radfield.util.atomic import atomic_write_bytes
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
 from radfield.core.render.sh import num_sh_coeffs
 
 FORMAT = "radfield"
 VERSION = 1
 MAX_SUPERSAMPLE = 4  # render.supersample's range (stages/init.py checks the config alike)
 
-# tensor name -> shape after the leading P, with "N" the MLP width and "K" the SH coefficient count
-_SCHEMA = {
-    "neural": {"means": (3,), "log_scales": (3,), "quats": (4,), "w1": ("N", 3), "b1": ("N",), "w2": ("N",),
-               "b2": (), "sh": ("K", 3)},
-    "gaussian": {"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (), "sh": ("K", 3)},
-}
-# tensors a file may hold or not: `rest_metric` (P, 6), written by `radfield edit` with
-# preserve_opacity (edit/deform.py; README "Model file format")
-_OPTIONAL = {"neural": {"rest_metric": (6,)}, "gaussian": {}}
-
 
 STORAGE_DTYPES = (torch.float32, torch.float16)
 
 
-def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dict | None = None,
+def save_model(path: str | Path, prims: kinds.Primitives, extra: dict | None = None,
                dtype: torch.dtype = torch.float32) -> None:
     """Write `prims` as float32 (or float16) safetensors, atomically (temporary file, then rename).
     `extra` adds string metadata (e.g. the scene normalisation as JSON)."""
@@ -57,10 +49,7 @@ def save_model(path: str | Path, prims: NeuralPrimitives | Gaussians, extra: dic
         if dtype == torch.float16 and torch.isinf(t).any() and torch.isfinite(getattr(prims, name)).all():
             raise RadfieldError(f"{path}: tensor {name!r} has values beyond the float16 range (store float32)")
     meta = {"format": FORMAT, "kind": prims.kind, "version": str(VERSION), "sh_degree": str(prims.sh_degree)}
-    if isinstance(prims, NeuralPrimitives):
-        meta["omega0"] = repr(float(prims.omega0))
-        if prims.window:   # absent = the hard-edged ellipsoid: older files keep their bytes (and hash)
-            meta["window"] = "1"
+    meta.update(kinds.of(prims).write_metadata(prims))
     if prims.supersample != 1:  # absent = 1: a model trained without it keeps its bytes (and hash)
         meta["supersample"] = str(int(prims.supersample))
     meta.update({k: v if isinstance(v, str) else json.dumps(v) for k, v in (extra or {}).items()})
@@ -85,7 +74,7 @@ def read_metadata(path: str | Path) -> dict[str, str]:
         raise RadfieldError(f"{path}: not a readable safetensors file ({_first_line(e)})") from None
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPrimitives | Gaussians:
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> kinds.Primitives:
     """Read and validate a model file; every problem is a RadfieldError naming the file and field."""
     path = Path(path)
     if not path.is_file():
@@ -95,25 +84,25 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
         raise RadfieldError(f"{path}: metadata format is {meta.get('format')!r}, expected {FORMAT!r} (not a radfield model)")
     if meta.get("version") != str(VERSION):
         raise RadfieldError(f"{path}: format version {meta.get('version')!r} is not supported (this radfield reads version {VERSION})")
-    kind = meta.get("kind")
-    if kind not in _SCHEMA:
-        raise RadfieldError(f"{path}: metadata kind is {kind!r}, expected one of {sorted(_SCHEMA)}")
-    sh_degree = _int_meta(path, meta, "sh_degree")
+    if meta.get("kind") not in kinds.names():
+        raise RadfieldError(f"{path}: metadata kind is {meta.get('kind')!r}, expected one of {sorted(kinds.names())}")
+    kind = kinds.get(meta["kind"])
+    sh_degree = int_metadata(path, meta, "sh_degree")
     if not 0 <= sh_degree <= 3:
         raise RadfieldError(f"{path}: metadata sh_degree={sh_degree} is outside 0..3")
-    supersample = _int_meta(path, meta, "supersample") if "supersample" in meta else 1
+    supersample = int_metadata(path, meta, "supersample") if "supersample" in meta else 1
     if not 1 <= supersample <= MAX_SUPERSAMPLE:
         raise RadfieldError(f"{path}: metadata supersample={supersample} is outside 1..{MAX_SUPERSAMPLE}")
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             names = set(f.keys())
-            schema = dict(_SCHEMA[kind])
-            schema.update({name: tail for name, tail in _OPTIONAL[kind].items() if name in names})
+            schema = kind.schema()
+            schema.update({name: tail for name, tail in kind.optional.items() if name in names})
             missing, unknown = sorted(set(schema) - names), sorted(names - set(schema))
             if missing or unknown:
                 what = "; ".join(s for s in (f"missing tensors {missing}" if missing else "",
                                              f"unexpected tensors {unknown}" if unknown else "") if s)
-                raise RadfieldError(f"{path}: {what} for kind={kind}")
+                raise RadfieldError(f"{path}: {what} for kind={kind.name}")
             tensors = {name: f.get_tensor(name) for name in schema}
     except SafetensorError as e:
         raise RadfieldError(f"{path}: corrupt tensor data ({_first_line(e)})") from None
@@ -121,7 +110,7 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
     # P is what most tensors agree on, so the message names the odd one out
     leading = [t.shape[0] if t.ndim else -1 for t in tensors.values()]
     num = max(set(leading), key=leading.count)
-    dims = {"K": num_sh_coeffs(sh_degree), "N": tensors["w1"].shape[1] if kind == "neural" and tensors["w1"].ndim == 3 else None}
+    dims = {"K": num_sh_coeffs(sh_degree), **_widths(schema, tensors)}
     for name, tail in schema.items():
         t = tensors[name]
         expected = (num,) + tuple(dims[d] if isinstance(d, str) else d for d in tail)
@@ -137,34 +126,22 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> NeuralPr
             row = int(torch.nonzero(bad)[0, 0])
             raise RadfieldError(f"{path}: tensor {name!r} holds {int(bad.sum())} NaN/Inf values (first at primitive {row})")
     tensors = {name: t.to(torch.float32) for name, t in tensors.items()}
-    if kind == "neural":
-        omega0 = _float_meta(path, meta, "omega0")
-        window = meta.get("window", "0")
-        if window not in ("0", "1"):
-            raise RadfieldError(f"{path}: metadata window={window!r} is not 0 or 1")
-        model = NeuralPrimitives(**tensors, omega0=omega0, supersample=supersample, window=window == "1")
-    else:
-        model = Gaussians(**tensors, supersample=supersample)
+    model = kind.assemble(tensors, kind.read_metadata(path, meta), supersample=supersample)
     if (model.quats.norm(dim=-1) == 0).any():
         raise RadfieldError(f"{path}: tensor 'quats' has all-zero rows (no rotation)")
     return model.to(device)
 
 
-def _int_meta(path, meta, key) -> int:
-    try:
-        return int(meta[key])
-    except (KeyError, ValueError):
-        raise RadfieldError(f"{path}: metadata {key!r} is missing or not an integer ({meta.get(key)!r})") from None
-
-
-def _float_meta(path, meta, key) -> float:
-    try:
-        value = float(meta[key])
-    except (KeyError, ValueError):
-        raise RadfieldError(f"{path}: metadata {key!r} is missing or not a number ({meta.get(key)!r})") from None
-    if not value > 0 or value == float("inf"):
-        raise RadfieldError(f"{path}: metadata {key!r} must be a positive number, got {value}")
-    return value
+def _widths(schema: dict[str, tuple], tensors: dict[str, torch.Tensor]) -> dict[str, int | None]:
+    """The value of each width letter of a schema other than K (neural: N, the MLP width), read off
+    the first tensor that has it (None when that tensor has the wrong rank: its check reports it)."""
+    widths = {}
+    for name, tail in schema.items():
+        for axis, dim in enumerate(tail):
+            if isinstance(dim, str) and dim != "K" and dim not in widths:
+                t = tensors[name]
+                widths[dim] = t.shape[1 + axis] if t.ndim == 1 + len(tail) else None
+    return widths
 
 
 def _first_line(e: Exception) -> str:

@@ -30,7 +30,9 @@ import math
 
 import torch
 
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, density_window, quat_to_rotmat, rotmat_to_quat
+from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
+from radfield.core.kinds.gaussian import Gaussians
+from radfield.core.kinds.neural import NeuralPrimitives, density_window
 
 GRID = 14          # samples per ellipsoid axis (about 1400 inside the ball)
 LLOYD_STEPS = 8    # k-means iterations when splitting a primitive into components

@@ -22,7 +22,7 @@ import torch
 from radfield.core.render.antialias import render_model
 from radfield.core.geometry.cameras import Camera
 from radfield.delivery.export import view_cameras
-from radfield.core.kinds.primitives import quat_to_rotmat, rotmat_to_quat
+from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.core.render.rasterize import render
 
 SETTLE_SECONDS = 0.3    # camera still this long -> render at full resolution

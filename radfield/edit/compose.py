@@ -15,7 +15,9 @@ Mismatched fields: SH degree → the lower one is padded with zero bands; hidden
 narrower MLP is padded with zero units (W2 = 0 adds nothing); ω0 → the other's W1 and b1 are
 rescaled by ω0_other / ω0 (only ω0·W1 and ω0·b1 enter the density); rays per pixel
 (`supersample`) → the larger; Gaussians with neural primitives → refused; a windowed neural field
-with a hard-edged one (their `window` differs: one model has one density) → refused.
+with a hard-edged one (their `window` differs: one model has one density) → refused. What is
+kind-specific here (W1 under the rotation, ω0, the hidden width, the rest metric, the window) is
+the kind's (radfield.core.kinds: `rotated`, `harmonise`, `check_combinable`, `combine_notes`).
 """
 
 from __future__ import annotations
@@ -27,10 +29,11 @@ import numpy as np
 import torch
 
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
+from radfield.core import kinds
+from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.core.render.sh import num_sh_coeffs, rotate_sh
 from radfield.edit.field import Field
-from radfield.edit.operand import load_operand, same_kind, same_window
+from radfield.edit.operand import load_operand, same_kind
 from radfield.edit.select import number, vector
 from radfield.edit.spec import check_keys, operation
 from radfield.edit.warp import euler_rotation
@@ -45,8 +48,8 @@ def similarity(prims, rot: np.ndarray, translate: np.ndarray, scale: float):
     out.quats = rotmat_to_quat(r @ quat_to_rotmat(prims.quats))
     out.log_scales = prims.log_scales + math.log(scale)
     out.sh = rotate_sh(prims.sh, rot)
-    if isinstance(prims, NeuralPrimitives):
-        out.w1 = prims.w1 @ r.T   # σ'(x') = σ(x): W1' u' = W1 Rᵀ R u
+    for name, value in kinds.of(prims).rotated(prims, r).items():   # neural: W1' = W1 Rᵀ
+        setattr(out, name, value)
     return out
 
 
@@ -60,50 +63,23 @@ def pad_sh(prims, degree: int):
     return out
 
 
-def pad_hidden(prims: NeuralPrimitives, hidden: int) -> NeuralPrimitives:
-    """Neural primitives with zero units appended up to `hidden` (W2 = 0: the density is unchanged)."""
-    extra = hidden - prims.hidden
-    if extra <= 0:
-        return prims
-    out = prims.map(lambda x: x)
-    out.w1 = torch.cat([prims.w1, prims.w1.new_zeros(len(prims), extra, 3)], 1)
-    out.b1 = torch.cat([prims.b1, prims.b1.new_zeros(len(prims), extra)], 1)
-    out.w2 = torch.cat([prims.w2, prims.w2.new_zeros(len(prims), extra)], 1)
-    return out
-
-
 def concat_prims(a, b, where: str = "compose"):
-    """One primitive set holding a's then b's, after padding both to a common layout; b's ω0 is
-    folded into its W1 and b1 so the result keeps a's ω0."""
+    """One primitive set holding a's then b's, after padding both to a common layout (SH here,
+    the kind's own tensors by its `harmonise`: neural, b's ω0 is folded into its W1 and b1 so the
+    result keeps a's ω0)."""
     if a.kind != b.kind:
         raise RadfieldError(f"{where}: cannot combine a {a.kind} model with a {b.kind} model")
-    same_window(a, b, where)
+    kind = kinds.of(a)
+    kind.check_combinable(a, b, where)
     degree = max(a.sh_degree, b.sh_degree)
     a, b = pad_sh(a, degree), pad_sh(b, degree)
-    if isinstance(a, NeuralPrimitives):
-        if b.omega0 != a.omega0:
-            ratio = b.omega0 / a.omega0
-            b = b.map(lambda x: x)
-            b.w1, b.b1, b.omega0 = b.w1 * ratio, b.b1 * ratio, a.omega0
-        hidden = max(a.hidden, b.hidden)
-        a, b = pad_hidden(a, hidden), pad_hidden(b, hidden)
-        a, b = with_rest_metric(a, b.rest_metric is not None), with_rest_metric(b, a.rest_metric is not None)
+    a, b = kind.harmonise(a, b)
     b = b.to(dtype=a.means.dtype)
     # the finer of the two: a model trained at n drawn at n' > n is only a little smoother (box
-    # filter), one drawn at fewer rays than it was trained with loses its edges (README)
+    # filter), one drawn at fewer rays than it was trained with loses its edges (docs/studies/edges-supersampling.md)
     out = replace(a, supersample=max(a.supersample, b.supersample))
     for name, tensor in a.tensors().items():
         setattr(out, name, torch.cat([tensor, getattr(b, name)], 0))
-    return out
-
-
-def with_rest_metric(prims: NeuralPrimitives, needed: bool) -> NeuralPrimitives:
-    """prims with a `rest_metric` (identity G = I for each primitive: unchanged optical depth) when
-    `needed` and it has none, so that it joins a field edited with preserve_opacity."""
-    if not needed or prims.rest_metric is not None:
-        return prims
-    out = prims.map(lambda x: x)
-    out.rest_metric = prims.means.new_tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]).expand(len(prims), 6).clone()
     return out
 
 
@@ -150,8 +126,7 @@ def compose(fld: Field, args, ctx) -> Field:
     same_kind(fld, other, where)
     out = merge_fields(fld, transform_field(other, rot, translate, scale), where)
     note = {"operation": "compose", "model": str(args["model"]), "added": len(other.prims), "total": len(out.prims)}
-    if isinstance(fld.prims, NeuralPrimitives) and fld.prims.omega0 != other.prims.omega0:
-        note["omega0_rescaled"] = [other.prims.omega0, fld.prims.omega0]
+    note.update(kinds.of(fld.prims).combine_notes(fld.prims, other.prims))
     out.notes.append(note)
     ctx.log(f"compose: added {len(other.prims)} primitives ({len(out.prims)} in all)")
     return out

@@ -2,7 +2,7 @@
 
 Moving the cage vertices gives each tet an affine map x ↦ A x + b with A = E' E⁻¹, E and E' the
 edge matrices [v1 − v0, v2 − v0, v3 − v0] of the rest and the deformed tet. A primitive bound to a
-tet (barycentric λ of its centre) is mapped exactly by its A (DESIGN.md, "Editing"):
+tet (barycentric λ of its centre) is mapped exactly by its A (docs/usage.md, "How primitives follow the cage (exact)"):
 - μ' = Σ λ_i v'_i (= A μ + b of its tet);
 - the bounding ellipsoid R S becomes A R S = U Σ Vᵀ (SVD): R' = U (det +1), s' = Σ;
 - the density composes with the inverse map: u = (x − μ)/max(s) and x = A⁻¹(x' − b), so
@@ -11,13 +11,15 @@ tet (barycentric λ of its centre) is mapped exactly by its A (DESIGN.md, "Editi
   Vᵀ S⁻¹Rᵀ(x − μ), so every point keeps its r²;
 - SH coefficients turn with the rotation part of A (polar decomposition A = R_p P), band by band;
 - Gaussians: Σ' = A Σ Aᵀ through the same SVD, the same SH rotation, opacity unchanged.
+The geometry and SH are mapped here for every kind; what happens to a kind's own tensors (the MLP
+above) is its `deformed` and `halved` hooks' (radfield.core.kinds).
 
 Which A a primitive uses (`gradient`):
 - "tet": the affine map of the tet holding its centre (exact for the piecewise-linear cage map
   at μ, discontinuous across tet faces);
 - "centre": the deformation gradient interpolated at its centre from vertex gradients (the
   volume-weighted mean of the A of the tets around each vertex), smooth across faces; the
-  default, as it follows bent and twisted cages more closely (README, "Editing").
+  default, as it follows bent and twisted cages more closely (docs/studies/edit-deformation.md).
 A primitive whose tet and vertex gradients are exactly the identity keeps its parameters
 bit for bit (so an identity cage, or a local edit far away, changes nothing).
 
@@ -35,9 +37,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from radfield.core import kinds
 from radfield.core.geometry.cage import bind_to_cage, tet_volumes
+from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, quat_to_rotmat, rotmat_to_quat
 from radfield.core.render.sh import rotate_sh
 from radfield.edit.field import Field
 
@@ -145,35 +148,15 @@ def map_primitives(prims, a: np.ndarray, means: np.ndarray, changed: np.ndarray 
         "quats": rotmat_to_quat(u),
         "sh": rotate_sh(sub.sh, torch.from_numpy(polar_rotation(a[changed]))),
     }
-    out = prims
-    if isinstance(prims, NeuralPrimitives):
-        ratio = sigma.amax(-1) / scales.amax(-1)                     # max(s') / max(s)
-        a_inv = torch.linalg.inv(a_t)
-        new["w1"] = ratio[:, None, None] * sub.w1 @ a_inv               # W1' = (max s'/max s) W1 A⁻¹
-        if preserve_opacity or prims.rest_metric is not None:
-            if prims.rest_metric is None:                              # rest frame = the current one
-                out = replace(prims, rest_metric=metric_vector(torch.eye(3, dtype=prims.means.dtype).expand(p, 3, 3)))
-            g_old = metric_matrix(out.rest_metric[idx].double())
-            # G' = r² A⁻ᵀ G A⁻¹: composes with the metric of earlier edits
-            new["rest_metric"] = metric_vector((ratio**2)[:, None, None] * a_inv.transpose(1, 2) @ g_old @ a_inv)
-    elif not isinstance(prims, Gaussians):
-        raise TypeError(f"cannot deform {type(prims).__name__}")
+    # the kind's own tensors (neural: W1' = (max s'/max s) W1 A⁻¹, and the rest metric)
+    out, own = kinds.of(prims).deformed(prims, idx, sub, a_t, scales, sigma, preserve_opacity)
+    new.update(own)
     tensors = {}
     for name, value in new.items():
         full = getattr(out, name).clone()
         full[idx] = value.to(full.dtype)
         tensors[name] = full
     return replace(out, **tensors)
-
-
-def metric_matrix(v: torch.Tensor) -> torch.Tensor:
-    """(P, 6) xx yy zz xy xz yz -> symmetric (P, 3, 3)."""
-    xx, yy, zz, xy, xz, yz = v.unbind(-1)
-    return torch.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], -1).reshape(-1, 3, 3)
-
-
-def metric_vector(g: torch.Tensor) -> torch.Tensor:
-    return torch.stack([g[:, 0, 0], g[:, 1, 1], g[:, 2, 2], g[:, 0, 1], g[:, 0, 2], g[:, 1, 2]], -1)
 
 
 def affine_field(fld: Field, a: np.ndarray, t: np.ndarray, preserve_opacity: bool = False) -> Field:
@@ -225,7 +208,7 @@ def split_primitives(prims, index: np.ndarray):
     The halves' union is not exactly the parent ellipsoid (thinner at the cut, wider at the
     quarter points): a split is a small approximation, made only where the cage bends. Halves of a
     windowed model stay windowed, each window falling to 0 on its own ellipsoid (not the parent's):
-    part of the same approximation."""
+    part of the same approximation. (The MLP's part is the kind's `halved` hook.)"""
     index = torch.as_tensor(index, dtype=torch.long)
     keep = torch.ones(len(prims), dtype=torch.bool)
     keep[index] = False
@@ -238,21 +221,15 @@ def split_primitives(prims, index: np.ndarray):
     child_scales = scales.clone()
     child_scales.scatter_(1, axis[:, None], (radius / 2)[:, None])
     smax, smax_c = scales.amax(-1), child_scales.amax(-1)
+    kind = kinds.of(prims)
     children = []
     for sign in (1.0, -1.0):
         offset = sign * (radius / 2)[:, None] * e
         fields = {"means": par.means + offset, "log_scales": torch.log(child_scales), "quats": par.quats, "sh": par.sh}
-        if isinstance(prims, NeuralPrimitives):
-            r = (smax_c / smax)
-            fields.update(w1=par.w1 * r[:, None, None], b1=par.b1 + (par.w1 @ (offset / smax[:, None])[..., None])[..., 0],
-                          w2=par.w2 * r[:, None], b2=par.b2 * r)
-        else:
-            fields["opacities"] = par.opacities
+        fields.update(kind.halved(par, offset, smax_c / smax))
         children.append(replace(par, **fields))
     parts = [prims.select(keep)] + children
-    return type(prims)(**{name: torch.cat([getattr(q, name) for q in parts]) for name in prims.tensors()},
-                       **({"omega0": prims.omega0, "window": prims.window} if isinstance(prims, NeuralPrimitives) else {}),
-                       supersample=prims.supersample)
+    return replace(prims, **{name: torch.cat([getattr(q, name) for q in parts]) for name in prims.tensors()})
 
 
 # --- the deformation of a field ---------------------------------------------------------------

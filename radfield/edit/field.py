@@ -1,13 +1,11 @@
 """The editable field: primitives, their cage and their binding, and how an edited field is stored.
 
-An edited run directory (written by `radfield edit`, read by render / eval / info / export like
-any run) holds, besides the run marker and the source run's resolved config:
+`save_field` writes a field into a folder (an edited run keeps it in RUN/edit/; the run directory's
+layout is radfield/run.py's, the edited run's other files radfield/edit/source.py's):
 
-    NEW_RUN/edit/model.safetensors   the edited model, a plain model file (world frame)
-    NEW_RUN/edit/cage.npz, cage.vtk  the cage in its edited pose (same topology as the source's)
-    NEW_RUN/edit/model_binding.npz   tet (P,) and bary (P, 4) of every primitive in that cage
-    NEW_RUN/edit/spec.yaml           the spec that was applied
-    NEW_RUN/edit/manifest.json       provenance (source run and model hash) and figures
+    model.safetensors   the edited model, a plain model file (world frame)
+    cage.npz, cage.vtk  the cage in its edited pose (same topology as the source's)
+    model_binding.npz   tet (P,) and bary (P, 4) of every primitive in that cage
 
 Every coordinate is in the dataset's world frame, as models and cages are on disk.
 """
@@ -22,12 +20,11 @@ import numpy as np
 from radfield.util.atomic import atomic_write
 from radfield.core.geometry.cage import bind_to_cage, read_cage, write_cage
 from radfield.delivery.io import load_model, save_model
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core.kinds import Primitives
+from radfield import run as layout
 
-EDIT_STAGE = "edit"
-EDIT_MODEL = "model.safetensors"
-EDIT_BINDING = "model_binding.npz"
-EDIT_SPEC = "spec.yaml"
+EDIT_MODEL = layout.MODEL_FILE      # Run.model finds it in RUN/edit/
+EDIT_BINDING = layout.BINDING_FILE
 
 
 @dataclass
@@ -38,7 +35,7 @@ class Field:
     `rest_vertices` (V, 3) the cage as it was when the binding was made (deformations map
     rest -> current). `notes` collects the figures each operation reports (for the manifest)."""
 
-    prims: NeuralPrimitives | Gaussians
+    prims: Primitives
     cage_vertices: np.ndarray | None = None
     cage_tets: np.ndarray | None = None
     tet: np.ndarray | None = None
@@ -54,7 +51,7 @@ class Field:
     def has_cage(self) -> bool:
         return self.cage_vertices is not None and self.cage_tets is not None
 
-    def with_prims(self, prims: NeuralPrimitives | Gaussians, tet=None, bary=None) -> "Field":
+    def with_prims(self, prims: Primitives, tet=None, bary=None) -> "Field":
         """A copy with other primitives (and their binding; rebound to the cage when omitted)."""
         out = replace(self, prims=prims, tet=tet, bary=bary, notes=list(self.notes))
         if tet is None:

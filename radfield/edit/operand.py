@@ -3,6 +3,7 @@ the CLI's run loader (EditContext.load_operand) or, as a library fallback, from 
 
 from __future__ import annotations
 
+from radfield.core import kinds
 from radfield.errors import RadfieldError
 from radfield.edit.field import Field, load_field
 
@@ -18,19 +19,9 @@ def load_operand(value, key: str, ctx) -> Field:
 
 
 def same_kind(fld: Field, other: Field, where: str) -> None:
-    """Refuse (one line) to combine neural primitives with Gaussians, or neural fields whose
-    density windows differ (`same_window`)."""
+    """Refuse (one line) to combine primitives of two kinds (neural primitives with Gaussians), or
+    two models of a kind that cannot be joined (its `check_combinable`: neural fields whose
+    density windows differ)."""
     if fld.prims.kind != other.prims.kind:
         raise RadfieldError(f"{where}: cannot combine a {fld.prims.kind} model with a {other.prims.kind} model")
-    same_window(fld.prims, other.prims, where)
-
-
-def same_window(a, b, where: str) -> None:
-    """Refuse (one line) to combine primitives whose `window` differs: a model is drawn with one
-    density, windowed 1.5 (1 − r²) σ or hard-edged σ, and converting one into the other would need
-    a retraining (Gaussians have no window)."""
-    wa, wb = getattr(a, "window", False), getattr(b, "window", False)
-    if wa != wb:
-        name = lambda w: "windowed" if w else "hard-edged"
-        raise RadfieldError(f"{where}: cannot combine a {name(wa)} neural model (window={int(wa)}) with a "
-                            f"{name(wb)} one (window={int(wb)}); a model has one density window")
+    kinds.of(fld.prims).check_combinable(fld.prims, other.prims, where)

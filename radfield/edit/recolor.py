@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import NeuralPrimitives, quat_to_rotmat
+from radfield.core import kinds
 from radfield.core.render.sh import C0
 from radfield.edit.field import Field
 from radfield.edit.operand import load_operand
@@ -43,18 +43,11 @@ from radfield.edit.spec import check_keys, operation
 
 
 def peak_density(prims, samples: int = 128, seed: int = 0) -> torch.Tensor:
-    """Per primitive: neural, the max of σ at `samples` points of its ellipsoid (its centre, the
-    ends of its axes and random points), in the primitive's own units (windowed where prims.window:
-    retrain.neural_sigma); Gaussians, sigmoid opacity."""
-    if not isinstance(prims, NeuralPrimitives):
-        return torch.sigmoid(prims.opacities.detach())
-    from radfield.edit.retrain import unit_ball_samples, neural_sigma  # retraining machinery shares the sampler
-    with torch.no_grad():
-        u = unit_ball_samples(samples, seed).to(prims.means.dtype)                 # (S, 3)
-        rot = quat_to_rotmat(prims.quats)
-        x = prims.means[:, None] + torch.einsum("pij,sj->psi", rot * prims.scales[:, None, :], u)
-        sigma = neural_sigma(prims, x)                                             # (P, S)
-    return sigma.max(1).values
+    """Per primitive, as its kind measures it (radfield.core.kinds: peak_density): neural, the max
+    of σ at `samples` points of its ellipsoid (its centre, the ends of its axes and random points),
+    in the primitive's own units (windowed where prims.window: retrain.neural_sigma); Gaussians,
+    sigmoid opacity."""
+    return kinds.of(prims).peak_density(prims, samples, seed)
 
 
 def primitive_weights(prims, selection, falloff: float, where: str) -> np.ndarray:

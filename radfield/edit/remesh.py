@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from radfield.errors import RadfieldError
-from radfield.core.kinds.primitives import NeuralPrimitives
+from radfield.core import kinds
 from radfield.edit.field import Field
 from radfield.edit.select import number, signed_distance
 from radfield.edit.spec import check_keys, operation
@@ -173,7 +173,7 @@ def remesh(fld: Field, args, ctx) -> Field:
         raise RadfieldError(f"{where}.split: expected true or false, got {split!r}")
     if not split and any(k in args for k in ("steps", "views", "size")):
         raise RadfieldError(f"{where}: steps, views and size set the retraining of split: true")
-    if split and not isinstance(fld.prims, NeuralPrimitives):
+    if split and not kinds.of(fld.prims).has_line_integral_density:
         raise RadfieldError(f"{where}.split: local retraining needs a neural-primitive model")
     steps = int(number(args, "steps", where, default=100, positive=True))
     views = int(number(args, "views", where, default=12, positive=True))

@@ -4,14 +4,15 @@ The teacher is a field whose primitives may carry a mask m(x) ∈ {0, 1} (a bool
 a masked primitive's optical depth along a ray is the quadrature (1/max s) ∫ m(x) σ(x) dℓ over its
 chord (midpoint rule, `samples` points), an unmasked one's the closed form of the renderer. The
 teacher image composites these exactly as the renderer does (centre-depth order, α ≤ 0.99, α <
-1/255 skipped, stop below T = 1e-4): `teacher_render`, vectorised over (ray, primitive) pairs.
+1/255 skipped, stop below T = 1e-4): `teacher_render`, vectorised over (ray, primitive) pairs and
+composited by the renderer's own routine (core/render/composite.py: composite_pairs).
 
 Two stages (eq. 12): stage 1 fits the MLP of the trainable primitives to the teacher's density
 (Σ m_i σ_i / max s_i) at points sampled in their ellipsoids (L1); stage 2 fits all their parameters
 to teacher renders from views around them (L1 on colour) with the fast renderer. Neural primitives only.
 
 For a windowed model (prims.window) every σ here, at points and along rays, is the windowed
-density 1.5 (1 − r²) σ (core/kinds/primitives.py: density_window; the closed form windowed_optical_depth),
+density 1.5 (1 − r²) σ (core/kinds/neural.py: density_window; the closed form windowed_optical_depth),
 the student's in stage 1 included, and the fitted primitives keep the flag.
 """
 
@@ -25,9 +26,11 @@ import torch
 from scipy.spatial import cKDTree
 
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
+from radfield.core.render.composite import composite_pairs
 from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN, ellipsoid_frame, neural_optical_depth, ray_ellipsoid, windowed_optical_depth
 from radfield.core.train.losses import psnr
-from radfield.core.kinds.primitives import NeuralPrimitives, density_window, ellipsoid_radius_sq, quat_to_rotmat
+from radfield.core.geometry.rotations import quat_to_rotmat
+from radfield.core.kinds.neural import NeuralPrimitives, density_window, ellipsoid_radius_sq
 from radfield.core.render.rasterize import T_MIN, render
 from radfield.core.render.sh import sh_to_color
 
@@ -211,33 +214,25 @@ def teacher_render(prims: NeuralPrimitives, camera: Camera, mask_id=None, masks=
         r, j, alpha = ray_alphas(prims, origins, dirs, near * norm, mask_id, list(masks), samples)
         p = prims.to(dtype=torch.float64)
         w2c = camera.w2c
-        rank = torch.empty(len(p), dtype=torch.int64)
+        rank = torch.empty(len(p), dtype=torch.int64)   # the renderer's order: centre depth, stable
         rank[torch.argsort(p.means @ w2c[2, :3] + w2c[2, 3], stable=True)] = torch.arange(len(p))
-        order = torch.argsort(r * len(p) + rank[j])
-        r, j, alpha = r[order], j[order], alpha[order]
-        log_1m = torch.log1p(-alpha)
-        csum = torch.cumsum(log_1m, 0) - log_1m
-        first = torch.ones_like(r, dtype=torch.bool)
-        first[1:] = r[1:] != r[:-1]
-        seg = torch.cumsum(first, 0) - 1
-        log_before = csum - csum[torch.nonzero(first).squeeze(1)][seg]
-        included = log_before + log_1m >= math.log(T_MIN)
-        colors = sh_to_color(p.sh, torch.nn.functional.normalize(p.means - camera.center, dim=-1), p.sh_degree)
-        weight = alpha * torch.exp(log_before) * included
         n = len(dirs)
-        acc = torch.zeros(n, 3, dtype=torch.float64).index_add(0, r, weight[:, None] * colors[j])
-        log_t = torch.zeros(n, dtype=torch.float64).index_add(0, r, log_1m * included)
-        image = acc + torch.exp(log_t)[:, None] * torch.tensor(background, dtype=torch.float64)
+        out = composite_pairs(r, rank[j], alpha, torch.zeros(n, dtype=torch.float64), T_MIN)
+        colors = sh_to_color(p.sh, torch.nn.functional.normalize(p.means - camera.center, dim=-1), p.sh_degree)
+        acc = torch.zeros(n, 3, dtype=torch.float64).index_add(0, out.pixel, out.weight[:, None] * colors[j[out.order]])
+        image = acc + torch.exp(out.log_t)[:, None] * torch.tensor(background, dtype=torch.float64)
     return image.reshape(camera.height, camera.width, 3)
 
 
 def opacity_from(prims: NeuralPrimitives, points: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Accumulated opacity 1 − Π(1 − α) (R,) of the field along rays leaving points (R, 3) in dirs (R, 3)."""
+    """Accumulated opacity 1 − Π(1 − α) (R,) of the field along rays leaving points (R, 3) in dirs (R, 3):
+    an occupancy test, so every pair counts (t_min = 0: no early termination), and a product needs
+    no depth order: the rank is each pair's own index, keeping ray_alphas' order along each ray."""
     o = torch.as_tensor(np.asarray(points, np.float64))
     d = torch.nn.functional.normalize(torch.as_tensor(np.asarray(dirs, np.float64)), dim=-1)
     with torch.no_grad():
         r, _, alpha = ray_alphas(prims, o, d, torch.zeros(len(o), dtype=torch.float64), np.full(len(prims), -1), [])
-        log_t = torch.zeros(len(o), dtype=torch.float64).index_add(0, r, torch.log1p(-alpha))
+        log_t = composite_pairs(r, torch.arange(len(r)), alpha, torch.zeros(len(o), dtype=torch.float64), 0.0).log_t
     return (1 - torch.exp(log_t)).numpy()
 
 

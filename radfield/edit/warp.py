@@ -1,7 +1,7 @@
 """Spec operations that move the cage: transform, deform (from a cage file), twist, bend, taper.
 
 Each moves the selected cage vertices x (weight w from the selection and its falloff) to
-x + w·(φ(x) − x) for its map φ (formulas below and in the README, "Editing"), then deforms the
+x + w·(φ(x) − x) for its map φ (formulas below and in docs/usage.md, "The spec"), then deforms the
 field exactly (edit/deform.py). Coordinates are the dataset's world frame; angles in degrees.
 
     transform  φ(x) = o + s·R·(x − o) + t,  R = Rz(rz)·Ry(ry)·Rx(rx)   (o: origin, default 0)

@@ -32,14 +32,24 @@ NULLABLE: dict[str, type] = {"train.max_primitives": int}
 # List keys whose value is any selection of the default's items, in any order (the stage list);
 # other lists keep the length of their default.
 SELECTIONS: frozenset[str] = frozenset({"stages"})
-# Keys that only take one of a few values.
-CHOICES: dict[str, tuple[str, ...]] = {
+
+
+def _primitive_kinds() -> tuple[str, ...]:
+    """The registered primitive kinds (radfield.core.kinds, imported when a config is checked: it needs torch)."""
+    from radfield.core import kinds
+
+    return kinds.names()
+
+
+# Keys that only take one of a few values (a callable: values known only once their registry is
+# imported, which this light module does not do at import time).
+CHOICES: dict[str, tuple[str, ...] | Callable[[], tuple[str, ...]]] = {
     # COLMAP's models that undistort to a pinhole camera
     "sfm.camera_model": ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
                          "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE"),
     "envelope.source": ("auto", "points", "mesh", "hull", "triangulate", "none"),
     "envelope.method": ("auto", "poisson", "ball_pivoting", "alpha", "convex"),
-    "train.primitive": ("neural", "gaussian"),
+    "train.primitive": _primitive_kinds,
     "init.source": ("auto", "mesh", "points", "random"),
     "eval.split": ("train", "val", "test"),
 }
@@ -216,8 +226,9 @@ def _checked(key: str, value: Any, default: Any, source: str) -> Any:
         return items
     expected = NULLABLE[key] if default is None else type(default)
     checked = _checked_scalar(key, value, expected, default, source, whole=value)
-    if key in CHOICES and checked not in CHOICES[key]:
-        raise RadfieldError(f"{source}: config key {key} must be one of {', '.join(CHOICES[key])}, got {_show(value)}")
+    choices = CHOICES[key]() if callable(CHOICES.get(key)) else CHOICES.get(key)   # callable: read when checked
+    if choices is not None and checked not in choices:
+        raise RadfieldError(f"{source}: config key {key} must be one of {', '.join(choices)}, got {_show(value)}")
     return checked
 
 

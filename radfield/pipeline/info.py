@@ -1,6 +1,6 @@
 """What a run directory holds, for `radfield info RUN [--json]`.
 
-The JSON of `run_info` is a stable interface (scripts and the README rely on it)::
+The JSON of `run_info` is a stable interface (scripts and docs/formats.md rely on it)::
 
     {
       "run": "/abs/path/RUN",
@@ -41,57 +41,16 @@ from rich.table import Table
 
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import parse_yaml
-from radfield.pipeline.runner import (
-    CONFIG_FILE,
-    MANIFEST,
-    RESERVED_FIGURES,
-    format_figures,
-    is_run_dir,
-    read_manifest,
-    read_marker,
-)
-
-MODEL_STAGE = "train"  # the stage that writes the final model
-MODEL_FILE = "model.safetensors"  # its file name inside RUN/train/ (the train stage's output)
-CHECKPOINT_FILE = "checkpoint.safetensors"  # the train stage's checkpoint inside RUN/train.work/
-SFM_STAGE = "sfm"  # the stage that poses a folder of photos
-SFM_DATASET = "colmap"  # its output: a posed COLMAP dataset folder inside RUN/sfm/
-NORMALIZATION_FILE = "normalization.json"  # inside that folder (datasets/sfm.py writes it; not imported
-                                          # from there: radfield.datasets loads OpenImageIO, cv2, pycolmap)
-
-
-EDIT_STAGE = "edit"  # `radfield edit` writes an edited run's model into NEW_RUN/edit/ (radfield.edit.field)
-
-
-def model_path(run_dir: Path) -> Path:
-    """Where the final model of a run lives (whether or not it exists yet): an edited run's
-    edit/model.safetensors, else the train stage's."""
-    edited = Path(run_dir) / EDIT_STAGE / MODEL_FILE
-    return edited if edited.is_file() else Path(run_dir) / MODEL_STAGE / MODEL_FILE
-
-
-def normalization_path(run_dir: Path) -> Path:
-    """Where the SfM normalisation of a run made from photos lives (whether or not it exists)."""
-    return Path(run_dir) / SFM_STAGE / SFM_DATASET / NORMALIZATION_FILE
-
-
-def run_dataset(run_dir: Path) -> Path | None:
-    """The posed dataset a run trained on: the SfM output for photos, else the run's input."""
-    posed = Path(run_dir) / SFM_STAGE / SFM_DATASET
-    if posed.is_dir():
-        return posed
-    source = read_marker(run_dir).get("input")
-    return None if source is None else Path(source)
+from radfield.pipeline.runner import RESERVED_FIGURES, format_figures
+from radfield.run import MODEL_STAGE, Run
 
 
 def run_info(run_dir: Path) -> dict[str, Any]:
     """The documented JSON summary of a run directory (see the module docstring)."""
-    run_dir = Path(run_dir)
-    if not is_run_dir(run_dir):
-        raise RadfieldError(f"{run_dir} is not a radfield run directory")
+    run = Run.open(run_dir)
     stages: dict[str, Any] = {}
-    for name in _stage_names(run_dir):
-        manifest = read_manifest(run_dir / name)
+    for name in run.stage_names():
+        manifest = run.manifest(name)
         if manifest is None:
             stages[name] = {"done": False, "seconds": None, "applicable": None}
             continue
@@ -104,22 +63,22 @@ def run_info(run_dir: Path) -> dict[str, Any]:
             entry["reason"] = manifest.get("reason")
         entry.update(manifest.get("figures") or {})
         stages[name] = entry
-    model, normalization = model_path(run_dir), normalization_path(run_dir)
+    model, normalization = run.model, run.normalization
     return {
-        "run": str(run_dir.resolve()),
-        "input": read_marker(run_dir).get("input"),
+        "run": str(run.path.resolve()),
+        "input": run.marker().get("input"),
         "model": str(model.resolve()) if model.is_file() else None,
         "normalization": str(normalization.resolve()) if normalization.is_file() else None,
-        "pending_checkpoint": pending_checkpoint(run_dir),
+        "pending_checkpoint": pending_checkpoint(run),
         "stages": stages,
     }
 
 
-def pending_checkpoint(run_dir: Path) -> dict[str, Any] | None:
+def pending_checkpoint(run: Run) -> dict[str, Any] | None:
     """The checkpoint an interrupted training left in RUN/train.work/ (see the module docstring), or None."""
     from radfield.core.train.trainer import checkpoint_header  # torch: only when there is a checkpoint
 
-    path = Path(run_dir) / f"{MODEL_STAGE}.work" / CHECKPOINT_FILE
+    path = run.checkpoint
     if not path.is_file():
         return None
     try:
@@ -128,7 +87,7 @@ def pending_checkpoint(run_dir: Path) -> dict[str, Any] | None:
         step = None  # damaged: the train stage reports it when it resumes
     iterations = None
     try:
-        iterations = parse_yaml((Path(run_dir) / CONFIG_FILE).read_text(encoding="utf-8"))["train"]["iterations"]
+        iterations = parse_yaml(run.config_file.read_text(encoding="utf-8"))["train"]["iterations"]
     except (OSError, yaml.YAMLError, KeyError, TypeError):
         pass
     return {"stage": MODEL_STAGE, "step": step, "iterations": iterations, "path": str(path.resolve())}
@@ -158,18 +117,6 @@ def format_info(info: dict[str, Any]) -> str:
     if info["normalization"]:
         console.print(f"normalization (photos -> run frame): {info['normalization']}")
     return buffer.getvalue()
-
-
-def _stage_names(run_dir: Path) -> list[str]:
-    """Stages in the order of the run's config, then any other stage directory with a manifest."""
-    names: list[str] = []
-    try:
-        config = parse_yaml((run_dir / CONFIG_FILE).read_text(encoding="utf-8"))
-        names = [str(name) for name in config.get("stages", [])]
-    except (OSError, yaml.YAMLError, AttributeError):
-        pass  # no readable config: fall back to what is on disk
-    extra = sorted(p.parent.name for p in run_dir.glob(f"*/{MANIFEST}") if p.parent.name not in names)
-    return names + extra
 
 
 def _status(entry: dict[str, Any]) -> str:

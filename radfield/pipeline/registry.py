@@ -1,21 +1,19 @@
 """The reconstruction pipeline: every stage, in order, and the checks made before any of them runs.
 
-A missing train stage gets a stand-in that refuses to run, so the pipeline is complete while the
-train module is being written. A module's own import errors propagate.
+Importing a stage module is light: the stages that need pycolmap, pymeshlab, pyvista, pytetwild or
+fast_simplification (sfm, envelope, tetra) import them when they run, so a posed dataset
+reconstructed with --no-cage needs none of them (tests/test_imports.py).
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 from pathlib import Path
 from typing import Any
 
 from radfield.errors import RadfieldError
-from radfield.datasets.scene import SCENE, read_dataset
-from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra
-from radfield.pipeline.info import MODEL_FILE
-from radfield.pipeline.runner import Context, Stage
+from radfield.datasets.scene import read_dataset
+from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra, train
+from radfield.pipeline.runner import Stage
 
 
 def stages() -> list[Stage]:
@@ -26,15 +24,11 @@ def stages() -> list[Stage]:
         envelope.STAGE,
         tetra.STAGE,
         init.STAGE,
-        _stage("train") or Stage("train", _train_missing, inputs=(SCENE, init.INIT_MODEL), outputs=(MODEL_FILE,)),
+        train.STAGE,
         bind.STAGE,
         bake.STAGE,
         evaluate.STAGE,
     ]
-
-
-def train_available() -> bool:
-    return _stage("train") is not None
 
 
 def check(config: dict[str, Any], input_path: Path) -> None:
@@ -48,14 +42,3 @@ def check(config: dict[str, Any], input_path: Path) -> None:
         raise RadfieldError(f"config key eval.split is {config['eval']['split']} but {input_path} has only the "
                             f"{', '.join(scene['splits'])} splits")
 
-
-def _stage(name: str) -> Stage | None:
-    """`radfield.stages.<name>.STAGE`, or None while that module or its STAGE does not exist."""
-    module = f"radfield.stages.{name}"
-    if importlib.util.find_spec(module) is None:
-        return None
-    return getattr(importlib.import_module(module), "STAGE", None)
-
-
-def _train_missing(ctx: Context) -> None:
-    raise RadfieldError("the train stage is not part of this version of radfield yet")

@@ -1,13 +1,7 @@
-"""Cached, atomic execution of pipeline stages in a run directory.
+"""Cached, atomic execution of pipeline stages in a run directory (its layout: radfield/run.py).
 
-Run directory layout::
-
-    RUN/radfield-run.json    marks a radfield run; records the INPUT dataset path
-    RUN/config.yaml          resolved config of the latest invocation
-    RUN/hashes.json          file hashes cached by (size, mtime_ns), so re-runs need not re-read data
-    RUN/<stage>/             outputs of the last successful run of a stage, plus manifest.json
-    RUN/<stage>.tmp-XXXX/    outputs being written: never trusted, removed by the next invocation
-    RUN/<stage>.work/        scratch that survives failures (checkpoints); removed on success
+A stage writes into RUN/<stage>.tmp-XXXX/, which replaces RUN/<stage>/ only when the stage has
+succeeded; RUN/<stage>.work/ keeps what must survive a failed attempt (checkpoints).
 
 Cache rule: a stage is skipped when its manifest records the same format version, the same hash of
 its config sections and the same content hashes of its input artifacts, and its outputs on disk
@@ -28,7 +22,6 @@ import hashlib
 import json
 import numbers
 import os
-import re
 import secrets
 import shutil
 import sys
@@ -41,15 +34,10 @@ from typing import Any
 from radfield.util.atomic import atomic_write_text
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import save_resolved, section
+from radfield.run import MANIFEST, Run, read_manifest
 
 INPUT = "input"  # artifact name of the user's input (the dataset path); no stage produces it
-MANIFEST = "manifest.json"
-RUN_MARKER = "radfield-run.json"
-CONFIG_FILE = "config.yaml"
-HASH_CACHE = "hashes.json"
-_LOCK = ".lock"
 RESERVED_FIGURES = frozenset({"done", "seconds", "applicable", "reason"})  # info keys figures cannot take
-_SCRATCH = re.compile(r"(.+\.(tmp|old)-.+)|(\..+\.tmp)")  # leftovers of a killed invocation
 
 Figures = Mapping[str, int | float | str | bool | None]
 
@@ -130,50 +118,25 @@ def run_pipeline(
     touched. Returns {stage: "ran" | "cached" | "not applicable"} for the stages visited.
     """
     say = (lambda _line: None) if quiet else (log or _print_stderr)
-    run_dir = Path(run_dir)
+    layout = Run(run_dir)
     input_path = Path(input_path).resolve() if input_path is not None else None
     plan, forced = _plan(stages, config["stages"], set(force), from_stage, until_stage)
     sections = {stage.name: section(config, stage.config_keys) for stage in plan}
     _check_input(plan, input_path)
-    _check_run_dir(run_dir, plan, input_path, forced)
+    _check_run_dir(layout, plan, input_path, forced)
 
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with _locked(run_dir):
-        _write_marker(run_dir, input_path)
-        save_resolved(config, run_dir / CONFIG_FILE)
-        _remove_scratch(run_dir)
-        run = _Invocation(run_dir, HashCache(run_dir / HASH_CACHE), str(config.get("device", "cpu")), quiet, say)
+    layout.path.mkdir(parents=True, exist_ok=True)
+    with _locked(layout):
+        _write_marker(layout, input_path)
+        save_resolved(config, layout.config_file)
+        _remove_scratch(layout)
+        run = _Invocation(layout, HashCache(layout.hash_file), str(config.get("device", "cpu")), quiet, say)
         run.available[INPUT] = input_path
         try:
             return {stage.name: _bring_up_to_date(run, stage, sections[stage.name], stage.name in forced)
                     for stage in plan}
         finally:
             run.hashes.save()
-
-
-def is_run_dir(path: Path) -> bool:
-    """Whether `path` is a radfield run directory (holds the run marker)."""
-    return (Path(path) / RUN_MARKER).is_file()
-
-
-def read_manifest(stage_dir: Path) -> dict[str, Any] | None:
-    """The manifest of a finished stage, or None (never run, or unreadable: then it re-runs)."""
-    try:
-        manifest = json.loads((Path(stage_dir) / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return manifest if isinstance(manifest, dict) and manifest.get("done") is True else None
-
-
-def read_marker(run_dir: Path) -> dict[str, Any]:
-    """The run marker's content ({"input": path or None, "created": ISO time, ...})."""
-    try:
-        marker = json.loads((Path(run_dir) / RUN_MARKER).read_text(encoding="utf-8"))
-    except (OSError, ValueError) as error:
-        raise RadfieldError(f"{run_dir}: damaged {RUN_MARKER} ({error})") from error
-    if not isinstance(marker, dict):
-        raise RadfieldError(f"{run_dir}: damaged {RUN_MARKER}")
-    return marker
 
 
 # --- planning and checks (no writes) ----------------------------------------------------------
@@ -234,16 +197,17 @@ def _check_input(plan: Sequence[Stage], input_path: Path | None) -> None:
         raise RadfieldError(f"input {input_path} does not exist")
 
 
-def _check_run_dir(run_dir: Path, plan: Sequence[Stage], input_path: Path | None, forced: set[str]) -> None:
+def _check_run_dir(layout: Run, plan: Sequence[Stage], input_path: Path | None, forced: set[str]) -> None:
     """Refuse to write into a folder that is not ours, or a run made from another input."""
+    run_dir = layout.path
     if run_dir.exists() and not run_dir.is_dir():
         raise RadfieldError(f"run directory {run_dir} exists and is not a directory")
-    if not run_dir.exists() or not [p for p in run_dir.iterdir() if p.name != _LOCK]:
+    if not run_dir.exists() or not [p for p in run_dir.iterdir() if p != layout.lock_file]:
         return
-    if not is_run_dir(run_dir):
+    if not layout.exists:
         raise RadfieldError(f"{run_dir} exists and is not a radfield run directory; choose another output "
                             f"or remove it")
-    previous = read_marker(run_dir).get("input")
+    previous = layout.marker().get("input")
     if input_path is None or previous is None or Path(previous) == input_path:
         return
     readers = [stage.name for stage in plan if INPUT in stage.inputs]
@@ -260,7 +224,7 @@ def _check_run_dir(run_dir: Path, plan: Sequence[Stage], input_path: Path | None
 class _Invocation:
     """What every stage of one `run_pipeline` call shares."""
 
-    run_dir: Path
+    layout: Run
     hashes: HashCache
     device: str
     quiet: bool
@@ -270,7 +234,7 @@ class _Invocation:
 
 def _bring_up_to_date(run: _Invocation, stage: Stage, config: dict[str, Any], forced: bool) -> str:
     """Skip or run one stage, then publish its artifacts to the later stages."""
-    stage_dir = run.run_dir / stage.name
+    stage_dir = run.layout.stage_dir(stage.name)
     inputs = {name: run.available[name] for name in stage.inputs}
     key = {
         "format_version": stage.version,
@@ -282,7 +246,7 @@ def _bring_up_to_date(run: _Invocation, stage: Stage, config: dict[str, Any], fo
     if previous is not None and reason is None:
         run.say(f"{stage.name}: up to date")
         # checkpoints of an interrupted --force attempt are of no use once the result is valid
-        shutil.rmtree(run.run_dir / f"{stage.name}.work", ignore_errors=True)
+        shutil.rmtree(run.layout.work_dir(stage.name), ignore_errors=True)
         manifest, outcome = previous, "cached"
     else:
         run.say(f"{stage.name}: running ({reason})")
@@ -332,15 +296,15 @@ def _execute(
     forced: bool,
 ) -> dict[str, Any]:
     """Run the stage function into a temporary directory and swap it into place on success."""
-    stage_dir = run.run_dir / stage.name
-    work = run.run_dir / f"{stage.name}.work"
+    stage_dir = run.layout.stage_dir(stage.name)
+    work = run.layout.work_dir(stage.name)
     _prepare_work(work, key, wipe=forced)
-    tmp = run.run_dir / f"{stage.name}.tmp-{secrets.token_hex(4)}"
+    tmp = run.layout.tmp_dir(stage.name, secrets.token_hex(4))
     tmp.mkdir()  # not mkdtemp: outputs get the umask's mode, not 0700
     try:
         ctx = Context(
             name=stage.name,
-            run_dir=run.run_dir,
+            run_dir=run.layout.path,
             stage_dir=stage_dir,
             tmp=tmp,
             work=work,
@@ -410,7 +374,7 @@ def _prepare_work(work: Path, key: dict[str, Any], wipe: bool) -> None:
 def _swap_in(tmp: Path, stage_dir: Path) -> None:
     """Replace `stage_dir` by `tmp`. Killed in between, neither is trusted: the stage re-runs."""
     if stage_dir.exists():
-        old = stage_dir.with_name(tmp.name.replace(".tmp-", ".old-", 1))
+        old = Run.old_dir(tmp)
         os.rename(stage_dir, old)
         os.rename(tmp, stage_dir)
         shutil.rmtree(old)
@@ -444,30 +408,29 @@ def format_figures(figures: Mapping[str, Any]) -> str:
 
 
 @contextlib.contextmanager
-def _locked(run_dir: Path) -> Iterator[None]:
+def _locked(layout: Run) -> Iterator[None]:
     """One invocation at a time per run directory (the lock dies with the process)."""
-    with open(run_dir / _LOCK, "a+") as handle:
+    with open(layout.lock_file, "a+") as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise RadfieldError(f"run directory {run_dir} is in use by another radfield process") from None
+            raise RadfieldError(f"run directory {layout.path} is in use by another radfield process") from None
         yield
 
 
-def _write_marker(run_dir: Path, input_path: Path | None) -> None:
+def _write_marker(layout: Run, input_path: Path | None) -> None:
     marker: dict[str, Any] = {"kind": "radfield-run", "created": _now(), "input": None}
-    if is_run_dir(run_dir):
-        marker.update(read_marker(run_dir))
+    if layout.exists:
+        marker.update(layout.marker())
     if input_path is not None:
         marker["input"] = str(input_path)
-    atomic_write_text(run_dir / RUN_MARKER, json.dumps(marker, indent=2) + "\n")
+    atomic_write_text(layout.marker_file, json.dumps(marker, indent=2) + "\n")
 
 
-def _remove_scratch(run_dir: Path) -> None:
+def _remove_scratch(layout: Run) -> None:
     """Delete what a killed invocation left half-written (never read, so never trusted)."""
-    for path in run_dir.iterdir():
-        if _SCRATCH.fullmatch(path.name):
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    for path in layout.scratch():
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
 # --- hashing ----------------------------------------------------------------------------------
@@ -532,7 +495,7 @@ def _input_hash(run: _Invocation, name: str, path: Path | None) -> str | None:
     if path is None:
         return None
     # a run directory inside the dataset folder must not make the dataset look changed
-    return run.hashes.artifact(path, exclude=run.run_dir if name == INPUT else None)
+    return run.hashes.artifact(path, exclude=run.layout.path if name == INPUT else None)
 
 
 # --- small helpers ----------------------------------------------------------------------------

@@ -30,8 +30,8 @@ from radfield.util.progress import progress_bar
 from radfield.delivery.io import load_model, save_model
 from radfield.core.train.trainer import mean_psnr
 from radfield.datasets.scene import SCENE, Scene, load_scene
-from radfield.pipeline.info import MODEL_FILE
 from radfield.pipeline.runner import Context, Stage
+from radfield.stages.train import MODEL_FILE
 
 BAKED = "baked.safetensors"
 

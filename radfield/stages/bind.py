@@ -15,10 +15,11 @@ import numpy as np
 
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
 from radfield.delivery.io import load_model
-from radfield.pipeline.info import MODEL_FILE
 from radfield.pipeline.runner import Context, Stage
+from radfield.stages.train import MODEL_FILE
+from radfield import run as layout
 
-MODEL_BINDING = "model_binding.npz"  # per trained primitive: its cage tet and barycentric coordinates
+MODEL_BINDING = layout.BINDING_FILE  # per trained primitive: its cage tet and barycentric coordinates
 
 
 def run(ctx: Context) -> dict[str, Any]:

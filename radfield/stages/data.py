@@ -14,8 +14,8 @@ import numpy as np
 
 # Normalization, Scene and load_scene are re-exported for the stages that import them from here
 from radfield.datasets.scene import FORMAT_VERSION, POINTS, SCENE, Normalization, Scene, load_scene, read_dataset
-from radfield.pipeline.info import SFM_DATASET
 from radfield.pipeline.runner import INPUT, Context, Stage
+from radfield.stages.sfm import SFM_DATASET
 
 __all__ = ["POINTS", "SCENE", "STAGE", "Normalization", "Scene", "load_scene", "run"]
 

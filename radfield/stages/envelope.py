@@ -23,9 +23,9 @@ from radfield.errors import RadfieldError
 from radfield.pipeline.config import require
 from radfield.datasets.scene import POINTS, SCENE, load_scene
 from radfield.pipeline.runner import Context, NotApplicable, Stage
-from radfield.datasets.sfm import triangulate
+from radfield import run as layout
 
-ENVELOPE = "envelope.ply"
+ENVELOPE = layout.ENVELOPE_FILE
 OVERLAY = "envelope.png"
 
 
@@ -40,6 +40,8 @@ def run(ctx: Context) -> dict[str, Any]:
     masked = train.load_image(0)[1] is not None  # the first image tells: datasets are RGB or RGBA throughout
     source = choose_source(cfg["source"], len(points["xyz"]) > 0, len(points["mesh_vertices"]) > 0, masked)
     if source == "triangulate":
+        from radfield.datasets.sfm import triangulate  # pycolmap: only for posed photos without points
+
         points["xyz"], _ = triangulate(train.cameras, train.load_images()[0].numpy(), ctx.config["sfm"],
                                        seed=ctx.seed, log=ctx.log)
         if len(points["xyz"]) < MIN_POINTS:

@@ -43,15 +43,17 @@ from radfield.core.render.antialias import render_model
 from radfield.datasets.images import write_image
 from radfield.pipeline.config import load_config
 from radfield.datasets.scene import SCENE, Scene, load_scene, read_dataset, scene_from_json
-from radfield.pipeline.info import MODEL_FILE, MODEL_STAGE, model_path, run_dataset
-from radfield.pipeline.runner import CONFIG_FILE, Context, Stage, is_run_dir
+from radfield.pipeline.runner import Context, Stage
+from radfield.run import MODEL_STAGE, Run, is_run_dir
+from radfield.stages.train import CURVES, LOG, MODEL_FILE
+from radfield import run as layout
 
-METRICS = "metrics.json"
+METRICS = layout.METRICS_FILE
 RENDERS = "renders"
 REPORT = "report.md"
 GRIDS = "grids"
 TRAINING = "training"
-TRAIN_CURVES = ("curves.png", "log.jsonl")  # written by the train stage into RUN/train/, when it logs
+TRAIN_CURVES = (CURVES, LOG)  # written by the train stage into RUN/train/, when it logs
 
 
 def run(ctx: Context) -> dict[str, Any]:
@@ -60,7 +62,9 @@ def run(ctx: Context) -> dict[str, Any]:
     metrics = evaluate(ctx.inputs[MODEL_FILE], scene, ctx.config["eval"]["split"], ctx.outputs[RENDERS],
                        near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet, grids=ctx.outputs[GRIDS])
     ctx.outputs[METRICS].write_text(json.dumps(metrics, indent=1) + "\n")
-    write_report(ctx.tmp, metrics, model=f"{ctx.run_dir.name}/{MODEL_STAGE}/{MODEL_FILE}", run_dir=ctx.run_dir)
+    inside = Run(ctx.run_dir).trained_model.relative_to(ctx.run_dir)
+    model = "/".join((ctx.run_dir.name, *inside.parts))  # the report names it RUN/train/model.safetensors
+    write_report(ctx.tmp, metrics, model=model, run_dir=ctx.run_dir)
     return {key: metrics[key] for key in ("psnr", "ssim", "lpips", "fps", "views")}
 
 
@@ -146,7 +150,7 @@ def write_report(out_dir: Path, metrics: dict[str, Any], *, model: str, run_dir:
     curves = []
     (out_dir / TRAINING).mkdir(parents=True, exist_ok=True)
     for name in TRAIN_CURVES:
-        source = run_dir / MODEL_STAGE / name if run_dir is not None else None
+        source = Run(run_dir).artifact(MODEL_STAGE, name) if run_dir is not None else None
         if source is not None and source.is_file():
             shutil.copyfile(source, out_dir / TRAINING / name)
             curves.append(f"{TRAINING}/{name}")
@@ -174,15 +178,15 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
 def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] | None = None):
     """(model file, Scene, run dir or None, config) of a run directory or a model file."""
     target = Path(target)
-    run_dir = target if is_run_dir(target) else None
-    model = model_path(target) if run_dir else target
+    run = Run(target) if is_run_dir(target) else None
+    model = run.model if run else target
     if not model.is_file():
-        raise RadfieldError(f"{target}: run directory has no trained model yet" if run_dir
+        raise RadfieldError(f"{target}: run directory has no trained model yet" if run
                             else f"{target}: no such model file or run directory")
-    config = load_config(run_dir / CONFIG_FILE if run_dir else None, options=options or {})
+    config = load_config(run.config_file if run else None, options=options or {})
     if dataset is None:
-        dataset = run_dataset(run_dir) if run_dir else None
+        dataset = run.dataset() if run else None
         if dataset is None:
             raise RadfieldError("--dataset is required to evaluate a model file")
     scene = scene_from_json(read_dataset(dataset, config["data"])[0], dataset)
-    return model, scene, run_dir, config
+    return model, scene, target if run else None, config

@@ -13,7 +13,7 @@ radius is k·d with k² the inverse per-axis variance of its density profile in 
 its density has the Gaussian's variance d² along every axis: k = √7 for the window 1.5 (1 − r²)
 (E[x²] = 1/7), √5 for a hard edge (uniform: E[x²] = 1/5). With radius d its density would spread
 1/√7 as far as the Gaussian's (5 % of the volume), leaving gaps between neighbours that
-densification must fill (README "Seeds, the initial radius, the SH schedule and the view size":
+densification must fill (docs/studies/seeds-radius-sh-viewsize.md:
 k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
 SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives:
 SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray
@@ -36,7 +36,6 @@ throughout.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -45,7 +44,7 @@ from scipy.spatial import cKDTree
 
 from radfield.errors import RadfieldError
 from radfield.delivery.io import save_model
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, siren_mlp_init
+from radfield.core import kinds
 from radfield.core.render.sh import num_sh_coeffs, rgb_to_sh_dc
 from radfield.pipeline.config import require
 from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
@@ -57,9 +56,6 @@ from radfield.stages.envelope import ENVELOPE
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
 BINDING = "binding.npz"  # the initial primitives' tets and barycentric coordinates in the cage
 SOURCES = ("auto", "mesh", "points", "random")
-INITIAL_ALPHA = 0.1  # a new primitive's opacity through its centre, 3DGS's initial opacity
-NEURAL_B2 = -math.log(1.0 - INITIAL_ALPHA) / 2.0
-GAUSSIAN_OPACITY = math.log(INITIAL_ALPHA / (1.0 - INITIAL_ALPHA))  # logit
 RANDOM_RADIUS = 0.5  # normalised units: the cameras lie within radius 1
 
 
@@ -78,10 +74,9 @@ def run(ctx: Context) -> dict[str, Any]:
     else:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
-    prims = make_primitives(means, rgb, cfg["train"]["primitive"], cfg["train"]["sh_degree"],
-                            cfg["render"]["hidden"], cfg["render"]["omega0"], scene.extent, ctx.seed,
-                            w1_bound=cfg["init"]["w1_scale"], window=cfg["render"]["window"],
-                            neural_radius=cfg["init"]["neural_radius"])
+    kind = cfg["train"]["primitive"]
+    prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
+                            kinds.get(kind).init_settings(cfg))
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
@@ -93,8 +88,9 @@ def run(ctx: Context) -> dict[str, Any]:
 STAGE = Stage(
     "init",
     run,
-    config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0",
-                 "render.hidden", "render.window", "seed"),
+    # with the config keys every kind's init_settings reads (neural: render.omega0, hidden, window)
+    config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives",
+                 *dict.fromkeys(key for kind in kinds.registered() for key in kind.init_config_keys), "seed"),
     inputs=(SCENE, POINTS, ENVELOPE, CAGE_NPZ),
     outputs=(INIT_MODEL, BINDING),
     version=4,
@@ -220,22 +216,15 @@ def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
     return distances[:, 1:].mean(axis=1)
 
 
-def neural_radius_factor(window: bool) -> float:
-    """k such that a neural primitive of radius k·d has a Gaussian of scale d's per-axis variance
-    d²: 1/k² = E[x²] of the density profile in the unit ball (window 1.5 (1 − r²): 1/7; hard: 1/5)."""
-    return math.sqrt(7.0) if window else math.sqrt(5.0)
-
-
-def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, hidden: int,
-                    omega0: float, extent: float, seed: int, w1_bound: float = 1 / 3,
-                    window: bool = False, neural_radius: float = 0.0) -> NeuralPrimitives | Gaussians:
-    """Isotropic primitives at `means` (see the module docstring for every initial value;
-    `neural_radius`: k of a neural primitive's radius k·d, 0 = neural_radius_factor(window))."""
+def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, extent: float,
+                    seed: int, settings: dict | None = None) -> kinds.Primitives:
+    """Isotropic primitives of `kind` at `means` (see the module docstring for every initial value);
+    `settings`: the kind's init settings (kinds.get(kind).init_settings(config); None: its defaults,
+    neural: ω0 30, 8 hidden units, hard-edged, W1 bound 1/3, the automatic radius factor)."""
+    spec, settings = kinds.get(kind), settings or {}
     num = len(means)
     radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
-    radius = np.maximum(radius, 1e-6 * extent)
-    if kind == "neural":
-        radius = radius * (neural_radius or neural_radius_factor(window))
+    radius = spec.initial_radius(np.maximum(radius, 1e-6 * extent), settings)
     colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
     sh = torch.zeros(num, num_sh_coeffs(sh_degree), 3)
     sh[:, 0] = rgb_to_sh_dc(colour)
@@ -245,9 +234,4 @@ def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_deg
         "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(num, 1),
         "sh": sh,
     }
-    if kind == "gaussian":
-        return Gaussians(**geometry, opacities=torch.full((num,), GAUSSIAN_OPACITY))
-    w1, b1, w2, b2 = siren_mlp_init(num, hidden, omega0, generator=torch.Generator().manual_seed(seed),
-                                    w1_bound=w1_bound)
-    return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0,
-                            window=window)
+    return spec.from_points(geometry, settings, seed)

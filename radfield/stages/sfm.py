@@ -8,19 +8,22 @@ from __future__ import annotations
 
 from typing import Any
 
-from radfield.datasets.readers import detect_format, photo_folder, pose_source
-from radfield.datasets.sfm import run_sfm
+from radfield.datasets import formats
 from radfield.pipeline.config import require
-from radfield.pipeline.info import SFM_DATASET
 from radfield.pipeline.runner import INPUT, Context, NotApplicable, Stage
+from radfield import run as layout
+
+SFM_DATASET = layout.SFM_DATASET  # the posed COLMAP dataset folder, RUN/sfm/colmap/ (radfield.run.Run.sfm_dataset)
 
 
 def run(ctx: Context) -> dict[str, Any]:
     source = ctx.inputs[INPUT]
-    fmt = detect_format(source)
-    if fmt != "images":
-        raise NotApplicable(f"posed dataset: poses come from {pose_source(source, fmt)}")
-    figures = run_sfm(photo_folder(source), ctx.outputs[SFM_DATASET], ctx.config["sfm"], seed=ctx.seed, log=ctx.log)
+    fmt = formats.detect(source)
+    if fmt.posed:
+        raise NotApplicable(f"posed dataset: poses come from {fmt.pose_source(source)}")
+    from radfield.datasets.sfm import run_sfm  # pycolmap and OpenImageIO: only when photos are posed
+
+    figures = run_sfm(fmt.photo_folder(source), ctx.outputs[SFM_DATASET], ctx.config["sfm"], seed=ctx.seed, log=ctx.log)
     ctx.log(f"{figures['registered_images']}/{figures['total_images']} photos registered, {figures['points']} points, "
             f"reprojection error {figures['reprojection_error']:.2f} px")
     return figures

@@ -37,19 +37,20 @@ from typing import Any
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from radfield.delivery.io import load_model, save_model
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core.kinds import Primitives
 from radfield.core.train.dataparallel import train_on_ranks
 from radfield.core.train.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint
 from radfield.core.train.trainlog import TrainLog, plot_curves, read_log
 from radfield.stages.data import SCENE, Normalization, load_scene
-from radfield.pipeline.info import CHECKPOINT_FILE, MODEL_FILE
 from radfield.stages.init import INIT_MODEL
 from radfield.pipeline.runner import Context, Stage
+from radfield import run as layout
 
+MODEL_FILE = layout.MODEL_FILE  # the trained model, the run's final one (radfield.run.Run.model)
 LOG = "log.jsonl"
 CURVES = "curves.png"
 FINAL_STATE = "final_state.safetensors"
-CHECKPOINT = CHECKPOINT_FILE  # in RUN/train.work/
+CHECKPOINT = layout.CHECKPOINT_FILE  # in RUN/train.work/ (radfield.run.Run.checkpoint)
 
 
 def run(ctx: Context) -> dict[str, Any]:
@@ -140,12 +141,12 @@ def _continue_key(ctx: Context) -> dict:
     return {"config": hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest(), "inputs": inputs}
 
 
-def to_normalized(prims: NeuralPrimitives | Gaussians, norm: Normalization) -> NeuralPrimitives | Gaussians:
+def to_normalized(prims: Primitives, norm: Normalization) -> Primitives:
     """World-frame primitives in the normalised frame x_norm = (x − center) · scale."""
     return replace(prims, means=norm.apply(prims.means), log_scales=prims.log_scales + math.log(norm.scale))
 
 
-def to_world(prims: NeuralPrimitives | Gaussians, norm: Normalization) -> NeuralPrimitives | Gaussians:
+def to_world(prims: Primitives, norm: Normalization) -> Primitives:
     """Inverse of to_normalized."""
     return replace(prims, means=norm.invert(prims.means), log_scales=prims.log_scales - math.log(norm.scale))
 

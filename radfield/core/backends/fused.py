@@ -13,27 +13,27 @@
     available(device=None, dtype=None) -> bool, build_error() -> str | None
 
 The view kernels composite a whole view per 16×16 tile (view_kernels.cpp, the method is in its
-header comment); the per-view ops replace their torch twins in core/render/rasterize.py and core/render/sh.py
-(`_neural_view`, `sh_to_color`), and the block kernels have the signatures and semantics of
-`_neural_block` / `_gaussian_block`. Every op has a hand-written backward; the torch twins stay the
+header comment); the per-view ops replace their torch twins in core/kinds/neural.py, core/kinds/gaussian.py
+and core/render/sh.py (`view_tensors`, `ewa_view`, `sh_to_color`), and the block kernels have the
+signatures and semantics of the kinds' `pair_alpha`. Every op has a hand-written backward; the torch twins stay the
 readable references the tests compare against.
 
 The extension is compiled at first use (1–3 minutes on a busy 2-core machine; needs g++ and
 ninja) and cached on disk by torch (TORCH_EXTENSIONS_DIR, default ~/.cache/torch_extensions), so
-later processes only load it (~0.1 s). `RADFIELD_KERNELS=torch` forces the pure-torch path; if the
-build fails, one warning says so and the torch path is used (tests/test_fused.py fails under CI=true).
+later processes only load it (~0.1 s). Which calls run here is decided by the kernel-backend seam
+(radfield.core.backends, backend "fused-cpu"): `RADFIELD_KERNELS=torch` forces the pure-torch path;
+if the build fails, one warning says so and the torch path is used (tests/test_fused.py fails under CI=true).
 """
 
 from __future__ import annotations
 
-import os
 import time
 import warnings
 from pathlib import Path
 
 import torch
 
-from radfield.core.kinds.primitives import WINDOW_GAIN
+from radfield.core.render.kernels import WINDOW_GAIN
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
@@ -44,7 +44,9 @@ _state: dict = {"tried": False, "ops": None, "error": None}
 
 
 def _forced_torch() -> bool:
-    return os.environ.get("RADFIELD_KERNELS", "").strip().lower() == "torch"
+    from radfield.core.backends import forced_torch   # the seam owns the switch
+
+    return forced_torch()
 
 
 def _simd_flags() -> list[str]:
@@ -163,7 +165,7 @@ class _GaussianBlock(torch.autograd.Function):
 
 def neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, window: bool = False) -> torch.Tensor:
     """α of neural primitives (P,) over blocks of image points u, v (P, A); see
-    rasterize._neural_block (paper eq. 7–9; `window`: the windowed density)."""
+    kinds/neural.py: pair_alpha (paper eq. 7–9; `window`: the windowed density)."""
     return _NeuralBlock.apply(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, _gain(window))
 
 
@@ -174,7 +176,7 @@ def _gain(window: bool) -> float:
 
 def gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> torch.Tensor:
     """α of 2D Gaussian splats (P,) over blocks of image points u, v (P, A); see
-    rasterize._gaussian_block."""
+    kinds/gaussian.py: pair_alpha."""
     return _GaussianBlock.apply(u, v, intrinsics, mean2d, conic, opacity)
 
 
@@ -216,10 +218,10 @@ def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, 
     returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
     composited pairs, terminated pixels, candidate pairs)). order (V,) int64: the primitives to
     draw, front to back, each once; bounds (P, 4) int64 inclusive pixel boxes, inside the image
-    for those in `order`; the per-primitive tensors (P, ...) as rasterize._neural_view returns
+    for those in `order`; the per-primitive tensors (P, ...) as kinds/neural.py: view_tensors returns
     them (gradients are zero for the primitives not in `order`). The op keeps copies of them in
     depth order for its backward (memory O(V) per-primitive rows, nothing per pair).
-    `window`: the windowed density (primitives.density_window)."""
+    `window`: the windowed density (kinds/neural.py: density_window)."""
     return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, _gain(window), colors, depth,
                        m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
 
@@ -231,14 +233,14 @@ def gaussian_view(bounds, order, height, width, t_min, colors, depth, mean2d, co
 
 
 def neural_bounds(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
-    """rasterize._neural_bounds and the depth sort in one op (no gradient): (bounds (P, 4) int64,
+    """kinds/base.py: ellipsoid_bounds and the depth sort in one op (no gradient): (bounds (P, 4) int64,
     order (V,) int64, the visible primitives by camera-space depth means_cam[:, 2], stable)."""
     args = [t.detach().contiguous() for t in (means_cam, log_scales, quats, w2c_rot, intrinsics)]
     return tuple(_ops().neural_bounds(*args, width, height, float(near)))
 
 
 def gaussian_bounds(mean2d, cov, depth, width: int, height: int, near: float):
-    """rasterize._gaussian_bounds and the depth sort in one op (no gradient), from the splats'
+    """kinds/gaussian.py: splat_bounds and the depth sort in one op (no gradient), from the splats'
     2D means (P, 2), covariances (a, b, c) (P, 3) and depths (P,): (bounds, order) as neural_bounds."""
     args = [t.detach().contiguous() for t in (mean2d, cov, depth)]
     return tuple(_ops().gaussian_bounds(*args, width, height, float(near)))
@@ -313,8 +315,8 @@ def sh_color_parts(sh_dc, sh_rest, means, campos, degree: int) -> torch.Tensor:
 
 
 def neural_prep(prims, campos, cam_rot) -> tuple:
-    """The ellipsoid frame and MLP phases of rasterize._neural_view in one fused op:
-    (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from rasterize._density_weights."""
+    """The ellipsoid frame and MLP phases of kinds/neural.py: view_tensors in one fused op:
+    (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from kinds/neural.py: density_weights."""
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
                              prims.omega0)
 
@@ -395,7 +397,7 @@ class _GaussianPrep(torch.autograd.Function):
 
 
 def gaussian_prep(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
-    """The EWA projection of rasterize._gaussian_view in one fused op: (mean2d (P, 2), conic (P, 3),
+    """The EWA projection of kinds/gaussian.py: ewa_view in one fused op: (mean2d (P, 2), conic (P, 3),
     cov (P, 3) = the 2D covariance's (a, b, c) with the blur, not differentiable), from the
     camera-space means (P, 3); differentiable w.r.t. means_cam, log_scales and quats."""
     return _GaussianPrep.apply(means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near)

@@ -20,16 +20,17 @@ import io
 import tempfile
 from pathlib import Path
 
-import meshio
 import numpy as np
-import pytetwild
 from scipy.spatial import cKDTree
+# pytetwild and meshio are imported in the functions that use them: editing, rendering and a run
+# without a cage need neither (a cage.npz is read with numpy)
 
 from radfield.util.atomic import atomic_write
 from radfield.errors import RadfieldError
+from radfield import run as layout
 
 CAGE_VTK = "cage.vtk"
-CAGE_NPZ = "cage.npz"
+CAGE_NPZ = layout.CAGE_FILE
 CAGE_FILES = (CAGE_VTK, CAGE_NPZ)
 
 
@@ -39,6 +40,8 @@ def build_cage(vertices: np.ndarray, faces: np.ndarray, cfg: dict):
     volumes, and the figures `tets`, `vertices`, `volume`. fTetWild is not bit-deterministic:
     counts vary by a few percent between runs. With the defaults an envelope of ~1000 faces gives
     ~1000-2000 tets; raise `edge_length_fac` / `epsilon` for fewer."""
+    import pytetwild
+
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int32)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
@@ -76,6 +79,8 @@ def tet_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
 def write_cage(out_dir, vertices: np.ndarray, tets: np.ndarray) -> list[Path]:
     """Write `cage.vtk` (legacy VTK unstructured grid, through meshio: opens in ParaView, Houdini,
     Blender add-ons) and `cage.npz` (`vertices` (V, 3) float64, `tets` (T, 4) int64), atomically."""
+    import meshio
+
     out_dir = Path(out_dir)
     mesh = meshio.Mesh(np.asarray(vertices, np.float64), [("tetra", np.asarray(tets, np.int64))])
     atomic_write(out_dir / CAGE_VTK, lambda tmp: meshio.write(tmp, mesh, file_format="vtk"))
@@ -92,6 +97,8 @@ def read_cage(path) -> tuple[np.ndarray, np.ndarray]:
             with np.load(path, allow_pickle=False) as data:
                 v, t = data["vertices"], data["tets"]
         else:
+            import meshio
+
             # meshio prints its complaints and calls sys.exit on an unreadable file
             with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
                 mesh = meshio.read(path)
@@ -212,7 +219,7 @@ def fallback_cage(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     positively oriented tets and the name of what was built ("delaunay" or "box")."""
     from scipy.spatial import Delaunay, QhullError
 
-    from radfield.core.geometry.envelope import inside_envelope  # here: VTK is slow to import, the editor needs none
+    from radfield.core.geometry.envelope import inside_envelope  # here: only the fallback needs VTK
 
     v = np.asarray(vertices, np.float64)
     try:

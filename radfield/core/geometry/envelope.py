@@ -31,14 +31,11 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
-import fast_simplification
 import numpy as np
-import pymeshlab
-import pyvista as pv
 from scipy import ndimage
+# pymeshlab, pyvista, fast_simplification, cv2 and scikit-image are imported in the functions that use
+# them: a run without an envelope (--no-cage) must work on a machine that lacks them
 from scipy.spatial import ConvexHull, QhullError, cKDTree
-from skimage.measure import marching_cubes
 
 from radfield.util.atomic import atomic_write
 from radfield.core.geometry.cameras import Camera
@@ -139,6 +136,9 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
     voxel centres; the marching-cubes surface at that distance goes through `finish`, which must
     hold every kept voxel centre. Returns vertices, faces and the figures of `build_envelope`
     plus `voxels` and `voxel_size`; silhouettes with no common volume give the box fallback."""
+    import cv2
+    from skimage.measure import marching_cubes
+
     if len(cameras) != len(masks) or not cameras:
         raise RadfieldError(f"visual hull: {len(cameras)} cameras but {len(masks)} masks")
     views = []
@@ -192,6 +192,8 @@ def finish(surfaces: list[tuple[str, Callable]], points: np.ndarray, diag: float
     not) that wraps and decimates into a closed envelope holding all but MAX_OUTSIDE_FRACTION of
     `points`, else the last resorts; see the module docstring. The margin is `offset` x `diag` (+
     `extra_margin`, which the surface already lies outside `points` by)."""
+    import pymeshlab
+
     margin = cfg["offset"] * diag
     failures = []
     for name, make in surfaces:
@@ -301,11 +303,15 @@ def _accepted(mesh, points: np.ndarray, allowed: float):
 
 
 def _fast_simplification(v, f, target_faces: int):
+    import fast_simplification
+
     return fast_simplification.simplify(v, f, target_count=int(target_faces))
 
 
 def _quadric(v, f, target_faces: int):
     """Quadric edge collapse that refuses collapses changing the topology (pymeshlab)."""
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(v, np.float64), face_matrix=np.asarray(f, np.int32)))
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preservetopology=True,
@@ -319,6 +325,8 @@ def _remove_outliers(points: np.ndarray, cfg: dict) -> np.ndarray:
     `outlier_std` standard deviations - this removes scattered floaters, which look like a
     sparse but normal region to a local test. Then LoOP (local outlier probability, pymeshlab):
     drop points much sparser than their own neighbourhood."""
+    import pymeshlab
+
     k = min(OUTLIER_NEIGHBORS, len(points) - 1)
     distance, _ = cKDTree(points).query(points, k=k + 1)
     spacing = distance[:, 1:].mean(1)
@@ -333,6 +341,8 @@ def _remove_outliers(points: np.ndarray, cfg: dict) -> np.ndarray:
 
 def _surface(points: np.ndarray, name: str, diag: float, cfg: dict):
     """A triangle surface through the points: (vertices, faces), or a string saying why not."""
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=points))
     try:
@@ -369,6 +379,8 @@ def _surface(points: np.ndarray, name: str, diag: float, cfg: dict):
 def _wrap(v, f, alpha: float, offset: float) -> tuple[np.ndarray, np.ndarray]:
     """CGAL alpha wrap (pymeshlab) of a triangle mesh: watertight, 2-manifold, no self-intersections,
     `offset` outside the input. (The filter crashes on a mesh without faces: callers pass triangles.)"""
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(v, np.float64), face_matrix=np.asarray(f, np.int32)))
     ms.generate_alpha_wrap(alpha=pymeshlab.PureValue(alpha), offset=pymeshlab.PureValue(offset))
@@ -381,6 +393,8 @@ def _wrap(v, f, alpha: float, offset: float) -> tuple[np.ndarray, np.ndarray]:
 def mesh_checks(vertices: np.ndarray, faces: np.ndarray) -> dict:
     """`watertight` (closed 2-manifold, one piece or several) and the number of
     `self_intersections` (faces that cross another face), from pymeshlab."""
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, np.float64), face_matrix=np.asarray(faces, np.int32)))
     topology = ms.get_topological_measures()
@@ -393,6 +407,8 @@ def mesh_checks(vertices: np.ndarray, faces: np.ndarray) -> dict:
 
 def signed_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Signed distance (N,) from points to a closed, outward-oriented mesh: positive outside (VTK)."""
+    import pyvista as pv
+
     surface = pv.PolyData.from_regular_faces(np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
     return np.asarray(pv.PolyData(np.asarray(points, np.float64)).compute_implicit_distance(surface)["implicit_distance"])
 
@@ -430,6 +446,8 @@ def inside_envelope(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray)
 
 def write_envelope(path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Write the envelope as a binary PLY (float32 vertices), atomically."""
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, np.float64), face_matrix=np.asarray(faces, np.int32)))
     atomic_write(Path(path), lambda tmp: ms.save_current_mesh(str(tmp), binary=True, save_vertex_color=False,
@@ -438,6 +456,8 @@ def write_envelope(path, vertices: np.ndarray, faces: np.ndarray) -> None:
 
 def read_envelope(path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (V, 3) float64 and faces (F, 3) int64 of a triangle mesh file (PLY, OBJ, ...)."""
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
     try:
         ms.load_new_mesh(str(path))
@@ -452,6 +472,8 @@ def overlay_picture(vertices: np.ndarray, faces: np.ndarray, camera: Camera, ima
     the camera, and the outline. `image` is (H, W, 3) RGB, uint8 or float in [0, 1], the size of
     `camera`. Returns (H, W, 3) uint8 RGB and, if `path` is given, also writes it there as a PNG
     (atomically)."""
+    import cv2
+
     if image.shape[:2] != (camera.height, camera.width):
         raise RadfieldError(f"overlay: image is {image.shape[1]}x{image.shape[0]}, "
                             f"camera {camera.name!r} is {camera.width}x{camera.height}")
@@ -542,6 +564,8 @@ def _compact(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _imwrite(path: Path, rgb: np.ndarray) -> None:
+    import cv2
+
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise RadfieldError(f"{path}: could not write the image")
 

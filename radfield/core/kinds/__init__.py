@@ -1,0 +1,27 @@
+"""The primitive-kind registry: the one place that says what a kind of primitive is.
+
+    kinds.get("neural"), kinds.of(prims)   the PrimitiveKind of a name or of a primitives object
+    kinds.names()                          the registered kinds ("neural", "gaussian", then any added)
+    kinds.register(kind), unregister(name) add a kind (a PrimitiveKind subclass instance, kinds/base.py)
+
+Built in: splattable neural primitives (kinds/neural.py) and 3D Gaussians (kinds/gaussian.py).
+A new kind is one module that defines its primitives dataclass (a `_Primitives` subclass), a
+`PrimitiveKind` subclass with the hooks it needs, registers it, and registers its fast renderers
+with radfield.core.backends; training, the model file, rendering, editing and export then take it
+(tests/test_kinds.py adds one inside a test).
+"""
+
+from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
+from radfield.core.kinds.base import (INITIAL_ALPHA, PixelRay, PrimitiveKind, ViewFrame, _Primitives, get, names,
+                                      of, register, registered, unregister)
+from radfield.core.kinds.neural import (DEFAULT_HIDDEN, DEFAULT_OMEGA0, NeuralPrimitives, density_window,
+                                        ellipsoid_radius_sq, random_neural, siren_mlp_init)
+from radfield.core.kinds.gaussian import Gaussians, random_gaussians
+from radfield.core.render.kernels import WINDOW_GAIN
+
+Primitives = _Primitives   # any kind's primitives, for annotations
+
+__all__ = ["DEFAULT_HIDDEN", "DEFAULT_OMEGA0", "INITIAL_ALPHA", "WINDOW_GAIN", "Gaussians", "NeuralPrimitives",
+           "PixelRay", "PrimitiveKind", "Primitives", "ViewFrame", "_Primitives", "density_window",
+           "ellipsoid_radius_sq", "get", "names", "of", "quat_to_rotmat", "random_gaussians", "random_neural",
+           "register", "registered", "rotmat_to_quat", "siren_mlp_init", "unregister"]

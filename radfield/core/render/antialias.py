@@ -4,7 +4,7 @@ The renderer point-samples one ray through each pixel centre, (j + 0.5, i + 0.5)
 images, from a camera or a path tracer, average each pixel's area. An edge that crosses a pixel is
 then seen by training at one fixed sub-pixel phase per view, and a model can fit that phase (a
 primitive's hard boundary placed just so) in every training view while a held-out view, whose
-pixels fall on the edge at other phases, sees the fit fail (README "Neural primitives at edges").
+pixels fall on the edge at other phases, sees the fit fail (docs/studies/edges-supersampling.md).
 Three remedies, all outside the render kernels:
 
 Ray jitter (`train.ray_jitter` = a, in pixels; instant-NGP's training rays): every training view
@@ -18,7 +18,7 @@ box-filtered render, E_δ ‖r(x + δ) − y‖² = ‖(r ∗ box)(x) − y‖²
 area averages that the images hold, plus a variance term that penalises renders which change
 within a pixel (sharp edges placed to match one phase). The offsets are drawn from a generator of
 (seed, step), so a resumed run draws what the uninterrupted one drew. (Measured: with the L1 + D-SSIM
-loss it lowers val by ~2 dB for both kinds on studio; README.)
+loss it lowers val by ~2 dB for both kinds on studio; docs/studies/edges-supersampling.md.)
 
 Supersampling (`render.supersample` = n, in training and in every render of the model): each pixel
 is the mean of the n × n rays through the centres of an n × n grid of sub-pixels,
@@ -27,7 +27,7 @@ is the mean of the n × n rays through the centres of an n × n grid of sub-pixe
 
 the midpoint quadrature of the pixel's box filter, so the model is fitted to, and rendered as,
 area averages: an edge a few primitives draw is consistent in every view, at any sub-pixel phase.
-It costs n² times the pixels (×1.2–1.9 a step at n = 2 on 64×64 views, README); the loss, SSIM and
+It costs n² times the pixels (×1.2–1.9 a step at n = 2 on 64×64 views, docs/studies/edges-supersampling.md); the loss, SSIM and
 metrics stay at the image's own resolution. The model is then right only rendered the same way:
 the train stage stores n in the model (`prims.supersample`, the model file's `supersample` key),
 and every render of a model for a user goes through `render_model`, which reads it from there.

@@ -6,9 +6,16 @@ flat batches and `torch.compile` can fuse it into one loop.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
-from radfield.core.kinds.primitives import WINDOW_GAIN, NeuralPrimitives, quat_to_rotmat
+from radfield.core.geometry.rotations import quat_to_rotmat
+
+if TYPE_CHECKING:
+    from radfield.core.kinds.neural import NeuralPrimitives
+
+WINDOW_GAIN = 1.5       # the window 1.5 (1 − r²): the central chord's optical depth is the hard-edged one's
 
 ALPHA_MAX = 0.99        # 3DGS clamp: no primitive is fully opaque, keeps log(1 − α) finite
 ALPHA_MIN = 1.0 / 255   # 3DGS skip threshold

@@ -4,9 +4,11 @@
   dense inside/outside scan refined by bisection (not the analytic quadratic), then composite
   Simpson quadrature of the MLP density of eq. 5-6 — times the window 1.5 (1 − r²) at every node
   for a windowed model (prims.window) — no closed form anywhere.
+- `gaussian_pixel_alpha`: a splat's weight at one image point, straight from the 3DGS formulas.
 - `reference_render`: a per-pixel loop that composites every primitive front to back (eq. 4) with
   the same rules as the fast path (sort by centre depth, α ≤ 0.99, skip α < 1/255, stop when the
-  transmittance would fall below 1e-4).
+  transmittance would fall below 1e-4); each kind's α comes from its `reference_alpha` hook
+  (core/kinds/), which calls the functions above.
 Everything runs in float64 with Python loops; keep images tiny.
 """
 
@@ -16,10 +18,14 @@ import math
 
 import torch
 
+from radfield.core import kinds
 from radfield.core.geometry.cameras import Camera
+from radfield.core.geometry.rotations import quat_to_rotmat
+from radfield.core.kinds import PixelRay
+from radfield.core.kinds.gaussian import EWA_BLUR, Gaussians
+from radfield.core.kinds.neural import NeuralPrimitives, density_window, ellipsoid_radius_sq
 from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives, density_window, ellipsoid_radius_sq, quat_to_rotmat
-from radfield.core.render.rasterize import EWA_BLUR, T_MIN
+from radfield.core.render.rasterize import T_MIN
 from radfield.core.render.sh import sh_to_color
 
 
@@ -106,9 +112,10 @@ def gaussian_pixel_alpha(prims: Gaussians, i: int, camera: Camera, u: float, v: 
     return min(ALPHA_MAX, float(torch.sigmoid(prims.opacities[i].double())) * math.exp(power))
 
 
-def reference_render(prims: NeuralPrimitives | Gaussians, camera: Camera, background=(1.0, 1.0, 1.0),
+def reference_render(prims: kinds.Primitives, camera: Camera, background=(1.0, 1.0, 1.0),
                      near: float = 0.01) -> torch.Tensor:
     """(H, W, 3) float64 image by a loop over pixels and, inside, over primitives in depth order."""
+    kind = kinds.of(prims)
     prims = prims.to(dtype=torch.float64)
     c2w = camera.c2w
     w2c = torch.linalg.inv(c2w)
@@ -123,15 +130,10 @@ def reference_render(prims: NeuralPrimitives | Gaussians, camera: Camera, backgr
             u, v = col + 0.5, row + 0.5
             d_cam = torch.tensor([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0], dtype=torch.float64)
             direction = c2w[:3, :3] @ (d_cam / d_cam.norm())
+            ray = PixelRay(camera, u, v, campos, direction, near, near * d_cam.norm().item())
             transmittance, pixel = 1.0, torch.zeros(3, dtype=torch.float64)
             for i in order:
-                if isinstance(prims, NeuralPrimitives):
-                    optical_depth = quadrature_optical_depth(prims, i, campos, direction, l_min=near * d_cam.norm().item())
-                    alpha = min(ALPHA_MAX, 1.0 - math.exp(-max(0.0, optical_depth)))
-                else:
-                    if depth[i] <= near:
-                        continue
-                    alpha = gaussian_pixel_alpha(prims, i, camera, u, v)
+                alpha = kind.reference_alpha(prims, i, ray, float(depth[i]))
                 if alpha < ALPHA_MIN:
                     continue
                 if transmittance * (1.0 - alpha) < T_MIN:

@@ -16,7 +16,7 @@ import torch
 
 from radfield.core.train import distributed
 from radfield.core.geometry.cameras import Camera
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core import kinds
 from radfield.core.train.trainer import TrainState, state_from_tensors, state_tensors, train
 
 
@@ -37,12 +37,10 @@ def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, exten
         if start_state is not None:
             tensors.update({f"start.{n}": t for n, t in state_tensors(start_state).items()})
         meta = {"cfg": cfg, "kwargs": kwargs, "device": dev.type, "kind": prims.kind,
-                "omega0": getattr(prims, "omega0", None),
-                "window": getattr(prims, "window", False), "timeout": world.timeout, "check_every": world.check_every,
+                "attrs": kinds.of(prims).attrs(prims), "timeout": world.timeout, "check_every": world.check_every,
                 "cameras": [{f.name: getattr(c, f.name) for f in fields(c) if f.name != "c2w"} for c in train_cameras],
                 "start": None if start_state is None else
-                {"step": start_state.step, "kind": start_state.kind, "omega0": start_state.omega0,
-                 "window": start_state.window}}
+                {"step": start_state.step, "kind": start_state.kind, **start_state.attrs}}
         distributed.send("train", meta, tensors)
         distributed.start_training(world, dev)
         device = dev
@@ -62,8 +60,7 @@ def follow() -> bool:
         device = world.device(meta["device"])
         cameras = [Camera(**c, c2w=tensors[f"camera{k}.c2w"]) for k, c in enumerate(meta["cameras"])]
         prim_tensors = {n.removeprefix("prims."): t for n, t in tensors.items() if n.startswith("prims.")}
-        prims = NeuralPrimitives(**prim_tensors, omega0=meta["omega0"], window=meta["window"]) if meta["kind"] == "neural" \
-            else Gaussians(**prim_tensors)
+        prims = kinds.get(meta["kind"]).assemble(prim_tensors, meta["attrs"])
         start = meta["start"]
         start_state = None if start is None else state_from_tensors(
             start, {n.removeprefix("start."): t for n, t in tensors.items() if n.startswith("start.")})

@@ -13,13 +13,13 @@ so its period is 2π / k_n in u, i.e. 2π max(s) / k_n in the scene. A view of f
 and samples the wave with 2π ρ / k_n pixels per period. Nyquist: at fewer than 2 pixels per
 period no view resolves it, and a wave no view resolves can only alias: its line integral
 changes with the ray direction, so it fits a different pattern into each training view and
-nothing held out (the overfitting of the README's "Quality" study). The finest sampling any
+nothing held out (the overfitting of the study docs/studies/quality-omega0.md). The finest sampling any
 training view offers is ρ_max = max over the training views in which the primitive is in front
 of the camera and inside the image (grown by ρ); the cap is
 
     k_n ≤ c · ρ_max,   c = train.frequency_cap  (c = π: the Nyquist limit; 0 = no cap)    (1)
 
-(the default c = 2, a period of at least π pixels, was chosen on validation views: README "Quality")
+(the default c = 2, a period of at least π pixels, was chosen on validation views: docs/studies/frequency-cap.md)
 
 enforced after every optimiser step by a projection (projected Adam):
 
@@ -27,7 +27,7 @@ enforced after every optimiser step by a projection (projected Adam):
 
 So the usable frequency follows each primitive's footprint: on 64×64 views a primitive covers a
 few pixels and gets only low frequencies, whatever ω0 is (ω0 still scales the MLP-gradient
-statistic that densification thresholds, so it is not free: README); on 223×398 photos, or close
+statistic that densification thresholds, so it is not free: docs/studies/frequency-cap.md); on 223×398 photos, or close
 to a camera, the same primitive may be as detailed as the pixels show. ρ_max depends on the
 means and scales only, so it is recomputed every `every` steps, not every step (P × views
 projections); `for_training` takes radfield.core.train.strategy.refresh_interval, the greatest common
@@ -37,7 +37,7 @@ recomputes exactly the bound the uninterrupted run used. A primitive that no tra
 is left alone (no bound by eq. 1).
 
 An absolute bound in units of the primitive (`train.frequency_bound` = K, rad per unit of u; 0 = off)
-can be added on top (README "Few-view captures"):
+can be added on top (docs/studies/few-view-captures.md):
 
     k_n ≤ K                                                                                    (3)
 

@@ -10,6 +10,10 @@ Every function then measures the valid pixels only. L1 and PSNR average over the
 channels; SSIM first replaces the invalid pixels of `img` by those of `ref` (so they add no
 difference inside a window) and then averages its map over the windows described in `ssim`.
 No gradient reaches an invalid pixel. mask=None is every pixel valid.
+
+The SSIM map, the photometric loss and the anisotropy run on the best kernel backend for the
+tensors' device and dtype (radfield.core.backends: the fused CPU ops of core/backends/csrc/loss_kernels.cpp);
+`_ssim_map`, `_photometric` and `_anisotropy` are their readable torch twins.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from radfield.core.backends import fused
+from radfield.core import backends
 
 SSIM_WINDOW = 11    # taps of the Gaussian window (standard SSIM, Wang et al. 2004)
 SSIM_SIGMA = 1.5
@@ -62,8 +66,9 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid", mask: tor
     x = img.reshape(-1, *img.shape[-3:])   # (B, H, W, C)
     y = ref.reshape(-1, *ref.shape[-3:])
     window = _gaussian_window(img.dtype, img.device)
-    if fused.available(img.device, img.dtype) and ref.dtype == img.dtype and not ref.requires_grad:
-        ssim_map = fused.ssim_map(x, y, window, pad, SSIM_C1, SSIM_C2)   # core/backends/csrc/loss_kernels.cpp
+    fast = backends.kernel("ssim_map", img.device, img.dtype)
+    if fast is not None and ref.dtype == img.dtype and not ref.requires_grad:
+        ssim_map = fast(x, y, window, pad, SSIM_C1, SSIM_C2)   # fused: core/backends/csrc/loss_kernels.cpp
     else:
         ssim_map = _ssim_map(x, y, window, pad)
     if mask is None:
@@ -105,13 +110,13 @@ def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float,
                 mask: torch.Tensor | None = None) -> torch.Tensor:
     """The 3DGS image loss (1 − λ) L1 + λ D-SSIM (over the valid pixels of `mask`).
 
-    Without a mask, on the fused CPU path, one C++ op (core/backends/csrc/loss_kernels.cpp) computes it and
-    its image gradient in one pass each: the composition below is its readable twin, whose
-    gradient it reproduces bit for bit (its value: to the last bits of the float means)."""
-    if mask is None and img.dim() >= 3 and fused.available(img.device, img.dtype) and ref.dtype == img.dtype \
-            and ref.shape == img.shape and not ref.requires_grad:
+    Without a mask, on a kernel backend (the fused CPU path: one C++ op, core/backends/csrc/loss_kernels.cpp)
+    it and its image gradient are computed in one pass each: the composition below is its readable
+    twin, whose gradient it reproduces bit for bit (its value: to the last bits of the float means)."""
+    fast = backends.kernel("photometric", img.device, img.dtype) if mask is None and img.dim() >= 3 else None
+    if fast is not None and ref.dtype == img.dtype and ref.shape == img.shape and not ref.requires_grad:
         x, y = img.reshape(-1, *img.shape[-3:]), ref.reshape(-1, *ref.shape[-3:])
-        return fused.photometric(x, y, _gaussian_window(img.dtype, img.device), lambda_dssim, SSIM_C1, SSIM_C2)
+        return fast(x, y, _gaussian_window(img.dtype, img.device), lambda_dssim, SSIM_C1, SSIM_C2)
     return _photometric(img, ref, lambda_dssim, mask)
 
 
@@ -125,8 +130,9 @@ def anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
     """Splat the Net's geometry regulariser (§3.3, §5.3): the standard deviation of each
     primitive's scales relative to its smallest, std(s / min(s)), averaged over primitives
     (Bessel-corrected std, as the authors' code). log_scales (P, 3)."""
-    if fused.available(log_scales.device, log_scales.dtype):
-        return fused.anisotropy(log_scales)   # core/backends/csrc/loss_kernels.cpp
+    fast = backends.kernel("anisotropy", log_scales.device, log_scales.dtype)
+    if fast is not None:
+        return fast(log_scales)   # fused: core/backends/csrc/loss_kernels.cpp
     return _anisotropy(log_scales)
 
 

@@ -4,8 +4,8 @@ A neural primitive's density (Splat the Net eq. 5) σ(x) = Σ_n W2_n cos(ω0 (W1
 is a signed field: only the line integral is clamped, α = 1 − exp(−max(0, I)) (eq. 9). A trained
 primitive can therefore hold regions of negative density that cancel positive ones along some rays
 and not along others — a freedom no physical volume has, and one few, nearly co-directional
-training views do not constrain (each photo gets its own pattern of cancellations; README
-"Few-view captures": on fox_small and fern 99.9 % of the trained primitives have b2 < ‖W2‖₁, i.e.
+training views do not constrain (each photo gets its own pattern of cancellations;
+docs/studies/few-view-captures.md: on fox_small and fern 99.9 % of the trained primitives have b2 < ‖W2‖₁, i.e.
 can go negative). Eq. 6 bounds the density from below,
 
     σ(x) ≥ b2 − ‖W2‖₁                                                                          (1)
@@ -35,7 +35,7 @@ mean, the half-angle of its view cone is
 
 and the projection applies to the primitives with β < θ (θ = 180: every primitive; 0: off). On
 the study's captures β's median is 9° on fern (forward-facing), 48° on fox_small and 92° on
-lego_small (README "Few-view captures"). β depends on the means and scales, so it is recomputed
+lego_small (docs/studies/few-view-captures.md). β depends on the means and scales, so it is recomputed
 at the steps the frequency cap refreshes its bound (every gcd(densify.every, checkpoint_every)
 steps, radfield.core.train.strategy.refresh_interval: after every change of the population): a resumed run recomputes the mask
 the uninterrupted run used.
@@ -47,7 +47,7 @@ from collections.abc import Sequence
 
 import torch
 
-from radfield.core.backends import fused
+from radfield.core import backends
 from radfield.core.geometry.cameras import Camera
 from radfield.core.train.strategy import in_frustum, refresh_interval, stale
 
@@ -104,11 +104,12 @@ class NonNegativeDensity:
         self._mask = None  # (P,) bool: the primitives projected
 
     @classmethod
-    def for_training(cls, cameras: Sequence[Camera], cfg: dict, *, kind: str, near: float) -> "NonNegativeDensity":
-        """The rule of a training run from its `train` section (Gaussians: off); refreshed at the
-        steps the frequency cap refreshes (radfield.core.train.frequency.FrequencyCap.for_training)."""
+    def for_training(cls, cameras: Sequence[Camera], cfg: dict, *, near: float) -> "NonNegativeDensity":
+        """The rule of a training run from its `train` section (the neural kind's training rule,
+        radfield.core.kinds.neural); refreshed at the steps the frequency cap refreshes
+        (radfield.core.train.frequency.FrequencyCap.for_training)."""
         every = refresh_interval(cfg)
-        return cls(cameras, threshold=cfg["nonnegative_density"] if kind == "neural" else 0.0, near=near, every=every)
+        return cls(cameras, threshold=cfg["nonnegative_density"], near=near, every=every)
 
     @property
     def enabled(self) -> bool:
@@ -130,9 +131,9 @@ class NonNegativeDensity:
         if not bool(self._mask.any()):
             return  # object-centric captures: no primitive has a narrow cone, nothing to do
         w2, b2 = params["w2"], params["b2"]
-        if fused.available(w2.device, w2.dtype) and w2.is_contiguous() and b2.is_contiguous() \
-                and b2.dtype == w2.dtype:   # one C++ pass over the masked rows (core/backends/csrc/positivity_kernels.cpp)
-            fused.project_nonnegative_(w2, b2, self._mask)
+        fast = backends.kernel("project_nonnegative_", w2.device, w2.dtype)
+        if fast is not None and w2.is_contiguous() and b2.is_contiguous() and b2.dtype == w2.dtype:
+            fast(w2, b2, self._mask)   # one pass over the masked rows (fused: core/backends/csrc/positivity_kernels.cpp)
             return
         rows = self._mask.nonzero()[:, 0]  # rows are projected independently: only these change
         w2, b2 = project_nonnegative(params["w2"][rows], params["b2"][rows])

@@ -1,7 +1,8 @@
 """Population control: which primitives to clone, split and prune during training.
 
-Two strategies behind one small interface (after gsplat's strategy/default.py), so the training
-loop knows nothing about the rules:
+Strategies behind one small interface (after gsplat's strategy/default.py), so the training
+loop knows nothing about the rules; each primitive kind says which one it uses and with which
+settings (radfield.core.kinds: PrimitiveKind.strategy, called by `make_strategy`):
 
     strategy.init_state(num, device) -> {name: tensor (P,)}        accumulators, saved in checkpoints
     strategy.accumulate(state, params, grads, camera, step)         after each view's backward pass
@@ -20,7 +21,7 @@ loop knows nothing about the rules:
   residuals, largely independent, add as √k, so the signal falls as 1/√N. A threshold fixed in
   absolute terms densifies 223×398 photos far less than 64×64 renders (fox_small full size, val:
   28.2 dB with 3k primitives at 1e-3, 30.0 dB with 18k at 1.25e-4, where the default 5e-4 scales
-  to 1.07e-4. README "Seeds, …").
+  to 1.07e-4. docs/studies/seeds-radius-sh-viewsize.md).
 - `GaussianStrategy` (3DGS adaptive density control): the signal is the screen-space gradient of
   the projected mean, in NDC units as 3DGS (threshold 2e-4). The renderer does not expose the 2D
   means, so it is recovered from the 3D mean's gradient: in camera space ∂u/∂x = fx/z, hence
@@ -30,6 +31,8 @@ loop knows nothing about the rules:
   < min_opacity, and after the first opacity reset also max(s) > prune_scale · extent; opacities
   are reset to ≤ 0.01 every `opacity_reset_every` steps. 3DGS's screen-size pruning (radius > 20
   px) is left out: the renderer does not report radii, and gsplat disables it by default.
+- `FixedPopulation`: no population control (a kind without a densification signal keeps its
+  initial primitives).
 
 Budget (`max_primitives`, the paper's memory-budget protocol): growth never exceeds it; when
 more primitives qualify than there is room for, those with the largest mean gradient grow. When
@@ -47,10 +50,10 @@ from dataclasses import dataclass
 
 import torch
 
-from radfield.core.backends import fused
+from radfield.core import backends, kinds
 from radfield.core.geometry.cameras import Camera
+from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.render.kernels import ALPHA_MIN
-from radfield.core.kinds.primitives import quat_to_rotmat
 
 Params = dict[str, torch.Tensor]
 MLP_NAMES = ("w1", "b1", "w2", "b2")
@@ -108,6 +111,7 @@ class _Strategy:
     # and counts add (a running maximum, as gsplat's max radii, would need a MAX all-reduce)
     REDUCTIONS = {"grad": "sum", "count": "sum"}
     split_uniform = False             # children inside the ellipsoid (neural) or ~N(0, s²) (3DGS)
+    statistics_op = ""                # the backend op of a view's statistics (radfield.core.backends)
 
     def __init__(self, schedule: Schedule, *, extent: float, near: float, grad_threshold: float,
                  grow_scale: float, prune_scale: float, max_primitives: int | None, initial_count: int):
@@ -136,8 +140,9 @@ class _Strategy:
         optimiser step `step` (counted from 1)."""
         if not self.gathering(step):
             return
-        if _fused_statistics(state, params, grads):   # one C++ pass (core/backends/csrc/strategy_kernels.cpp)
-            self._accumulate_fused(state, params, grads, camera)
+        op = _statistics_kernel(self.statistics_op, state, params, grads)
+        if op is not None:   # one backend pass (fused: core/backends/csrc/strategy_kernels.cpp)
+            self._accumulate_op(op, state, params, grads, camera)
             return
         visible = in_frustum(params["means"], self._radius(params), camera, self.near)
         state["grad"] += torch.where(visible, self._signal(params, grads, camera), 0.0)
@@ -208,15 +213,16 @@ class NeuralStrategy(_Strategy):
 
     grad_names = MLP_NAMES
     split_uniform = True
+    statistics_op = "neural_accumulate"
 
     def __init__(self, schedule: Schedule, *, prune_threshold: float, **kwargs):
         super().__init__(schedule, **kwargs)
         self.prune_threshold = prune_threshold
 
-    def _accumulate_fused(self, state: dict, params: Params, grads: Params, camera: Camera) -> None:
+    def _accumulate_op(self, op, state: dict, params: Params, grads: Params, camera: Camera) -> None:
         means = params["means"]
-        fused.neural_accumulate(state["grad"], state["count"], means, params["log_scales"],
-                                *(grads[n] for n in MLP_NAMES), *self._camera_frame(camera, means), 1.0, self.near)
+        op(state["grad"], state["count"], means, params["log_scales"],
+           *(grads[n] for n in MLP_NAMES), *self._camera_frame(camera, means), 1.0, self.near)
 
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
         # the authors' statistic: the sum of the per-tensor gradient norms of the MLP
@@ -238,6 +244,7 @@ class GaussianStrategy(_Strategy):
     """3DGS adaptive density control (see the module docstring)."""
 
     grad_names = ("means",)
+    statistics_op = "gaussian_accumulate"
 
     def __init__(self, schedule: Schedule, *, min_opacity: float, opacity_reset_every: int, **kwargs):
         super().__init__(schedule, **kwargs)
@@ -247,11 +254,11 @@ class GaussianStrategy(_Strategy):
     def _radius(self, params: Params) -> torch.Tensor:
         return GAUSSIAN_RADIUS_SIGMAS * self._max_scale(params)
 
-    def _accumulate_fused(self, state: dict, params: Params, grads: Params, camera: Camera) -> None:
+    def _accumulate_op(self, op, state: dict, params: Params, grads: Params, camera: Camera) -> None:
         means = params["means"]
-        fused.gaussian_accumulate(state["grad"], state["count"], means, params["log_scales"], grads["means"],
-                                  *self._camera_frame(camera, means), GAUSSIAN_RADIUS_SIGMAS, self.near, camera.fx,
-                                  camera.fy, camera.width, camera.height)
+        op(state["grad"], state["count"], means, params["log_scales"], grads["means"],
+           *self._camera_frame(camera, means), GAUSSIAN_RADIUS_SIGMAS, self.near, camera.fx,
+           camera.fy, camera.width, camera.height)
 
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
         w2c = camera.w2c.to(params["means"])
@@ -279,23 +286,35 @@ class GaussianStrategy(_Strategy):
         return report
 
 
+class FixedPopulation:
+    """No population control: nothing is accumulated, nothing grows or is pruned."""
+
+    grad_names: tuple[str, ...] = ()
+    REDUCTIONS: dict[str, str] = {}
+
+    def init_state(self, num: int, device) -> dict[str, torch.Tensor]:
+        return {}
+
+    def gathering(self, step: int) -> bool:
+        return False
+
+    def accumulate(self, state: dict, params: Params, grads: Params, camera: Camera, step: int) -> None:
+        return None
+
+    def refine(self, state: dict, params: Params, optimizer, step: int, generator: torch.Generator) -> dict[str, int]:
+        return {}
+
+
 def make_strategy(kind: str, densify: dict, *, extent: float, near: float, max_primitives: int | None,
-                  initial_count: int, pixels: int | None = None) -> _Strategy:
-    """The strategy for primitive `kind` ("neural" | "gaussian") from the train.densify config;
-    `pixels`: a training view's pixel count, which scales the neural thresholds (resolution_factor;
-    None leaves them as configured). 3DGS's NDC-gradient threshold needs no scaling."""
+                  initial_count: int, pixels: int | None = None):
+    """The strategy of primitive `kind` (radfield.core.kinds: its `strategy` hook) from the
+    train.densify config; `pixels`: a training view's pixel count, which scales the neural
+    thresholds (resolution_factor; None leaves them as configured). 3DGS's NDC-gradient threshold
+    needs no scaling."""
     schedule = Schedule(densify["start"], densify["stop"], densify["every"])
-    common = dict(extent=extent, near=near, grow_scale=densify["grow_scale"], max_primitives=max_primitives,
-                  initial_count=initial_count)
-    if kind == "neural":
-        factor = resolution_factor(pixels)
-        return NeuralStrategy(schedule, grad_threshold=factor * densify["grad_threshold"],
-                              prune_scale=densify["prune_scale"], prune_threshold=factor * densify["prune_threshold"],
-                              **common)
-    gaussian = densify["gaussian"]
-    return GaussianStrategy(schedule, grad_threshold=gaussian["grad_threshold"], prune_scale=gaussian["prune_scale"],
-                            min_opacity=gaussian["min_opacity"], opacity_reset_every=gaussian["opacity_reset_every"],
-                            **common)
+    return kinds.get(kind).strategy(densify, schedule, pixels=pixels, extent=extent, near=near,
+                                    grow_scale=densify["grow_scale"], max_primitives=max_primitives,
+                                    initial_count=initial_count)
 
 
 # --- geometry tests --------------------------------------------------------------------------
@@ -318,13 +337,16 @@ def side_normals(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.normalize(normals, dim=-1)
 
 
-def _fused_statistics(state: dict, params: Params, grads: Params) -> bool:
-    """Whether a view's statistics can go through the fused C++ op: CPU tensors of one float
-    dtype (float32/float64) with the kernels built; otherwise the torch twin of `accumulate`."""
+def _statistics_kernel(op: str, state: dict, params: Params, grads: Params):
+    """The backend implementation of a view's statistics (radfield.core.backends: `op`) when one
+    runs the means' device and dtype and every tensor shares them; None: the torch twin of `accumulate`."""
     means = params["means"]
+    kernel = backends.kernel(op, means.device, means.dtype)
     tensors = (state["grad"], state["count"], params["log_scales"], *grads.values())
-    return fused.available(means.device, means.dtype) and all(
-        t is not None and t.device == means.device and t.dtype == means.dtype for t in tensors)
+    if kernel is not None and all(t is not None and t.device == means.device and t.dtype == means.dtype
+                                  for t in tensors):
+        return kernel
+    return None
 
 
 def negligible_density(w2: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:

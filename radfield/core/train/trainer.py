@@ -51,25 +51,19 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
+from radfield.core import kinds
 from radfield.core.render.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
 from radfield.util.atomic import atomic_write
 from radfield.core.geometry.cameras import Camera
 from radfield.core.train.distributed import StepSync, World
 from radfield.errors import RadfieldError
-from radfield.core.train.frequency import FrequencyCap
-from radfield.core.train.losses import anisotropy, density_magnitude, frequency_magnitude, photometric, psnr
-from radfield.core.train.positivity import NonNegativeDensity
-from radfield.core.kinds.primitives import Gaussians, NeuralPrimitives
+from radfield.core.train.losses import anisotropy, photometric, psnr
 from radfield.core.render.sh import join_sh, num_sh_coeffs
 from radfield.core.train.strategy import make_strategy
 
 CHECKPOINT_FORMAT = "radfield-checkpoint"
 CHECKPOINT_VERSION = 1
 ADAM_EPS = 1e-15  # as 3DGS: the moments of tiny gradients (SH rest, MLP) still move the parameters
-
-GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
-PARAM_NAMES = {"neural": GEOMETRY + ("w1", "b1", "w2", "b2"), "gaussian": GEOMETRY + ("opacities",)}
-LR_KEYS = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}  # param name -> train.lr key, if not its own
 
 _VIEWS, _REFINE, _BACKGROUND, _JITTER = 0, 1, 2, 3  # random streams
 
@@ -78,31 +72,32 @@ _VIEWS, _REFINE, _BACKGROUND, _JITTER = 0, 1, 2, 3  # random streams
 class TrainState:
     """A snapshot of training after `step` optimiser steps.
 
-    params: {name: (P, ...) tensor}, the names of PARAM_NAMES[kind]; SH is split into sh_dc
-    (P, 1, 3) and sh_rest (P, K−1, 3) because they learn at different rates.
+    kind: the primitive kind (radfield.core.kinds); attrs: its non-tensor attributes (neural: ω0
+    and the density window), which checkpoints carry in their header.
+    params: {name: (P, ...) tensor}, the kind's parameter names (kinds.get(kind).param_names());
+    SH is split into sh_dc (P, 1, 3) and sh_rest (P, K−1, 3) because they learn at different rates.
     moments: {name: {"exp_avg", "exp_avg_sq", "step"}}, Adam's state per parameter.
     strategy: the population-control accumulators {name: (P,)}.
     """
 
     step: int
     kind: str
-    omega0: float | None
+    attrs: dict
     params: dict[str, torch.Tensor]
     moments: dict[str, dict[str, torch.Tensor]]
     strategy: dict[str, torch.Tensor]
-    window: bool = False   # neural: the density window (primitives.density_window)
 
-    def primitives(self) -> NeuralPrimitives | Gaussians:
+    def primitives(self) -> kinds.Primitives:
         """The trained primitives (detached), SH bands merged back."""
-        return assemble(self.params, self.kind, self.omega0, self.window).map(lambda t: t.detach().clone())
+        return assemble(self.params, self.kind, self.attrs).map(lambda t: t.detach().clone())
 
 
-def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], train_images: torch.Tensor,
+def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images: torch.Tensor,
           cfg: dict, *, background: Sequence[float], extent: float, seed: int, device: str | torch.device = "cpu",
           near: float = 0.01, max_pairs: int = 1 << 20, start_state: TrainState | None = None,
           masks: torch.Tensor | None = None, alphas: torch.Tensor | None = None,
           on_step: Callable[[int, dict], None] | None = None,
-          held_out: Callable[[NeuralPrimitives | Gaussians], float] | None = None,
+          held_out: Callable[[kinds.Primitives], float] | None = None,
           checkpoint: Callable[[TrainState], None] | None = None, world: World | None = None) -> TrainState:
     """Optimise `prims` against the views for cfg["iterations"] steps; returns the final state
     (`.primitives()` is the trained model).
@@ -136,9 +131,10 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     alphas = None if alphas is None or not cfg["random_background"] else alphas.to(device=device,
                                                                                   dtype=torch.float32)
     state = start_state or initial_state(prims, cfg["sh_degree"])
+    kind = kinds.get(state.kind)
     params = {name: state.params[name].detach().to(device).clone().requires_grad_(True)
-              for name in PARAM_NAMES[state.kind]}
-    optimizer = make_optimizer(params, cfg["lr"], extent)
+              for name in kind.param_names()}
+    optimizer = make_optimizer(params, cfg["lr"], extent, state.kind)
     _load_moments(optimizer, state.moments, device)
     strategy = make_strategy(state.kind, cfg["densify"], extent=extent, near=near, max_primitives=max_primitives,
                              initial_count=len(prims), pixels=images.shape[1] * images.shape[2])
@@ -149,19 +145,17 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
     means_lr = cfg["lr"]["means"] * extent
     sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
     sync.check(params, state.step, first=True)
-    # neural: each W1 row's frequency stays below the primitive's pixel footprint (core/train/frequency.py)
-    cap = FrequencyCap.for_training(train_cameras, cfg, omega0=state.omega0, near=near)
-    cap.apply(params, state.step)
-    # neural: σ ≥ 0 everywhere in primitives seen from a narrow cone of views (core/train/positivity.py)
-    positive = NonNegativeDensity.for_training(train_cameras, cfg, kind=state.kind, near=near)
-    positive.apply(params, state.step)
-    floor = FootprintFloor.for_training(train_cameras, cfg, near=near)  # anti-aliasing (core/render/antialias.py)
-    floor.apply(params, state.step)
+    # the kind's projections after every step (neural: the frequency cap, σ ≥ 0), then the
+    # footprint floor of every kind (anti-aliasing, core/render/antialias.py)
+    rules = [*kind.training_rules(train_cameras, cfg, state.attrs, near),
+             FootprintFloor.for_training(train_cameras, cfg, near=near)]
+    for rule in rules:
+        rule.apply(params, state.step)
 
     for step in range(state.step, iterations):
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
         degree = min(cfg["sh_degree"], step // cfg["sh_increase_every"])
-        regulariser = regularisers(params, cfg) if sync.rank == 0 else None  # counted once over the ranks
+        regulariser = regularisers(params, cfg, state.kind) if sync.rank == 0 else None  # counted once over the ranks
         if regulariser is not None:
             regulariser.backward()
         loss_sum = psnr_sum = 0.0
@@ -178,7 +172,7 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
                 view_bg = backgrounds[k].to(device)
                 target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
             camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
-            out = render_supersampled(assemble(params, state.kind, state.omega0, state.window), camera, supersample,
+            out = render_supersampled(assemble(params, state.kind, state.attrs), camera, supersample,
                                       background=view_bg, near=near, sh_degree=degree, max_pairs=max_pairs)
             mask = None if masks is None else masks[view]
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
@@ -192,15 +186,14 @@ def train(prims: NeuralPrimitives | Gaussians, train_cameras: Sequence[Camera], 
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         refined = strategy.refine(accumulators, params, optimizer, step + 1, generator(seed, _REFINE, step))
-        cap.apply(params, step + 1)
-        positive.apply(params, step + 1)
-        floor.apply(params, step + 1)
+        for rule in rules:
+            rule.apply(params, step + 1)
         sync.check(params, step + 1)
         info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
         every = cfg["eval_every"]
         if held_out is not None and ((every and (step + 1) % every == 0) or step + 1 == iterations):
             with torch.no_grad():
-                info["test_psnr"] = float(held_out(assemble(params, state.kind, state.omega0, state.window).map(torch.Tensor.detach)))
+                info["test_psnr"] = float(held_out(assemble(params, state.kind, state.attrs).map(torch.Tensor.detach)))
         if on_step is not None:
             on_step(step + 1, info)
         if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
@@ -216,47 +209,44 @@ def own_gradient(total: torch.Tensor, before: torch.Tensor | None, batch: int) -
     return own if batch == 1 else own * batch
 
 
-def regularisers(params: dict[str, torch.Tensor], cfg: dict) -> torch.Tensor | None:
+def regularisers(params: dict[str, torch.Tensor], cfg: dict, kind: str) -> torch.Tensor | None:
     """The weighted geometry and density regularisers of a step (None when all are off): the
-    anisotropy of the scales, and for neural primitives the frequency (‖W1‖²) and density
-    (‖W2‖₁ + |b2|) magnitudes (radfield.core.train.losses)."""
+    anisotropy of the scales, then the kind's own terms (neural: the frequency (‖W1‖²) and density
+    (‖W2‖₁ + |b2|) magnitudes of radfield.core.train.losses)."""
     terms = []
     if cfg["lambda_aniso"] > 0:
         terms.append(cfg["lambda_aniso"] * anisotropy(params["log_scales"]))
-    if "w1" in params and cfg["lambda_w1"] > 0:
-        terms.append(cfg["lambda_w1"] * frequency_magnitude(params["w1"]))
-    if "w2" in params and cfg["lambda_density"] > 0:
-        terms.append(cfg["lambda_density"] * density_magnitude(params["w2"], params["b2"]))
+    terms += kinds.get(kind).regularisers(params, cfg)
     return sum(terms) if terms else None
 
 
 # --- parameters and optimiser ----------------------------------------------------------------
 
-def initial_state(prims: NeuralPrimitives | Gaussians, sh_degree: int) -> TrainState:
+def initial_state(prims: kinds.Primitives, sh_degree: int) -> TrainState:
     """Step 0: the parameters of prims, SH padded with zeros (or cut) to `sh_degree`."""
+    kind = kinds.of(prims)
     k = num_sh_coeffs(sh_degree)
     sh = prims.sh[:, :k]
     sh = torch.cat([sh, sh.new_zeros(len(prims), k - sh.shape[1], 3)], 1)
     tensors = prims.tensors()
     params = {name: sh[:, :1] if name == "sh_dc" else sh[:, 1:] if name == "sh_rest" else tensors[name]
-              for name in PARAM_NAMES[prims.kind]}
-    omega0 = prims.omega0 if isinstance(prims, NeuralPrimitives) else None
-    return TrainState(0, prims.kind, omega0, {n: t.detach().clone() for n, t in params.items()}, {}, {},
-                      window=getattr(prims, "window", False))
+              for name in kind.param_names()}
+    return TrainState(0, kind.name, kind.attrs(prims), {n: t.detach().clone() for n, t in params.items()}, {}, {})
 
 
-def assemble(params: dict[str, torch.Tensor], kind: str, omega0: float | None,
-             window: bool = False) -> NeuralPrimitives | Gaussians:
-    """Primitives built from the parameter tensors (differentiable: no copies)."""
+def assemble(params: dict[str, torch.Tensor], kind: str, attrs: dict) -> kinds.Primitives:
+    """Primitives of `kind` built from the parameter tensors and the kind's attributes
+    (differentiable: no copies)."""
     tensors = {n: t for n, t in params.items() if n not in ("sh_dc", "sh_rest")}
     sh = join_sh(params["sh_dc"], params["sh_rest"])   # the fused renderer reads the two parts (core/render/sh.py)
-    return NeuralPrimitives(**tensors, sh=sh, omega0=omega0, window=window) if kind == "neural" else Gaussians(**tensors, sh=sh)
+    return kinds.get(kind).assemble(tensors, attrs, sh=sh)
 
 
-def make_optimizer(params: dict[str, torch.Tensor], lr: dict, extent: float) -> torch.optim.Adam:
+def make_optimizer(params: dict[str, torch.Tensor], lr: dict, extent: float, kind: str) -> torch.optim.Adam:
     """Adam with one named group per parameter, in the order of `params` (means first: the loop
-    schedules the rate of group 0)."""
-    groups = [{"params": [t], "name": n, "lr": lr[LR_KEYS.get(n, n)] * (extent if n == "means" else 1.0)}
+    schedules the rate of group 0); each group's rate is the train.lr key the kind names for it."""
+    lr_key = kinds.get(kind).lr_key
+    groups = [{"params": [t], "name": n, "lr": lr[lr_key(n)] * (extent if n == "means" else 1.0)}
               for n, t in params.items()]
     # the fused CPU Adam: one pass per tensor instead of ~10 ops (5 ms → 1.5 ms a step at 10k primitives)
     fused = all(t.device.type == "cpu" for t in params.values())
@@ -292,8 +282,8 @@ def snapshot(step: int, state: TrainState, params: dict, optimizer: torch.optim.
         adam = optimizer.state.get(group["params"][0])
         if adam:
             moments[group["name"]] = {k: adam[k] for k in ("exp_avg", "exp_avg_sq", "step")}
-    return TrainState(step, state.kind, state.omega0, {n: p.detach() for n, p in params.items()}, moments,
-                      dict(accumulators), window=state.window)
+    return TrainState(step, state.kind, state.attrs, {n: p.detach() for n, p in params.items()}, moments,
+                      dict(accumulators))
 
 
 def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
@@ -311,20 +301,21 @@ def _load_moments(optimizer: torch.optim.Adam, moments: dict, device) -> None:
 
 def save_checkpoint(path: str | Path, state: TrainState, note: dict | None = None) -> None:
     """Write a TrainState atomically as one safetensors file: tensors param.NAME, adam.NAME.KEY,
-    strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind,
-    omega0, window, note} (`note`: the caller's own JSON, e.g. what the state is valid for)."""
+    strategy.NAME; metadata key "radfield-checkpoint" holds JSON {format, version, step, kind, note}
+    and the kind's attributes (neural: omega0, window) (`note`: the caller's own JSON, e.g. what the
+    state is valid for)."""
     path = Path(path)
     tensors = {k: t.detach().cpu().contiguous() for k, t in state_tensors(state).items()}
     # one metadata key: safetensors writes several in a random order, and equal states should
     # give equal bytes
     header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "step": state.step, "kind": state.kind,
-              "omega0": state.omega0, "window": state.window, "note": note}
+              **state.attrs, "note": note}
     meta = {CHECKPOINT_FORMAT: json.dumps(header, sort_keys=True)}
     atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
 
 
 def checkpoint_header(path: str | Path) -> dict:
-    """The JSON header of a checkpoint (step, kind, omega0, note) without reading its tensors."""
+    """The JSON header of a checkpoint (step, kind, the kind's attributes, note) without reading its tensors."""
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             header = json.loads((f.metadata() or {}).get(CHECKPOINT_FORMAT, "{}"))
@@ -357,7 +348,8 @@ def state_tensors(state: TrainState) -> dict[str, torch.Tensor]:
 
 
 def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainState:
-    """Inverse of state_tensors; header holds step, kind and omega0."""
+    """Inverse of state_tensors; header holds step, kind and the kind's attributes (those it lacks:
+    their defaults, as a checkpoint written before the attribute existed means)."""
     params, moments, strategy = {}, {}, {}
     for key, t in tensors.items():
         section, _, rest = key.partition(".")
@@ -368,11 +360,12 @@ def state_from_tensors(header: dict, tensors: dict[str, torch.Tensor]) -> TrainS
             moments.setdefault(name, {})[field] = t
         else:
             strategy[rest] = t
-    return TrainState(header["step"], header["kind"], header["omega0"], params, moments, strategy,
-                      window=bool(header.get("window", False)))
+    kind = kinds.get(header["kind"])
+    attrs = {name: header.get(name, default) for name, default in kind.default_attrs().items()}
+    return TrainState(header["step"], kind.name, attrs, params, moments, strategy)
 
 
-def mean_psnr(prims: NeuralPrimitives | Gaussians, cameras: Sequence[Camera], images: torch.Tensor, *,
+def mean_psnr(prims: kinds.Primitives, cameras: Sequence[Camera], images: torch.Tensor, *,
               background: Sequence[float], near: float = 0.01, max_pairs: int = 1 << 20,
               masks: torch.Tensor | None = None, supersample: int | None = None) -> float:
     """Mean PSNR (dB) of the renders, clamped to [0, 1], against images (N, H, W, 3) (over the

@@ -1,4 +1,4 @@
-"""The photo front end as pipeline stages: sfm -> data -> envelope -> tetra -> init (cage and binding),
+"""The stages that make the cage (the photo front end): sfm -> data -> envelope -> tetra -> init (cage and binding),
 on 8 fox_small photos and on tiny generated scenes, plus the error paths through the CLI."""
 
 from __future__ import annotations
@@ -19,8 +19,9 @@ from radfield.datasets import scene as data
 from radfield.pipeline.config import load_config
 from radfield.core.geometry.envelope import read_envelope, signed_distance
 from radfield.stages.evaluate import eval_report
-from radfield.pipeline.info import run_dataset, run_info
+from radfield.pipeline.info import run_info
 from radfield.pipeline.runner import read_manifest, run_pipeline
+from radfield.run import Run
 from radfield.pipeline.registry import stages
 from radfield.core.geometry.cage import bind_to_cage, locate_points, read_cage, write_binding
 
@@ -101,7 +102,7 @@ def test_photos_become_a_posed_dataset_with_a_cage(photo_run):
     scene = json.loads((run_dir / "data" / "scene.json").read_text())
     assert scene["root"] == str(posed) and all(Path(v["image"]).parent == posed / "images"
                                                for v in scene["splits"]["train"])
-    assert info["normalization"] == str(posed / "normalization.json") and run_dataset(run_dir) == posed
+    assert info["normalization"] == str(posed / "normalization.json") and Run(run_dir).dataset() == posed
     assert envelope["source"] == "points" and envelope["faces"] <= 300 and envelope["points_outside"] == 0
     assert 50 < tetra["tets"] < 5000 and tetra["vertices"] > 4
     assert cv2.imread(str(run_dir / "envelope" / "envelope.png")).shape[:2] == (data["height"], data["width"])

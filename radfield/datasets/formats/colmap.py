@@ -1,4 +1,6 @@
-"""COLMAP sparse models (`sparse/0/{cameras,images,points3D}.{bin,txt}` beside `images/`) through pycolmap.
+"""COLMAP datasets: a sparse model (`sparse/0/{cameras,images,points3D}.{bin,txt}`, also
+`sparse/` or the folder itself) beside `images/`, read through pycolmap (imported only when a
+model is read). Every 8th registered image by name is 'test'; the model's 3D points come along.
 
 COLMAP cameras already use OpenCV axes and continuous pixel coordinates (the centre of the first
 pixel is (0.5, 0.5)), as `Camera` does. Pinhole models load as they are; the radial-tangential
@@ -9,14 +11,18 @@ refused with a request to undistort first.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pycolmap
 import torch
 
 from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
-from radfield.datasets.views import Points, View, llff_split
+from radfield.datasets.formats.base import DatasetFormat, Reading, llff_split
+from radfield.datasets.views import Points, View
+
+if TYPE_CHECKING:
+    import pycolmap
 
 # COLMAP parameter layouts: focal lengths, principal point, then OpenCV coefficients in order
 # (FULL_OPENCV is OpenCV's rational model, k1 k2 p1 p2 k3 k4 k5 k6).
@@ -41,6 +47,8 @@ def find_model(root: Path) -> Path | None:
 def read_colmap(root: Path, split: str) -> tuple[list[View], Points]:
     """Registered images of the model under `root` (sorted by name; every 8th is 'test') with
     their image files in `root/images`, and the model's 3D points."""
+    import pycolmap
+
     model = find_model(root)
     if model is None:
         raise RadfieldError(f"{root}: no COLMAP model (expected sparse/0/cameras.bin or cameras.txt)")
@@ -75,3 +83,22 @@ def _points(rec: pycolmap.Reconstruction) -> Points:
     xyz = np.array([p.xyz for p in points], dtype=np.float32).reshape(-1, 3)
     rgb = np.array([p.color for p in points], dtype=np.float32).reshape(-1, 3) / 255.0
     return Points(torch.from_numpy(xyz), torch.from_numpy(rgb))
+
+
+class Colmap(DatasetFormat):
+    name = "colmap"
+    priority = 30
+    looks_for = "sparse/0/cameras.bin|txt"
+
+    def recognises(self, path: Path) -> bool:
+        return find_model(path) is not None
+
+    def read(self, path: Path, split: str) -> Reading:
+        views, points = read_colmap(path, split)
+        return Reading(views, find_model(path), points)
+
+    def pose_source(self, path: Path) -> Path:
+        return find_model(path)
+
+
+FORMAT = Colmap()

@@ -1,5 +1,6 @@
-"""`radfield reconstruct` over several ranks: under torchrun, and `--nproc N`, which starts the
-local ranks itself through torch's elastic launcher (standalone rendezvous on a free port).
+"""Reconstruction over several ranks (`radfield reconstruct` under torchrun, or with `--nproc N`,
+which starts the local ranks itself through torch's elastic launcher: standalone rendezvous on a
+free port).
 
 Rank 0 runs the pipeline as a single process would (it alone takes the run directory's lock and
 writes into it); the other ranks only join the training (radfield.core.train.dataparallel) and exit
@@ -21,8 +22,6 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
-
-import typer
 
 from radfield.core.train import distributed
 from radfield.errors import RadfieldError
@@ -85,9 +84,9 @@ def leading(cfg: dict) -> Iterator[None]:
             distributed.disconnect()
 
 
-def launch(nproc: int, cfg: dict, run_dir: Path) -> None:
-    """Run this same command as `nproc` local ranks (torch.distributed's elastic launcher, the
-    engine behind torchrun) and wait for them; a failure becomes one RadfieldError line."""
+def launch(nproc: int, cfg: dict, run_dir: Path, argv: list[str]) -> None:
+    """Run `radfield ARGV` (this same command) as `nproc` local ranks (torch.distributed's elastic
+    launcher, the engine behind torchrun) and wait for them; a failure becomes one RadfieldError line."""
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.elastic.multiprocessing.api import SignalException
     from torch.distributed.launcher.api import LaunchConfig, elastic_launch
@@ -102,7 +101,7 @@ def launch(nproc: int, cfg: dict, run_dir: Path) -> None:
     level = elastic.level
     elastic.setLevel(logging.CRITICAL)  # the agent's own warnings; the failure is reported below
     try:
-        elastic_launch(config, sys.executable)("-m", "radfield", *sys.argv[1:])
+        elastic_launch(config, sys.executable)("-m", "radfield", *argv)
     except ChildFailedError as error:
         raise RadfieldError(failure_line(error.failures, run_dir)) from None
     except SignalException:
@@ -157,5 +156,5 @@ def _reported() -> Iterator[None]:
                 Path(path).write_text(json.dumps({"message": {"message": f"radfield: error: {message}", "extraInfo": {
                     "py_callstack": f"radfield: error: {message}", "timestamp": str(int(time.time()))}}}))
         if not os.environ.get(_LAUNCHED_HERE):
-            typer.echo(f"radfield: error: {message}", err=True)
+            print(f"radfield: error: {message}", file=sys.stderr, flush=True)
         sys.exit(1)

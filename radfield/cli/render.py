@@ -1,0 +1,51 @@
+"""`radfield render`: a model's or a run's frames of a dataset split, an orbit or a camera path
+(radfield.delivery.render_views)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
+
+
+def render(
+    model_or_run: Annotated[Path, typer.Argument(metavar="MODEL_OR_RUN", help="A .safetensors model file, or a run directory (its final model).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created; written under a temporary name and renamed at the end).")],
+    dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP). Default for a run: the dataset it trained on.")] = None,
+    split: Annotated[str, typer.Option(help="Which cameras: train, val, test or all (without split files: every data.test_every-th view is test).")] = "test",
+    background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] (default: the run's data.background, else 1,1,1).")] = None,
+    downscale: Annotated[Optional[int], typer.Option(help="Render at 1/K of the dataset's resolution (default: the run's data.downscale, else 1).")] = None,
+    near: Annotated[Optional[float], typer.Option(help="Near plane distance (default: the run's render.near, else 0.01).")] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    orbit: Annotated[int, typer.Option(help="Instead of the split's cameras: a turntable of this many frames around the scene (docs/usage.md, 'Camera paths').")] = 0,
+    elevation: Annotated[float, typer.Option(help="Orbit elevation in degrees above the horizontal.")] = 20.0,
+    camera_path: Annotated[Optional[Path], typer.Option(help="Instead of the split's cameras: a nerfstudio camera-path JSON (world frame).")] = None,
+    video: Annotated[Optional[Path], typer.Option(help="Also write the frames as an MP4 video (bundled ffmpeg).")] = None,
+    fps: Annotated[float, typer.Option(help="Video frame rate (default 30, or the camera path's).")] = 0.0,
+):
+    """Render every camera of a dataset split (or an orbit / a camera path) to OUTPUT/<frame name>.png.
+
+    For a run directory every default is the run's own: its dataset, its split rule
+    (data.test_every), background, downscale and near plane; explicit options win. Each pixel is
+    drawn with the model's own n x n rays (its file's supersample, from render.supersample)."""
+    from radfield.delivery.render_views import render_frames
+    from radfield.run import is_run_dir
+
+    options = {"data.downscale": downscale, "render.near": near,
+               "data.background": list(parse_background(background)) if background is not None else None}
+    dev = resolve_device(device)
+    model = resolve_model(model_or_run)
+    with progress_bar(quiet) as progress:
+        task = progress.add_task("rendering", total=None)
+        summary = render_frames(model, model_or_run if is_run_dir(model_or_run) else None, dataset, split, output,
+                                options={k: v for k, v in options.items() if v is not None}, device=dev,
+                                orbit=orbit, elevation=elevation, camera_path=camera_path, video=video, fps=fps,
+                                on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} views"),
+                                on_frame=lambda: progress.advance(task))
+    typer.echo(f"rendered {summary['views']} views ({summary['width']}x{summary['height']}, {summary['primitives']} "
+               f"{summary['kind']} primitives) to {output}{f' and {video}' if video is not None else ''}; "
+               f"mean render time {summary['ms_per_frame']:.1f} ms/frame")

@@ -1,0 +1,385 @@
+"""What every primitive kind shares, and the registry of kinds.
+
+A primitive kind is one `PrimitiveKind` object, registered once (`register`), that says for its
+primitives everything the rest of radfield asks about them:
+
+- the container: a dataclass of `_Primitives` (the shared ellipsoid geometry μ, log s, q and the
+  SH colour, plus the kind's own tensors) and the non-tensor `attributes` it carries (e.g. ω0);
+- its parameters: `own_params` (name -> shape after P, in trained order), the train.lr key of each
+  (`lr_keys`), the tensors a model file may omit (`optional`), metadata written and validated
+  (`write_metadata`, `read_metadata`);
+- rendering: the torch twin's per-view preparation (`twin_view`: pixel bounds, visibility and the
+  per-primitive view tensors) and pair kernel (`pair_kernel`); a fused or GPU backend's whole-view
+  implementation is registered with radfield.core.backends (op "view.<kind>") by the kind's module;
+  the slow reference's per-pixel α (`reference_alpha`, core/render/reference.py);
+- training: population control (`strategy`), extra loss terms (`regularisers`), projections after
+  every optimiser step (`training_rules`), and how it starts from points (`initial_radius`,
+  `from_points`, `init_settings`);
+- editing and delivery: what a per-primitive affine map, a similarity or a halving does to its own
+  tensors (`deformed`, `rotated`, `halved`; the geometry and SH are mapped by edit/deform.py and
+  edit/compose.py for every kind), whether two models of the kind combine (`check_combinable`,
+  `harmonise`), its peak density (`peak_density`), its 3D Gaussians (`to_gaussians`), and
+  capability flags (`has_line_integral_density`, `exact_gaussians`);
+- the benchmark models it contributes (`bench_variants`, `bench_models`).
+
+The defaults below are those of a kind that has only the shared geometry and its own opacity-like
+tensors: no metadata, no regulariser, no per-step projection, a fixed population, nothing to map
+under an edit besides the geometry. A kind's own tensors must not change under the similarity that
+normalises a scene for training (stages/train.py moves only μ and log s): densities are measured
+in units of the primitive's size, as the built-in kinds' are. Nothing outside a kind's module
+branches on the kind: code asks `of(prims)` or `get(name)`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
+
+import torch
+
+from radfield.core.geometry.rotations import quat_to_rotmat
+from radfield.core.render.sh import sh_degree_from_coeffs
+from radfield.errors import RadfieldError
+
+if TYPE_CHECKING:
+    from radfield.core.geometry.cameras import Camera
+
+# the geometry every kind has, as the file stores it (SH last: a kind's own tensors go in between)
+GEOMETRY = {"means": (3,), "log_scales": (3,), "quats": (4,)}
+SH = {"sh": ("K", 3)}
+# the geometry as training holds it: SH split into its DC band and the rest (they learn at different rates)
+TRAIN_GEOMETRY = ("means", "log_scales", "quats", "sh_dc", "sh_rest")
+INITIAL_ALPHA = 0.1  # a new primitive's opacity through its centre, 3DGS's initial opacity (stages/init.py)
+
+
+@dataclass
+class _Primitives:
+    means: torch.Tensor       # (P, 3) centres μ
+    log_scales: torch.Tensor  # (P, 3) ℓ, scales s = exp(ℓ)
+    quats: torch.Tensor       # (P, 4) rotation q, w x y z, need not be normalised
+    sh: torch.Tensor          # (P, K, 3) SH coefficients, K = (degree+1)^2
+    # rays per pixel side the model was trained with (render.supersample, core/render/antialias.py): every
+    # render for a user draws each pixel as the mean of n × n rays; the model file's `supersample`
+    # key (absent = 1). Keyword-only, so it follows the subclasses' fields; map/to/select keep it.
+    supersample: int = field(default=1, kw_only=True)
+
+    kind = "base"
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_coeffs(self.sh.shape[1])
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales)
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), torch.Tensor)}
+
+    def num_params(self) -> int:
+        return sum(t.numel() for t in self.tensors().values())
+
+    def map(self, fn) -> "_Primitives":
+        """A copy with `fn` applied to every tensor (e.g. `lambda t: t.to(device)`)."""
+        return replace(self, **{k: fn(v) for k, v in self.tensors().items()})
+
+    def to(self, device=None, dtype=None) -> "_Primitives":
+        return self.map(lambda t: t.to(device=device, dtype=dtype))
+
+    def select(self, index) -> "_Primitives":
+        return self.map(lambda t: t[index])
+
+
+class ViewFrame(NamedTuple):
+    """One view as the renderer has prepared it for every kind (core/render/rasterize.py: render),
+    in the primitives' dtype and device: the camera, its camera-to-world and world-to-camera
+    matrices (4, 4), its centre (3,), the primitives' camera-space centres (P, 3) and depths (P,),
+    the intrinsics tensor (fx, fy, cx, cy, near) the pair kernels read, and the near plane."""
+
+    camera: "Camera"
+    c2w: torch.Tensor
+    w2c: torch.Tensor
+    campos: torch.Tensor
+    means_cam: torch.Tensor
+    depth: torch.Tensor
+    intrinsics: torch.Tensor
+    near: float
+
+
+class PixelRay(NamedTuple):
+    """One pixel's ray for the slow reference renderer (core/render/reference.py), float64: the
+    camera, the image point (u, v), the ray's origin and unit direction in the world, the near
+    plane and its distance along this ray."""
+
+    camera: "Camera"
+    u: float
+    v: float
+    origin: torch.Tensor
+    direction: torch.Tensor
+    near: float
+    l_near: float
+
+
+class PrimitiveKind:
+    """One primitive kind (module docstring). Subclasses set the class attributes and override the
+    hooks their primitives need; `register(kind_object)` makes it known."""
+
+    name: str = "base"
+    primitives: type = _Primitives
+    own_params: dict[str, tuple] = {}          # trained tensors besides the geometry, name -> shape after P
+    lr_keys: dict[str, str] = {}               # parameter -> its train.lr key, where not its own name
+    optional: dict[str, tuple] = {}            # tensors a model file may hold or not, name -> shape after P
+    attributes: tuple[str, ...] = ()           # non-tensor fields training and model files carry
+    has_line_integral_density: bool = False    # a density σ(x) whose line integral makes α (edit/retrain.py)
+    exact_gaussians: bool = False              # its primitives are 3D Gaussians (exported as they are)
+    bench_variants: tuple[str, ...] = ()       # the rows it adds to bench-render / bench-train
+
+    # --- parameters ----------------------------------------------------------------------------
+
+    def param_names(self) -> tuple[str, ...]:
+        """The trained tensors in optimiser order (SH split into sh_dc and sh_rest)."""
+        return TRAIN_GEOMETRY + tuple(self.own_params)
+
+    def lr_key(self, param: str) -> str:
+        return self.lr_keys.get(param, param)
+
+    def attrs(self, prims) -> dict[str, Any]:
+        """The kind's non-tensor attributes of `prims` (JSON values: checkpoints carry them)."""
+        return {name: getattr(prims, name) for name in self.attributes}
+
+    def default_attrs(self) -> dict[str, Any]:
+        """The attributes' defaults (the dataclass's), for a checkpoint that lacks one."""
+        defaults = {f.name: f.default for f in fields(self.primitives)}
+        return {name: defaults[name] for name in self.attributes}
+
+    def assemble(self, tensors: dict[str, torch.Tensor], attrs: dict[str, Any] | None = None, **extra):
+        """Primitives of this kind from their tensors and attributes (no copies)."""
+        return self.primitives(**tensors, **(attrs or {}), **extra)
+
+    # --- the model file (radfield.delivery.io) ---------------------------------------------------
+
+    def schema(self) -> dict[str, tuple]:
+        """Required tensors -> shape after P, in the order a file's errors are reported ("K": the SH
+        coefficients of the file's sh_degree; other letters: widths read off the first tensor that has them)."""
+        return {**GEOMETRY, **self.own_params, **SH}
+
+    def write_metadata(self, prims) -> dict[str, str]:
+        """String metadata the model file stores for the kind's attributes."""
+        return {}
+
+    def read_metadata(self, path, meta: dict[str, str]) -> dict[str, Any]:
+        """The attributes from a model file's metadata, validated (RadfieldError naming the file)."""
+        return {}
+
+    # --- rendering (core/render/rasterize.py) ---------------------------------------------------
+
+    def twin_view(self, prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tensor, tuple]:
+        """The torch twin's per-view preparation: (pixel bounds (P, 4) int64 x0 y0 x1 y1 inside the
+        image, visible (P,) bool, the per-primitive view tensors (P, ...) its pair kernel takes)."""
+        raise NotImplementedError(f"primitive kind {self.name!r} has no renderer (twin_view)")
+
+    def pair_kernel(self, prims) -> Callable:
+        """α of primitives (P,) over blocks of image points: kernel(u, v, intrinsics, *view) -> (P, A)."""
+        raise NotImplementedError(f"primitive kind {self.name!r} has no renderer (pair_kernel)")
+
+    def reference_alpha(self, prims, i: int, ray: "PixelRay", depth: float) -> float:
+        """The slow reference's α of primitive i (camera-space depth `depth`) on one pixel's ray
+        (float64, core/render/reference.py); a kind without an independent reference cannot be checked there."""
+        raise NotImplementedError(f"primitive kind {self.name!r} has no reference renderer")
+
+    # --- training (core/train/) ------------------------------------------------------------------
+
+    def strategy(self, densify: dict, schedule, *, pixels: int | None, **common):
+        """Population control from the train.densify config and its `schedule` (core/train/strategy.py:
+        make_strategy); `pixels`: a training view's pixel count; `common`: extent, near, grow_scale,
+        max_primitives, initial_count. Default: a fixed population."""
+        from radfield.core.train.strategy import FixedPopulation
+
+        return FixedPopulation()
+
+    def regularisers(self, params: dict[str, torch.Tensor], cfg: dict) -> list[torch.Tensor]:
+        """Weighted loss terms of the kind's own parameters, added after the anisotropy term."""
+        return []
+
+    def training_rules(self, cameras, cfg: dict, attrs: dict, near: float) -> list:
+        """Projections applied after every optimiser step, in order (each has apply(params, step));
+        the footprint floor of core/render/antialias.py follows them for every kind."""
+        return []
+
+    # --- initialisation (stages/init.py) ---------------------------------------------------------
+
+    init_config_keys: tuple[str, ...] = ()    # pipeline config keys init_settings reads, besides `init`
+
+    def init_settings(self, config: dict) -> dict[str, Any]:
+        """What `initial_radius` and `from_points` read from the pipeline config (the `init` section
+        and `init_config_keys`, which the init stage's cache key includes)."""
+        return {}
+
+    def initial_radius(self, spacing, settings: dict):
+        """The radius of a new primitive whose neighbours lie `spacing` away (3DGS: the spacing)."""
+        return spacing
+
+    def from_points(self, geometry: dict[str, torch.Tensor], settings: dict, seed: int):
+        """New primitives from their geometry (means, log_scales, quats, sh) and the kind's settings."""
+        raise NotImplementedError(f"primitive kind {self.name!r} cannot be initialised from points")
+
+    # --- editing (edit/) and delivery -----------------------------------------------------------
+
+    def deformed(self, prims, idx: torch.Tensor, sub, a: torch.Tensor, scales: torch.Tensor,
+                 new_scales: torch.Tensor, preserve_opacity: bool):
+        """The kind's own tensors of rows `idx` under the affine maps x' = A x + b, A (S, 3, 3)
+        float64 (edit/deform.py maps the geometry and SH): (prims, possibly with a field added,
+        {name: new rows}). sub: prims.select(idx) in float64; scales, new_scales (S, 3) the
+        ellipsoid's radii before and after. Default: nothing of its own changes."""
+        return prims, {}
+
+    def rotated(self, prims, rot: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The kind's own tensors under a similarity x' = s R x + t (edit/compose.py); default: unchanged."""
+        return {}
+
+    def halved(self, parents, offset: torch.Tensor, ratio: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The kind's own tensors of the halves of `parents` (edit/deform.py: split_primitives), each
+        moved by `offset` (S, 3) from its parent's centre, max(s) shrunk by `ratio` (S,); default: the parents'."""
+        return {}
+
+    def check_combinable(self, a, b, where: str) -> None:
+        """RadfieldError (one line) when two models of the kind cannot be joined into one."""
+
+    def harmonise(self, a, b):
+        """a and b brought to a common layout of the kind's own tensors before they are joined
+        (b folded into a's attributes); default: as they are."""
+        return a, b
+
+    def combine_notes(self, a, b) -> dict[str, Any]:
+        """What joining b into a changed, for the edit manifest."""
+        return {}
+
+    def peak_density(self, prims, samples: int = 128, seed: int = 0) -> torch.Tensor:
+        """Per primitive (P,) its peak opacity-like level (edit/recolor.py: density_above)."""
+        raise NotImplementedError(f"primitive kind {self.name!r} has no peak density")
+
+    def to_gaussians(self, prims, components: int = 1):
+        """The model as 3D Gaussians (delivery/export.py)."""
+        raise RadfieldError(f"{self.name} primitives cannot be exported as 3D Gaussians")
+
+    def bench_models(self, scene: dict[str, torch.Tensor], generator: torch.Generator) -> dict[str, Any]:
+        """{variant: primitives} of bench-render's scene (means, log_scales, quats, sh of a radius s)."""
+        return {}
+
+
+# --- the registry --------------------------------------------------------------------------------
+
+_KINDS: dict[str, PrimitiveKind] = {}
+
+
+def register(kind: PrimitiveKind) -> PrimitiveKind:
+    """Make a kind known (by its name and its primitives' `kind` attribute, which must agree)."""
+    if kind.primitives.kind != kind.name:
+        raise ValueError(f"kind {kind.name!r}: its primitives say kind = {kind.primitives.kind!r}")
+    if kind.name in _KINDS:
+        raise ValueError(f"primitive kind {kind.name!r} is registered already")
+    _KINDS[kind.name] = kind
+    return kind
+
+
+def unregister(name: str) -> None:
+    _KINDS.pop(name, None)
+
+
+def names() -> tuple[str, ...]:
+    """The registered kinds, in registration order (neural, gaussian, then any added)."""
+    return tuple(_KINDS)
+
+
+def registered() -> tuple[PrimitiveKind, ...]:
+    """The registered kinds, in registration order."""
+    return tuple(_KINDS.values())
+
+
+def get(name: str) -> PrimitiveKind:
+    try:
+        return _KINDS[name]
+    except KeyError:
+        raise RadfieldError(f"unknown primitive kind {name!r} (known: {', '.join(_KINDS)})") from None
+
+
+def of(prims) -> PrimitiveKind:
+    """The kind of a primitives object."""
+    return get(getattr(prims, "kind", type(prims).__name__))
+
+
+# --- shared helpers: metadata and ellipsoid bounds ------------------------------------------------
+
+def int_metadata(path, meta: dict[str, str], key: str) -> int:
+    try:
+        return int(meta[key])
+    except (KeyError, ValueError):
+        raise RadfieldError(f"{path}: metadata {key!r} is missing or not an integer ({meta.get(key)!r})") from None
+
+
+def float_metadata(path, meta: dict[str, str], key: str) -> float:
+    """A positive finite number from the metadata (RadfieldError otherwise)."""
+    try:
+        value = float(meta[key])
+    except (KeyError, ValueError):
+        raise RadfieldError(f"{path}: metadata {key!r} is missing or not a number ({meta.get(key)!r})") from None
+    if not value > 0 or value == float("inf"):
+        raise RadfieldError(f"{path}: metadata {key!r} must be a positive number, got {value}")
+    return value
+
+
+def ellipsoid_bounds(prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tight pixel bounds of each projected bounding ellipsoid B(μ, R, s), from its dual conic
+    C* = K (μμᵀ − Σ) Kᵀ (camera frame, Σ = R S² Rᵀ), and visibility. An ellipsoid that straddles
+    the near plane gets the whole image (the pair kernel clips rays at the near plane itself)."""
+    camera, means_cam, near = frame.camera, frame.means_cam, frame.near
+    with torch.no_grad():
+        rot = frame.w2c[:3, :3] @ quat_to_rotmat(prims.quats)
+        rs = rot * torch.exp(prims.log_scales)[:, None, :]
+        sigma = rs @ rs.transpose(1, 2)
+        z_ext = torch.sqrt(sigma[:, 2, 2])
+        z = means_cam[:, 2]
+        in_front = z - z_ext > near
+        visible = z + z_ext > near
+        k = camera.K.to(means_cam)
+        dual = k @ (means_cam[:, :, None] * means_cam[:, None, :] - sigma) @ k.T
+        full = torch.tensor([0, 0, camera.width - 1, camera.height - 1], device=means_cam.device)
+        box = conic_box(dual, camera.width, camera.height)
+        bounds = torch.where(in_front[:, None], box, full)
+        return clip_bounds(bounds, visible, camera)
+
+
+def conic_box(dual: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Integer pixel bounds (x0, y0, x1, y1) of the points inside a conic, from its dual: the tangent
+    lines u = const solve C*_00 − 2u C*_02 + u² C*_22 = 0 (likewise for v)."""
+    def extent(i):
+        c_ii, c_i2, c_22 = dual[:, i, i], dual[:, i, 2], dual[:, 2, 2]
+        root = torch.sqrt(torch.clamp_min(c_i2 * c_i2 - c_ii * c_22, 0.0))
+        lo, hi = (c_i2 + root) / c_22, (c_i2 - root) / c_22
+        return torch.minimum(lo, hi), torch.maximum(lo, hi)
+
+    (u0, u1), (v0, v1) = extent(0), extent(1)
+    # pixel j covers centre j + 0.5: first/last centres inside [u0, u1]
+    box = torch.stack([torch.ceil(u0 - 0.5), torch.ceil(v0 - 0.5), torch.floor(u1 - 0.5), torch.floor(v1 - 0.5)], -1)
+    big = float(max(width, height) + 1)
+    return torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long()
+
+
+def clip_bounds(bounds: torch.Tensor, visible: torch.Tensor, camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boxes clipped to the image, and visibility without the boxes left empty."""
+    x0, y0 = bounds[:, 0].clamp_min(0), bounds[:, 1].clamp_min(0)
+    x1, y1 = bounds[:, 2].clamp_max(camera.width - 1), bounds[:, 3].clamp_max(camera.height - 1)
+    visible = visible & (x1 >= x0) & (y1 >= y0)
+    return torch.stack([x0, y0, x1, y1], -1), visible
+
+
+def camera_directions(u: torch.Tensor, v: torch.Tensor, intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit camera-space directions (P, A, 3) through image points (u, v) (P, A), and the ray
+    distance of the near plane along each."""
+    fx, fy, cx, cy, near = intrinsics.unbind()
+    d = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)
+    norm = torch.linalg.vector_norm(d, dim=-1)
+    return d / norm[..., None], near * norm

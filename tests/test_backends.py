@@ -1,0 +1,249 @@
+"""The kernel-backend seam (radfield.core.backends): every backend available on this machine against
+the readable torch twins — whole renders (image and every parameter gradient), the loss, the
+densification statistics and the σ ≥ 0 projection — and the switch that forces the twins.
+
+The op-by-op comparisons of the fused C++ kernels (block kernels, per-view preparation, bounds)
+are tests/test_fused.py's.
+"""
+
+import math
+import os
+
+import pytest
+import torch
+
+from radfield.core import backends, kinds
+from radfield.core.backends import fused
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.kinds import random_gaussians, random_neural
+from radfield.core.render.rasterize import render
+from radfield.core.train import losses
+from radfield.core.train.positivity import NonNegativeDensity
+from radfield.core.train.strategy import make_strategy
+
+IN_CI = os.environ.get("CI", "").strip().lower() == "true"
+W, H = 24, 20
+DENSIFY = {"start": 1, "stop": 100, "every": 10, "grad_threshold": 1e-3, "grow_scale": 0.01, "prune_scale": 0.5,
+           "prune_threshold": 1e-6, "gaussian": {"grad_threshold": 2e-4, "prune_scale": 0.1, "min_opacity": 0.005,
+                                                  "opacity_reset_every": 3000}}
+
+
+def cpu_backends(dtype=torch.float64) -> list[str]:
+    """Every backend that runs CPU tensors of `dtype` here ("torch" included: the seam's own path)."""
+    return backends.available("cpu", dtype)
+
+
+def test_fused_cpu_backend_is_available():
+    """CI fails here when the fused CPU kernels do not build; elsewhere a machine without a
+    compiler runs the torch twins alone (and skips this check)."""
+    if not IN_CI and backends.FUSED_CPU not in cpu_backends():
+        pytest.skip(f"fused CPU kernels unavailable: {backends.why_not(backends.FUSED_CPU)}")
+    for dtype in (torch.float32, torch.float64):
+        assert backends.available("cpu", dtype)[:1] == [backends.FUSED_CPU], backends.why_not(backends.FUSED_CPU)
+        assert backends.select("cpu", dtype, kind="neural") == backends.FUSED_CPU
+    # what it cannot run falls to the twins
+    assert backends.available("cpu", torch.float16) == [backends.TORCH]
+    assert backends.available("meta", torch.float32) == [backends.TORCH]
+
+
+def scene(kind, dtype, hidden=8):
+    """A tiny view of 14 primitives: a camera inside a neural primitive, one straddling the near
+    plane, one at the α clamp; Gaussians scattered in front."""
+    eye = torch.tensor([0.3, -3.0, 0.5])
+    if kind in ("neural", "neural-window"):
+        prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
+        prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
+        prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
+        prims.b2[2] = 40.0
+        prims.window = kind == "neural-window"
+    else:
+        prims = random_gaussians(14, sh_degree=1, scale=0.15, extent=0.6, seed=4)
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at(tuple(eye.tolist()), (0, 0, 0)))
+    return prims.to(dtype=dtype), cam
+
+
+def render_with_grads(prims, cam, backend):
+    """The render on `backend` alone, and the gradient of a random weighting of its image, alpha
+    and depth w.r.t. every tensor of prims."""
+    with backends.using(backend):
+        assert backends.select(prims.means.device, prims.means.dtype, kinds.of(prims).name) == backend
+        params = prims.map(lambda t: t.clone().requires_grad_(True))
+        out = render(params, cam, background=(0.2, 0.3, 0.4), near=0.05)
+        g = torch.Generator().manual_seed(0)
+        weights = [torch.randn(t.shape, generator=g, dtype=torch.float64).to(t.dtype) for t in (out.color, out.alpha, out.depth)]
+        loss = sum((w * t).sum() for w, t in zip(weights, (out.color, out.alpha, out.depth)))
+        names = list(params.tensors())
+        grads = torch.autograd.grad(loss, [params.tensors()[n] for n in names])
+    return out, dict(zip(names, grads))
+
+
+def assert_renders_match(fast, grads_fast, slow, grads_slow, tol):
+    assert slow.meta["contributing_pairs"] > 100
+    # evaluated pairs differ by design (the fused kernel skips a pixel as soon as it terminates,
+    # the torch twin only between chunks); everything else is the same count
+    evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
+    assert fast.meta == slow.meta and evaluated[0] <= evaluated[1]
+    for name in ("color", "alpha", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **tol)
+    assert grads_fast.keys() == grads_slow.keys()
+    for name, gs in grads_slow.items():
+        scale = gs.abs().max().clamp_min(1.0)   # sums over the view: tolerance relative to the largest
+        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **tol, msg=lambda m: f"d/d{name}: {m}")
+
+
+@pytest.mark.parametrize("backend", cpu_backends())
+@pytest.mark.parametrize("kind", ["neural", "neural-window", "gaussian"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_render_matches_the_torch_twin(backend, kind, dtype):
+    prims, cam = scene(kind, dtype)
+    fast, grads_fast = render_with_grads(prims, cam, backend)
+    slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
+    tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
+    assert_renders_match(fast, grads_fast, slow, grads_slow, tol)
+
+
+@pytest.mark.parametrize("backend", cpu_backends())
+def test_render_matches_the_torch_twin_at_another_width(backend):
+    """The fused view kernels unroll the default 8 hidden units; any other width takes the run-time
+    loop, which must agree with the torch twin as well (images and every gradient, float64)."""
+    prims, cam = scene("neural", torch.float64, hidden=5)
+    assert prims.hidden == 5
+    fast, grads_fast = render_with_grads(prims, cam, backend)
+    slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
+    assert_renders_match(fast, grads_fast, slow, grads_slow, dict(rtol=1e-9, atol=1e-10))
+
+
+@pytest.mark.parametrize("backend", cpu_backends())
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_loss_matches_the_torch_twin(backend, dtype):
+    """ssim ("valid", "same", with a valid-pixel mask), the photometric loss and the anisotropy
+    on `backend` equal the twins', values and gradients."""
+    g = torch.Generator().manual_seed(4)
+    img, ref = torch.rand(24, 30, 3, generator=g, dtype=dtype), torch.rand(24, 30, 3, generator=g, dtype=dtype)
+    mask = torch.ones(24, 30, dtype=torch.bool)
+    mask[:3] = False
+    log_scales = torch.randn(50, 3, generator=g, dtype=dtype)
+    log_scales[0] = 0.1                  # isotropic: std 0, and a three-way tie of the minimum
+
+    def run(name):
+        with backends.using(name):
+            x, x2, x3, ls = (t.clone().requires_grad_() for t in (img, img, img, log_scales))
+            values = [losses.ssim(x, ref, "valid", mask), losses.dssim(x, ref, mask), losses.ssim(x2, ref),
+                      losses.photometric(x3, ref, 0.2), losses.anisotropy(ls)]
+            sum(values).backward()
+            return [v.detach() for v in values] + [x.grad, x2.grad, x3.grad, ls.grad]
+
+    tol = dict(rtol=1e-5, atol=1e-6) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
+    for fast, slow in zip(run(backend), run(backends.TORCH)):
+        torch.testing.assert_close(fast, slow, **tol)
+
+
+@pytest.mark.parametrize("backend", cpu_backends())
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_densification_statistics_match_the_torch_twin(backend, kind, dtype):
+    """A view's statistics of the kind's strategy (core/train/strategy.py: accumulate) on `backend`
+    equal the twin's: the same primitives counted visible, the same summed signal."""
+    g = torch.Generator().manual_seed(0)
+    p = 3000
+    params = {"means": (torch.rand(p, 3, generator=g, dtype=dtype) * 2 - 1) * 3,
+              "log_scales": torch.log(torch.rand(p, 3, generator=g, dtype=dtype) * 0.8 + 1e-3)}
+    if kind == "gaussian":
+        grads = {"means": torch.randn(p, 3, generator=g, dtype=dtype) * 1e-4}
+    else:
+        grads = {"w1": torch.randn(p, 8, 3, generator=g, dtype=dtype), "b1": torch.randn(p, 8, generator=g, dtype=dtype),
+                 "w2": torch.randn(p, 8, generator=g, dtype=dtype), "b2": torch.randn(p, generator=g, dtype=dtype)}
+    cams = [Camera(50.0, 45.0, 31.0, 24.5, 64, 48, look_at(eye, (0.0, 0.0, 0.2))) for eye in ((0.3, -3.5, 1.0), (-2.5, 2.0, 0.5))]
+    strategy = make_strategy(kind, DENSIFY, extent=1.0, near=0.05, max_primitives=None, initial_count=p)
+
+    def run(name):
+        with backends.using(name):
+            state = {k: v.to(dtype) for k, v in strategy.init_state(p, "cpu").items()}
+            for cam in cams:
+                strategy.accumulate(state, params, grads, cam, step=1)
+            return state
+
+    fast, slow = run(backend), run(backends.TORCH)
+    assert torch.equal(fast["count"], slow["count"]) and set(slow["count"].unique().tolist()) == {0.0, 1.0, 2.0}
+    tol = dict(rtol=1e-5, atol=1e-9) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(fast["grad"], slow["grad"], **tol)
+
+
+@pytest.mark.parametrize("backend", cpu_backends())
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nonnegative_projection_matches_the_torch_twin(backend, dtype):
+    """The σ ≥ 0 projection after a step (core/train/positivity.py) on `backend` equals the twin's
+    on every primitive: inside the cone, ties, the polar cone."""
+    g = torch.Generator().manual_seed(5)
+    w2 = (torch.randn(300, 8, generator=g) * 0.4).to(dtype)
+    b2 = (torch.randn(300, generator=g) * 0.3).to(dtype)
+    w2[:20] = 0.25
+    b2[20:40] = w2[20:40].abs().sum(-1) + 0.1
+    b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1
+    rule = NonNegativeDensity([], threshold=180.0, near=0.01)
+
+    def run(name):
+        params = {"means": torch.zeros(300, 3, dtype=dtype), "log_scales": torch.zeros(300, 3, dtype=dtype),
+                  "w2": w2.clone(), "b2": b2.clone()}
+        with backends.using(name):
+            rule.apply(params, 0)
+        return params["w2"], params["b2"]
+
+    tol = dict(rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+    for fast, slow in zip(run(backend), run(backends.TORCH)):
+        torch.testing.assert_close(fast, slow, **tol)
+    assert not torch.equal(run(backends.TORCH)[0], w2)   # the projection acted
+
+
+def test_the_switch_forces_the_torch_twins(monkeypatch):
+    """RADFIELD_KERNELS=torch: no backend but the twins is available, every op asks its caller
+    to run the twin, and a render calls no fused view kernel."""
+    calls = []
+    for name in ("neural_view", "gaussian_view", "ssim_map", "anisotropy"):
+        original = getattr(fused, name)
+        monkeypatch.setattr(fused, name, lambda *a, _f=original, _n=name, **k: calls.append(_n) or _f(*a, **k))
+    monkeypatch.setenv("RADFIELD_KERNELS", "torch")
+    assert backends.available("cpu", torch.float32) == [backends.TORCH] == backends.available()
+    assert backends.select("cpu", torch.float64, kind="gaussian") == backends.TORCH
+    assert backends.why_not(backends.FUSED_CPU) == "RADFIELD_KERNELS=torch"
+    for op in ("view.neural", "view.gaussian", "sh_color", "sh_color_parts", "ssim_map", "photometric", "anisotropy",
+               "neural_accumulate", "gaussian_accumulate", "project_nonnegative_"):
+        assert backends.kernel(op, "cpu", torch.float32) is None, op
+    assert not fused.available()
+    for kind in ("neural", "gaussian"):
+        out = render(*scene(kind, torch.float32))
+        assert out.meta["contributing_pairs"] > 100
+    losses.ssim(torch.rand(16, 16, 3), torch.rand(16, 16, 3))
+    losses.anisotropy(torch.randn(5, 3))
+    assert calls == []
+
+
+def test_a_registered_backend_runs_where_it_says_it_runs():
+    """The room for another backend (a GPU one): registered ahead of fused-cpu for float64 CPU
+    tensors only, with an implementation of `anisotropy`, it is the one the loss calls there, the
+    twin (or fused-cpu) runs elsewhere, and kinds it has no view for are not offered to it."""
+    calls = []
+
+    def anisotropy(log_scales):
+        calls.append(log_scales.dtype)
+        return losses._anisotropy(log_scales)
+
+    backends.register(backends.Backend("test-f64", lambda device, dtype: dtype == torch.float64
+                                       and (device is None or torch.device(device).type == "cpu")),
+                      before=backends.FUSED_CPU)
+    try:
+        backends.implement("anisotropy", "test-f64", anisotropy)
+        assert backends.names()[0] == "test-f64"
+        assert backends.available("cpu", torch.float64)[0] == "test-f64"
+        assert "test-f64" not in backends.available("cpu", torch.float32)
+        assert "test-f64" not in backends.available("cpu", torch.float64, kind="neural")
+        log_scales = torch.randn(7, 3, dtype=torch.float64)
+        torch.testing.assert_close(losses.anisotropy(log_scales), losses._anisotropy(log_scales))
+        losses.anisotropy(log_scales.float())
+        assert calls == [torch.float64]
+        with backends.using(backends.TORCH):
+            losses.anisotropy(log_scales)
+        assert calls == [torch.float64]
+    finally:
+        backends.unregister("test-f64")
+    assert "test-f64" not in backends.names() and backends.kernel("anisotropy", "cpu", torch.float64) is not anisotropy
