@@ -157,17 +157,20 @@ class Run:
         return load_config(self.config_file if self.config_file.is_file() else None, options=options or {})
 
     def stage_names(self) -> list[str]:
-        """Stages in the order of the run's config, then any other folder with a manifest (edit/)."""
+        """Stages in the order of the run's config, then any other folder with a manifest (edit/).
+        An edited run has no stages of its own (its config is the source's, whose stages were run
+        there, not here): only its folders with a manifest, i.e. edit/."""
         import yaml
 
         from radfield.pipeline.config import parse_yaml
 
         names: list[str] = []
-        try:
-            config = parse_yaml(self.config_file.read_text(encoding="utf-8"))
-            names = [str(name) for name in config.get("stages", [])]
-        except (OSError, yaml.YAMLError, AttributeError):
-            pass  # no readable config: fall back to what is on disk
+        if not self.is_edited:
+            try:
+                config = parse_yaml(self.config_file.read_text(encoding="utf-8"))
+                names = [str(name) for name in config.get("stages", [])]
+            except (OSError, yaml.YAMLError, AttributeError):
+                pass  # no readable config: fall back to what is on disk
         extra = sorted(p.parent.name for p in self.path.glob(f"*/{MANIFEST}") if p.parent.name not in names)
         return names + extra
 
@@ -279,6 +282,32 @@ class Run:
     def checkpoint(self) -> Path:
         """The checkpoint an interrupted training leaves in train.work/."""
         return self.work_dir(MODEL_STAGE) / CHECKPOINT_FILE
+
+    @property
+    def edited_from(self) -> Path | None:
+        """The run directory or model file an edited run was made from, as recorded (None: not an
+        edited run)."""
+        source = self.marker().get("edited_from") if self.is_edited else None
+        return None if source is None else Path(source)
+
+    def source_run(self) -> "Run | None":
+        """The reconstructed run an edited run descends from (through edits of edits), or None: a
+        reconstructed run, or one edited from a model file or from a run that no longer exists."""
+        run, seen = self, set()
+        while run.is_edited:
+            source = run.edited_from
+            if source is None or not is_run_dir(source) or source.resolve() in seen:
+                return None
+            seen.add(source.resolve())
+            run = Run(source)
+        return None if run is self else run
+
+    def dataset_scene(self) -> Path | None:
+        """The data stage's scene.json that describes the run's cameras: its own, or for an edited
+        run its source run's (an edit keeps the world frame, so the source's cameras still view
+        it); None when there is none."""
+        run = self.source_run() if self.is_edited else self
+        return run.scene if run is not None and run.scene.is_file() else None
 
     def dataset(self) -> Path | None:
         """The posed dataset the run trained on: the SfM output for photos, else the run's input

@@ -86,3 +86,127 @@ def kill_and_resume(start, cameras, images, cfg, path, *, kill_at: int = 7, **ru
 def kill_and_resume_fixture():
     """`kill_and_resume(start, cameras, images, cfg, path, kill_at=7, **run)` (see the function)."""
     return kill_and_resume
+
+
+# --- shared test scenes (builders are fixtures: under --import-mode=importlib a test module cannot
+# import conftest; torch and the geometry libraries are imported inside, so that collecting a test
+# that needs none of them imports none of them) -----------------------------------------------
+
+
+def config_section(section: str, **overrides) -> dict:
+    """A config section of pipeline.yaml with some keys changed."""
+    from radfield.pipeline.config import load_defaults
+
+    return {**load_defaults()[section], **overrides}
+
+
+@pytest.fixture(name="cfg", scope="session")
+def config_section_fixture():
+    """`cfg(section, **overrides)`: a config section of pipeline.yaml with some keys changed."""
+    return config_section
+
+
+def torus_points(n, rng, R=1.0, r=0.35):
+    """n points on the surface of a torus (ring radius R, tube radius r) about the z axis."""
+    import numpy as np
+
+    u, w = rng.uniform(0, 2 * np.pi, (2, n))
+    return np.stack([(R + r * np.cos(w)) * np.cos(u), (R + r * np.cos(w)) * np.sin(u), r * np.sin(w)], 1)
+
+
+@pytest.fixture(name="torus_points", scope="session")
+def torus_points_fixture():
+    """`torus_points(n, rng, R=1.0, r=0.35)` (see the function)."""
+    return torus_points
+
+
+@pytest.fixture(scope="session")
+def torus_envelope():
+    """Envelope of 3000 torus samples plus 40 floaters 2.5-3.5 from the centre: (the samples, the
+    envelope's vertices, faces, figures). Built once (pymeshlab, seconds) for tests/test_envelope.py
+    and tests/test_cage.py; treat it as read-only."""
+    import numpy as np
+
+    from radfield.core.geometry.envelope import build_envelope
+
+    rng = np.random.default_rng(0)
+    surface = torus_points(3000, rng)
+    direction = rng.normal(size=(40, 3))
+    floaters = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(2.5, 3.5, (40, 1))
+    v, f, figures = build_envelope(np.concatenate([surface, floaters]), config_section("envelope", target_faces=400))
+    return surface, v, f, figures
+
+
+RENDER_SIZE = 24, 20   # (width, height) of render_scene's camera
+
+
+def render_scene(kind: str, dtype, hidden: int = 8):
+    """A tiny view of 14 primitives of `kind` ("neural", "neural-window" or "gaussian") as
+    (prims in `dtype`, camera): for neural primitives the camera inside one, one straddling the near
+    plane, one at the α clamp; Gaussians scattered in front. The fused kernels' hard cases, for the
+    backend and fused-kernel comparisons (tests/test_backends.py, tests/test_fused.py)."""
+    import math
+
+    import torch
+
+    from radfield.core.geometry.cameras import Camera, look_at
+    from radfield.core.kinds import random_gaussians, random_neural
+
+    eye = torch.tensor([0.3, -3.0, 0.5])
+    if kind in ("neural", "neural-window"):
+        prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
+        prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
+        prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
+        prims.b2[2] = 40.0
+        prims.window = kind == "neural-window"
+    else:
+        prims = random_gaussians(14, sh_degree=1, scale=0.15, extent=0.6, seed=4)
+    width, height = RENDER_SIZE
+    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=width, height=height,
+                 c2w=look_at(tuple(eye.tolist()), (0, 0, 0)))
+    return prims.to(dtype=dtype), cam
+
+
+@pytest.fixture(name="render_scene", scope="session")
+def render_scene_fixture():
+    """`render_scene(kind, dtype, hidden=8) -> (prims, camera)` (see the function)."""
+    return render_scene
+
+
+def densify_config() -> dict:
+    """A train.densify section for the strategy tests: every step from 1 counts, low thresholds."""
+    return {"start": 1, "stop": 100, "every": 10, "grad_threshold": 1e-3, "grow_scale": 0.01, "prune_scale": 0.5,
+            "prune_threshold": 1e-6, "gaussian": {"grad_threshold": 2e-4, "prune_scale": 0.1, "min_opacity": 0.005,
+                                                   "opacity_reset_every": 3000}}
+
+
+def strategy_scene(kind: str, dtype, p: int = 4000, seed: int = 0):
+    """(params, grads, camera) for a view's densification statistics: p primitives whose means spread
+    well beyond the frustum and whose scales run from tiny to large (both outcomes of the frustum
+    test), the gradients of `kind`'s parameters, and a 64x48 camera looking at the middle."""
+    import torch
+
+    from radfield.core.geometry.cameras import Camera, look_at
+
+    g = torch.Generator().manual_seed(seed)
+    params = {"means": (torch.rand(p, 3, generator=g, dtype=dtype) * 2 - 1) * 3,
+              "log_scales": torch.log(torch.rand(p, 3, generator=g, dtype=dtype) * 0.8 + 1e-3)}
+    if kind == "gaussian":
+        grads = {"means": torch.randn(p, 3, generator=g, dtype=dtype) * 1e-4}
+    else:
+        grads = {"w1": torch.randn(p, 8, 3, generator=g, dtype=dtype), "b1": torch.randn(p, 8, generator=g, dtype=dtype),
+                 "w2": torch.randn(p, 8, generator=g, dtype=dtype), "b2": torch.randn(p, generator=g, dtype=dtype)}
+    cam = Camera(50.0, 45.0, 31.0, 24.5, 64, 48, look_at((0.3, -3.5, 1.0), (0.0, 0.0, 0.2)))
+    return params, grads, cam
+
+
+@pytest.fixture(name="strategy_scene", scope="session")
+def strategy_scene_fixture():
+    """`strategy_scene(kind, dtype, p=4000, seed=0) -> (params, grads, camera)` (see the function)."""
+    return strategy_scene
+
+
+@pytest.fixture(name="densify_config", scope="session")
+def densify_config_fixture():
+    """`densify_config()`: a fresh train.densify section for the strategy tests (see the function)."""
+    return densify_config

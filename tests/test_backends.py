@@ -6,7 +6,6 @@ The op-by-op comparisons of the fused C++ kernels (block kernels, per-view prepa
 are tests/test_fused.py's.
 """
 
-import math
 import os
 
 import pytest
@@ -15,17 +14,12 @@ import torch
 from radfield.core import backends, kinds
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train import losses
 from radfield.core.train.positivity import NonNegativeDensity
 from radfield.core.train.strategy import make_strategy
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
-W, H = 24, 20
-DENSIFY = {"start": 1, "stop": 100, "every": 10, "grad_threshold": 1e-3, "grow_scale": 0.01, "prune_scale": 0.5,
-           "prune_threshold": 1e-6, "gaussian": {"grad_threshold": 2e-4, "prune_scale": 0.1, "min_opacity": 0.005,
-                                                  "opacity_reset_every": 3000}}
 
 
 def cpu_backends(dtype=torch.float64) -> list[str]:
@@ -44,22 +38,6 @@ def test_fused_cpu_backend_is_available():
     # what it cannot run falls to the twins
     assert backends.available("cpu", torch.float16) == [backends.TORCH]
     assert backends.available("meta", torch.float32) == [backends.TORCH]
-
-
-def scene(kind, dtype, hidden=8):
-    """A tiny view of 14 primitives: a camera inside a neural primitive, one straddling the near
-    plane, one at the α clamp; Gaussians scattered in front."""
-    eye = torch.tensor([0.3, -3.0, 0.5])
-    if kind in ("neural", "neural-window"):
-        prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
-        prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
-        prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
-        prims.b2[2] = 40.0
-        prims.window = kind == "neural-window"
-    else:
-        prims = random_gaussians(14, sh_degree=1, scale=0.15, extent=0.6, seed=4)
-    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at(tuple(eye.tolist()), (0, 0, 0)))
-    return prims.to(dtype=dtype), cam
 
 
 def render_with_grads(prims, cam, backend):
@@ -94,8 +72,9 @@ def assert_renders_match(fast, grads_fast, slow, grads_slow, tol):
 @pytest.mark.parametrize("backend", cpu_backends())
 @pytest.mark.parametrize("kind", ["neural", "neural-window", "gaussian"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_render_matches_the_torch_twin(backend, kind, dtype):
-    prims, cam = scene(kind, dtype)
+def test_render_matches_the_torch_twin(backend, kind, dtype, render_scene):
+    """The scene: conftest.render_scene (the fused kernels' hard cases)."""
+    prims, cam = render_scene(kind, dtype)
     fast, grads_fast = render_with_grads(prims, cam, backend)
     slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
     tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
@@ -103,10 +82,10 @@ def test_render_matches_the_torch_twin(backend, kind, dtype):
 
 
 @pytest.mark.parametrize("backend", cpu_backends())
-def test_render_matches_the_torch_twin_at_another_width(backend):
+def test_render_matches_the_torch_twin_at_another_width(backend, render_scene):
     """The fused view kernels unroll the default 8 hidden units; any other width takes the run-time
     loop, which must agree with the torch twin as well (images and every gradient, float64)."""
-    prims, cam = scene("neural", torch.float64, hidden=5)
+    prims, cam = render_scene("neural", torch.float64, hidden=5)
     assert prims.hidden == 5
     fast, grads_fast = render_with_grads(prims, cam, backend)
     slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
@@ -141,20 +120,14 @@ def test_loss_matches_the_torch_twin(backend, dtype):
 @pytest.mark.parametrize("backend", cpu_backends())
 @pytest.mark.parametrize("kind", ["neural", "gaussian"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_densification_statistics_match_the_torch_twin(backend, kind, dtype):
+def test_densification_statistics_match_the_torch_twin(backend, kind, dtype, strategy_scene, densify_config):
     """A view's statistics of the kind's strategy (core/train/strategy.py: accumulate) on `backend`
-    equal the twin's: the same primitives counted visible, the same summed signal."""
-    g = torch.Generator().manual_seed(0)
+    equal the twin's: the same primitives counted visible, the same summed signal (the scene:
+    conftest.strategy_scene, seen from a second side too)."""
     p = 3000
-    params = {"means": (torch.rand(p, 3, generator=g, dtype=dtype) * 2 - 1) * 3,
-              "log_scales": torch.log(torch.rand(p, 3, generator=g, dtype=dtype) * 0.8 + 1e-3)}
-    if kind == "gaussian":
-        grads = {"means": torch.randn(p, 3, generator=g, dtype=dtype) * 1e-4}
-    else:
-        grads = {"w1": torch.randn(p, 8, 3, generator=g, dtype=dtype), "b1": torch.randn(p, 8, generator=g, dtype=dtype),
-                 "w2": torch.randn(p, 8, generator=g, dtype=dtype), "b2": torch.randn(p, generator=g, dtype=dtype)}
-    cams = [Camera(50.0, 45.0, 31.0, 24.5, 64, 48, look_at(eye, (0.0, 0.0, 0.2))) for eye in ((0.3, -3.5, 1.0), (-2.5, 2.0, 0.5))]
-    strategy = make_strategy(kind, DENSIFY, extent=1.0, near=0.05, max_primitives=None, initial_count=p)
+    params, grads, cam = strategy_scene(kind, dtype, p=p)
+    cams = [cam, Camera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, look_at((-2.5, 2.0, 0.5), (0.0, 0.0, 0.2)))]
+    strategy = make_strategy(kind, densify_config(), extent=1.0, near=0.05, max_primitives=None, initial_count=p)
 
     def run(name):
         with backends.using(name):
@@ -195,7 +168,7 @@ def test_nonnegative_projection_matches_the_torch_twin(backend, dtype):
     assert not torch.equal(run(backends.TORCH)[0], w2)   # the projection acted
 
 
-def test_the_switch_forces_the_torch_twins(monkeypatch):
+def test_the_switch_forces_the_torch_twins(monkeypatch, render_scene):
     """RADFIELD_KERNELS=torch: no backend but the twins is available, every op asks its caller
     to run the twin, and a render calls no fused view kernel."""
     calls = []
@@ -211,7 +184,7 @@ def test_the_switch_forces_the_torch_twins(monkeypatch):
         assert backends.kernel(op, "cpu", torch.float32) is None, op
     assert not fused.available()
     for kind in ("neural", "gaussian"):
-        out = render(*scene(kind, torch.float32))
+        out = render(*render_scene(kind, torch.float32))
         assert out.meta["contributing_pairs"] > 100
     losses.ssim(torch.rand(16, 16, 3), torch.rand(16, 16, 3))
     losses.anisotropy(torch.randn(5, 3))

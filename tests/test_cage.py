@@ -5,34 +5,14 @@ import numpy as np
 import pytest
 
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import load_defaults
-from radfield.core.geometry.envelope import build_envelope
 from radfield.core.geometry.cage import build_cage, locate_points, read_cage, sample_in_cage, tet_volumes, write_cage
 
 
-def cfg(section: str, **overrides) -> dict:
-    """A config section of pipeline.yaml with some keys changed."""
-    return {**load_defaults()[section], **overrides}
-
-
-def _torus(n, rng, R=1.0, r=0.35):
-    u, w = rng.uniform(0, 2 * np.pi, (2, n))
-    return np.stack([(R + r * np.cos(w)) * np.cos(u), (R + r * np.cos(w)) * np.sin(u), r * np.sin(w)], 1)
+# torus_envelope, cfg: tests/conftest.py (shared with tests/test_envelope.py)
 
 
 @pytest.fixture(scope="module")
-def torus_envelope():
-    """Envelope of 3000 torus samples plus 40 floaters 2.5-3.5 from the centre."""
-    rng = np.random.default_rng(0)
-    surface = _torus(3000, rng)
-    direction = rng.normal(size=(40, 3))
-    floaters = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(2.5, 3.5, (40, 1))
-    v, f, figures = build_envelope(np.concatenate([surface, floaters]), cfg("envelope", target_faces=400))
-    return surface, v, f, figures
-
-
-@pytest.fixture(scope="module")
-def torus_cage(torus_envelope):
+def torus_cage(torus_envelope, cfg):
     _, v, f, _ = torus_envelope
     return build_cage(v, f, cfg("tetra"))
 

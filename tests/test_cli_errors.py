@@ -38,3 +38,30 @@ def test_help_and_version_still_exit_0(cli):
     assert code == 0 and out.startswith("radfield ")
     code, out, _ = cli()  # no command: the overview
     assert code == 0 and "reconstruct" in out
+
+
+@pytest.mark.parametrize("tensor, row, value, message", [
+    ("log_scales", 3, 100.0, "tensor 'log_scales' is out of range at primitive 3"),
+    ("means", 1, float("inf"), "tensor 'means' holds 3 NaN/Inf values (first at primitive 1)"),
+    ("quats", 2, 0.0, "tensor 'quats' has all-zero rows"),
+])
+def test_a_model_with_values_out_of_range_is_one_line_on_every_reader(cli, tmp_path_factory, tmp_path, tensor, row,
+                                                                      value, message):
+    """Such a model (log_scales = 100) loaded and rendered silently as background (issue #28)."""
+    from radfield.core.kinds import random_neural
+    from radfield.datasets.synthetic import generate_scene
+    from radfield.delivery.io import save_model
+
+    data = tmp_path_factory.getbasetemp() / "tiny-blobs"
+    if not data.exists():
+        generate_scene("blobs", data, n_train=2, n_test=1, size=16, seed=0)
+
+    prims = random_neural(5, sh_degree=1)
+    getattr(prims, tensor)[row] = value
+    model = tmp_path / "bad.safetensors"
+    save_model(model, prims)
+    for args in (["render", model, "-d", data, "-o", tmp_path / "out"], ["export", model, "-f", "ply-3dgs", "-o", tmp_path / "out.ply"]):
+        code, out, err = cli(*args)
+        assert code == 1 and err.startswith("radfield: error: ") and err.count("\n") == 1, err
+        assert message in err and str(model) in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.safetensors"]   # nothing written

@@ -137,7 +137,7 @@ def test_registry_refuses_a_second_format_of_the_same_name_or_no_name():
     class Again(CamerasJson):
         name = "colmap"
 
-    with pytest.raises(ValueError, match="already registered"):
+    with pytest.raises(ValueError, match="^dataset format 'colmap' is registered already$"):
         formats.register(Again())
     with pytest.raises(ValueError, match="not a named DatasetFormat"):
         formats.register(type("Nameless", (CamerasJson,), {"name": ""})())

@@ -500,3 +500,26 @@ def test_bad_json(blobs_copy, edit, match):
     meta = edit(json.loads(path.read_text()))
     path.write_text(meta if isinstance(meta, str) else json.dumps(meta))
     raises_naming(path, load_dataset, blobs_copy, "test", match=match)
+
+
+def test_a_dataset_with_nothing_visible_is_refused_before_any_stage(blobs_copy, cli, tmp_path):
+    """Fully transparent images (alpha 0 everywhere) used to reconstruct with exit 0, a warning
+    about the envelope's box fallback and a model of nothing."""
+    for png in blobs_copy.rglob("*.png"):
+        pixels = (read_image(png) * 255).round().astype(np.uint8)
+        pixels[..., 3] = 0
+        write_raw_png(png, pixels)
+    out = tmp_path / "run"
+    code, stdout, err = cli("reconstruct", blobs_copy, "-o", out, "--iterations", "5", "-q")
+    assert code == 1 and stdout == ""
+    assert err.startswith("radfield: error: ") and err.count("\n") == 1, err
+    assert "no object is visible in any view" in err and str(blobs_copy) in err
+    assert not out.exists()                                           # nothing written
+    # one view with a single visible pixel is enough to go on
+    png = blobs_copy / "test" / "r_1.png"
+    pixels = (read_image(png) * 255).round().astype(np.uint8)
+    pixels[5, 7, 3] = 255
+    write_raw_png(png, pixels)
+    from radfield.datasets.scene import read_dataset
+    from radfield.pipeline.config import load_config
+    read_dataset(blobs_copy, load_config()["data"])

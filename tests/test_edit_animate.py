@@ -44,6 +44,13 @@ def test_simulation_parameters_are_checked():
         parse_simulation({"poisson_ratio": 0.5})
     with pytest.raises(RadfieldError, match="simulate.frames"):
         parse_simulation({"frames": 0})
+    # a ground above the cage's lowest point: the body would start inside it (its bottom tets flipped)
+    v, t = box_cage([-0.2, -0.2, 0.0], [0.2, 0.2, 0.4], 1)
+    with pytest.raises(RadfieldError, match=r"simulate.ground: 0.1 is above the cage's lowest point \(0 along"):
+        simulate_cage(v, t, parse_simulation({"ground": 0.1}))
+    # far too soft for its load: refused at the frame, once doubling the substeps cannot help
+    with pytest.raises(RadfieldError, match="tets of the cage invert at frame 1 even with 5120 substeps"):
+        simulate_cage(v, t, parse_simulation({"youngs_modulus": 1e-3, "gravity": [0, 0, -1e6], "ground": -0.01, "fps": 1}))
 
 
 def test_orbit_and_nerfstudio_path(tmp_path):
@@ -68,3 +75,43 @@ def test_orbit_and_nerfstudio_path(tmp_path):
     path.write_text("{}")
     with pytest.raises(RadfieldError, match="not a nerfstudio camera path"):
         read_nerfstudio_path(path)
+
+
+@pytest.mark.parametrize("text, value", [("1e6", 1e6), ("2e4", 2e4), ("1E6", 1e6), ("-1.5e-3", -1.5e-3),
+                                         ("+3e2", 300.0), (".5e3", 500.0), ("1.e2", 100.0)])
+def test_yaml_reads_numbers_as_users_write_them(tmp_path, text, value):
+    """`youngs_modulus: 1e6` (the docs' own example) was the string '1e6' to YAML 1.1's loader."""
+    from radfield.edit.animation import read_animation
+    from radfield.edit.simulate import read_simulation
+    from radfield.pipeline.config import parse_yaml
+
+    assert parse_yaml(f"x: {text}") == {"x": value} and isinstance(parse_yaml(f"x: {text}")["x"], float)
+    sim = tmp_path / "sim.yaml"
+    sim.write_text(f"simulate: {{youngs_modulus: {text.lstrip('-')}, ground: {text}}}\n")
+    params = read_simulation(sim)
+    assert params["youngs_modulus"] == abs(value) and params["ground"] == value
+    anim = tmp_path / "anim.yaml"
+    anim.write_text(f"simulate: {{density: {text.lstrip('-')}}}\nanimate: {{elevation: {text}}}\n")
+    assert read_animation(anim)["elevation"] == value
+    # what is not a number stays a string (and is refused as one)
+    sim.write_text("simulate: {youngs_modulus: 1e}\n")
+    with pytest.raises(RadfieldError, match="youngs_modulus: expected a number, got '1e'"):
+        read_simulation(sim)
+
+
+def test_a_coarse_time_step_never_inverts_the_cage():
+    """The docs' settings with fps 12 (h = 1/240 s at 20 substeps) inverted tets of the objects
+    scene's cage at frame 3; here a cage with thin tets (a box of 5 × 5 × 5 cells, 0.4 wide)
+    dropped onto the ground at 12 fps: the step is sub-divided until no tet inverts."""
+    v, t = box_cage([-0.2, -0.2, 0.0], [0.2, 0.2, 0.4], 5)
+    rest = tet_volumes(v, t)
+    params = parse_simulation({"ground": -0.05, "youngs_modulus": 1e6, "frames": 12, "fps": 12, "substeps": 2,
+                               "initial_velocity": [0.0, 0.0, -3.0]})
+    lines = []
+    poses, figures = simulate_cage(v, t, params, log=lines.append)
+    assert len(poses) == 12
+    # what is printed before the frames are rendered says what is being done, not "simulated N frames"
+    assert lines[0].startswith("simulating 12 frames") and not any("simulated" in line for line in lines)
+    for pose in poses:
+        assert (tet_volumes(pose, t) > 1e-9 * rest).all()
+    assert figures["substeps_max"] > 2 and figures["min_height"] >= -0.05 - 1e-9

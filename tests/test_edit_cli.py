@@ -150,8 +150,9 @@ def test_spec_errors_are_one_line_and_leave_nothing(cli, scene, tmp_path, ops, m
 def test_edit_refuses_an_existing_output_and_needs_something_to_do(cli, scene, tmp_path):
     root, run, data, v, t = scene
     (tmp_path / "exists").mkdir()
+    (tmp_path / "exists" / "keep.txt").write_text("the user's")
     code, _, err = cli("edit", run, "-o", tmp_path / "exists", "--scale", "2")
-    assert code == 1 and "already exists" in err
+    assert code == 1 and "already exists" in err and "--force" in err
     code, _, err = cli("edit", run, "-o", tmp_path / "new")
     assert code == 1 and "nothing to do" in err
     code, _, err = cli("edit", run, "-o", tmp_path / "new", "--rotate", "1,2")
@@ -284,3 +285,28 @@ def test_edit_prints_the_psnr_of_a_remesh_split(cli, scene, tmp_path):
     assert note["split"] > 0 and note["psnr_after"] >= note["psnr_split"]
     code, stdout, err = cli("info", tmp_path / "split_run")
     assert code == 0, err
+
+
+def test_the_boolean_phase_timings_add_up_to_its_wall_time(scene, tmp_path):
+    """Every phase of a boolean is in its note (the edit prints them), and with `other` (what no
+    phase measures) they add up to the operation's wall time, measured here around it."""
+    import time
+
+    from radfield.edit.boolean.operation import PHASES
+    from radfield.edit.source import load_source
+    from radfield.edit.spec import EditContext, apply_operations, parse_spec
+
+    root, run, data, v, t = scene
+    fld = load_source(run)
+    ops = parse_spec({"operations": [{"boolean": {"op": "difference", "shape": {"sphere": {"center": [0, 0, 0], "radius": 0.25}},
+                                                  "steps": 20, "views": 4, "size": 24}}]}, "test")
+    start = time.perf_counter()
+    out = apply_operations(fld, ops, EditContext(seed=0))
+    wall = time.perf_counter() - start
+    note = out.notes[-1]
+    assert note["retrained"] > 0 and note["seconds"] <= wall + 0.01   # seconds are rounded to 0.01
+    parts = [note[key] for key in PHASES]
+    assert all(p >= 0 for p in parts), note
+    assert abs(sum(parts) - note["seconds"]) <= 0.01 * len(parts), note   # to the rounding of each
+    assert abs(sum(parts) - wall) <= 0.05 * wall + 0.1, (sum(parts), wall, note)
+    assert note["other_seconds"] <= 0.1 * note["seconds"] + 0.02, note   # the named phases hold the time

@@ -151,14 +151,24 @@ def test_identity_cage_keeps_the_model_bit_identical():
         assert out.notes[-1]["moved_primitives"] == 0
 
 
-def test_local_edit_leaves_far_primitives_untouched():
+@pytest.mark.parametrize("gradient", ["tet", "centre", "smooth"])
+def test_local_edit_leaves_far_primitives_untouched(gradient):
+    # "smooth" fits each vertex's gradient over its neighbourhood (up to two rings at the cage's
+    # boundary), so its reach is wider than the tet maps': a 4³ cage leaves room for far primitives
     fld = _field("neural", n=30)
+    if gradient == "smooth":
+        v, t = box_cage([-1, -1, -1], [1, 1, 1], 4)
+        fld = Field(random_neural(60, extent=0.9, scale=0.1, seed=2), v, t)
+        fld.rebind()
     moved = fld.cage_vertices.copy()
     corner = np.flatnonzero((moved > 0.99).all(1))
     moved[corner] += 0.2
-    out = deform.deform_field(fld, moved, split=None)
+    out = deform.deform_field(fld, moved, split=None, gradient=gradient)
     same = (fld.prims.means == out.prims.means).all(1)
     assert 0 < int(same.sum()) < len(fld.prims)
+    if gradient != "centre":   # (centre's A is interpolated from vertex gradients beyond μ's tet)
+        for name, value in fld.prims.tensors().items():    # the far ones keep every parameter
+            assert torch.equal(value[same], out.prims.tensors()[name][same]), name
 
 
 def test_inverted_and_degenerate_tets_are_one_line_errors():

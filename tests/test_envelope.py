@@ -8,32 +8,13 @@ import torch
 
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import load_defaults
 from radfield.core.geometry.envelope import build_envelope, mesh_checks, overlay_picture, read_envelope, visual_hull, write_envelope
-
-
-def cfg(section: str, **overrides) -> dict:
-    """A config section of pipeline.yaml with some keys changed."""
-    return {**load_defaults()[section], **overrides}
 
 
 # ---------------------------------------------------------------- envelope and cage
 
 
-def _torus(n, rng, R=1.0, r=0.35):
-    u, w = rng.uniform(0, 2 * np.pi, (2, n))
-    return np.stack([(R + r * np.cos(w)) * np.cos(u), (R + r * np.cos(w)) * np.sin(u), r * np.sin(w)], 1)
-
-
-@pytest.fixture(scope="module")
-def torus_envelope():
-    """Envelope of 3000 torus samples plus 40 floaters 2.5-3.5 from the centre."""
-    rng = np.random.default_rng(0)
-    surface = _torus(3000, rng)
-    direction = rng.normal(size=(40, 3))
-    floaters = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(2.5, 3.5, (40, 1))
-    v, f, figures = build_envelope(np.concatenate([surface, floaters]), cfg("envelope", target_faces=400))
-    return surface, v, f, figures
+# torus_envelope, torus_points, cfg: tests/conftest.py (shared with tests/test_cage.py)
 
 
 def _inside(points, v, f):
@@ -60,16 +41,16 @@ def test_envelope_encloses_points_and_drops_outliers(torus_envelope, tmp_path):
     assert np.array_equal(rf, f) and np.allclose(rv, v, atol=1e-5)
 
 
-def test_envelope_falls_back_when_reconstruction_is_open():
+def test_envelope_falls_back_when_reconstruction_is_open(torus_points, cfg):
     rng = np.random.default_rng(2)
-    surface = _torus(2000, rng)
+    surface = torus_points(2000, rng)
     v, f, figures = build_envelope(surface, cfg("envelope", method="ball_pivoting", target_faces=300))
     assert figures["method"] in ("alpha", "convex")
     assert mesh_checks(v, f)["watertight"]
     assert _inside(surface, v, f).all()
 
 
-def test_envelope_of_a_given_mesh():
+def test_envelope_of_a_given_mesh(cfg):
     sphere = pv.Icosphere(radius=1.0, nsub=3)
     v, f, figures = build_envelope((sphere.points, sphere.regular_faces), cfg("envelope", target_faces=200, offset=0.05))
     radius = np.linalg.norm(v, axis=1)
@@ -77,7 +58,7 @@ def test_envelope_of_a_given_mesh():
     assert radius.min() > 1.0 and radius.max() < 1.0 + 2.5 * figures["margin"]
 
 
-def test_envelope_rejects_bad_input():
+def test_envelope_rejects_bad_input(cfg):
     with pytest.raises(RadfieldError, match="at least 10"):
         build_envelope(np.zeros((5, 3)), cfg("envelope"))
     with pytest.raises(RadfieldError, match=r"\(N, 3\)"):
@@ -101,7 +82,7 @@ def _sphere_views(radius=0.5, size=64):
     return cameras, masks
 
 
-def test_visual_hull_of_a_sphere_and_overlay(tmp_path):
+def test_visual_hull_of_a_sphere_and_overlay(tmp_path, cfg):
     cameras, masks = _sphere_views()
     v, f, figures = visual_hull(cameras, masks, cfg("envelope", target_faces=500))
     assert 450 <= figures["faces"] <= 500
@@ -121,7 +102,7 @@ def test_visual_hull_of_a_sphere_and_overlay(tmp_path):
     assert cv2.imread(str(tmp_path / "overlay.png")).shape == (64, 64, 3)
 
 
-def test_visual_hull_errors():
+def test_visual_hull_errors(cfg):
     cameras, masks = _sphere_views()
     with pytest.raises(RadfieldError, match="masks"):
         visual_hull(cameras, masks[:-1], cfg("envelope"))

@@ -262,21 +262,7 @@ def test_gaussian_block_gradcheck():
     assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def _render_scene(kind, dtype, hidden=8):
-    eye = torch.tensor([0.3, -3.0, 0.5])
-    if kind in ("neural", "neural-window"):
-        prims = random_neural(14, sh_degree=1, hidden=hidden, scale=0.35, extent=0.6, b2=2.0, w2_amplitude=1.0, seed=4)
-        prims.means[0], prims.log_scales[0], prims.b2[0] = eye + torch.tensor([0.05, 0.1, -0.05]), math.log(0.4), 0.3
-        prims.means[1], prims.log_scales[1] = eye + torch.tensor([0.0, 0.35, 0.0]), math.log(0.3)
-        prims.b2[2] = 40.0
-        prims.window = kind == "neural-window"
-    else:
-        prims = random_gaussians(14, sh_degree=1, scale=0.15, extent=0.6, seed=4)
-    cam = Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=W, height=H, c2w=look_at(tuple(eye.tolist()), (0, 0, 0)))
-    return prims.to(dtype=dtype), cam
-
-
-def test_failed_build_warns_once_and_falls_back(monkeypatch):
+def test_failed_build_warns_once_and_falls_back(monkeypatch, render_scene):
     def broken_build():
         raise RuntimeError("Error building extension 'radfield_kernels'\nmore compiler output")
 
@@ -286,7 +272,7 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch):
         warnings.simplefilter("always")
         assert not fused.available()
         assert not fused.available()
-        render(*_render_scene("neural", torch.float32))
+        render(*render_scene("neural", torch.float32))
     messages = [str(w.message) for w in caught if "fused" in str(w.message)]
     assert len(messages) == 1 and "\n" not in messages[0] and "torch kernels" in messages[0]
     assert fused.build_error() == "RuntimeError: Error building extension 'radfield_kernels'"
@@ -474,8 +460,8 @@ def test_depth_order_is_a_stable_sort_of_signed_depths(dtype):
     assert torch.equal(order, torch.argsort(means_cam[:, 2], stable=True))
 
 
-def test_view_kernel_rejects_an_order_that_repeats_a_primitive():
-    prims, cam = _render_scene("gaussian", torch.float64)
+def test_view_kernel_rejects_an_order_that_repeats_a_primitive(render_scene):
+    prims, cam = render_scene("gaussian", torch.float64)
     bounds = torch.tensor([[0, 0, 3, 3]] * len(prims))
     order = torch.tensor([0, 1, 1])
     colors, depth = torch.rand(len(prims), 3, dtype=torch.float64), torch.rand(len(prims), dtype=torch.float64)

@@ -13,30 +13,13 @@ from radfield.core.train.strategy import GAUSSIAN_RADIUS_SIGMAS, in_frustum, mak
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 pytestmark = pytest.mark.skipif(not IN_CI and not fused.available(), reason="fused CPU kernels unavailable")
 
-DENSIFY = {"start": 1, "stop": 100, "every": 10, "grad_threshold": 1e-3, "grow_scale": 0.01, "prune_scale": 0.5,
-           "prune_threshold": 1e-6, "gaussian": {"grad_threshold": 2e-4, "prune_scale": 0.1, "min_opacity": 0.005,
-                                                  "opacity_reset_every": 3000}}
 
-
-def _scene(kind, dtype, p=4000, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    # means spread well beyond the frustum, scales from tiny to large: both outcomes of the test
-    params = {"means": (torch.rand(p, 3, generator=g, dtype=dtype) * 2 - 1) * 3,
-              "log_scales": torch.log(torch.rand(p, 3, generator=g, dtype=dtype) * 0.8 + 1e-3)}
-    if kind == "gaussian":
-        grads = {"means": torch.randn(p, 3, generator=g, dtype=dtype) * 1e-4}
-    else:
-        grads = {"w1": torch.randn(p, 8, 3, generator=g, dtype=dtype), "b1": torch.randn(p, 8, generator=g, dtype=dtype),
-                 "w2": torch.randn(p, 8, generator=g, dtype=dtype), "b2": torch.randn(p, generator=g, dtype=dtype)}
-    cam = Camera(50.0, 45.0, 31.0, 24.5, 64, 48, look_at((0.3, -3.5, 1.0), (0.0, 0.0, 0.2)))
-    return params, grads, cam
-
-
+# the scene and the densify section: conftest.strategy_scene, densify_config (shared with tests/test_backends.py)
 @pytest.mark.parametrize("kind", ["gaussian", "neural"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_accumulate_fused_matches_torch_twin(kind, dtype, monkeypatch):
-    params, grads, cam = _scene(kind, dtype)
-    strategy = make_strategy(kind, DENSIFY, extent=1.0, near=0.05, max_primitives=None, initial_count=4000)
+def test_accumulate_fused_matches_torch_twin(kind, dtype, monkeypatch, strategy_scene, densify_config):
+    params, grads, cam = strategy_scene(kind, dtype)
+    strategy = make_strategy(kind, densify_config(), extent=1.0, near=0.05, max_primitives=None, initial_count=4000)
     states = []
     for twin in (False, True):
         if twin:
@@ -56,10 +39,10 @@ def test_accumulate_fused_matches_torch_twin(kind, dtype, monkeypatch):
     assert (fast["grad"][slow["count"] == 0] == 0.25).all()   # nothing added where never visible
 
 
-def test_frustum_of_fused_accumulate_equals_in_frustum_near_the_boundary():
+def test_frustum_of_fused_accumulate_equals_in_frustum_near_the_boundary(strategy_scene):
     """Spheres that just reach or just miss a side plane (radius = distance · (1 ± 1e-4)) decide alike."""
     from radfield.core.train.strategy import side_normals
-    params, grads, cam = _scene("gaussian", torch.float32, p=3000, seed=5)
+    params, grads, cam = strategy_scene("gaussian", torch.float32, p=3000, seed=5)
     w2c = cam.w2c.float()
     p = params["means"] @ w2c[:3, :3].T + w2c[:3, 3]
     distance = (p @ side_normals(cam, p).T).amin(-1)

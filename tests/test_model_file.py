@@ -58,6 +58,17 @@ def _neural_tensors(p=4, n=8, k=4):
     (lambda t, m: t.update(b2=torch.zeros(4, dtype=torch.float64)), "tensor 'b2' has dtype float64, expected float32"),
     (lambda t, m: t["w1"].__setitem__((2, 0, 0), float("nan")), "tensor 'w1' holds 1 NaN/Inf values (first at primitive 2)"),
     (lambda t, m: t["quats"].__setitem__(1, 0.0), "tensor 'quats' has all-zero rows"),
+    (lambda t, m: m.update(sh_degree="-1"), "sh_degree=-1 is outside 0..3"),
+    # values out of range (the kinds' check_values): these loaded and rendered as background
+    (lambda t, m: t["log_scales"].__setitem__((1, 2), 100.0),
+     "tensor 'log_scales' is out of range at primitive 1 (a log scale of 100 is outside [-25, 25]"),
+    (lambda t, m: t["log_scales"].__setitem__((3, 0), -40.0),
+     "tensor 'log_scales' is out of range at primitive 3 (a log scale of -40 is outside [-25, 25]"),
+    (lambda t, m: t["means"].__setitem__((2, 1), 1e20), "tensor 'means' is out of range at primitive 2"),
+    (lambda t, m: t["quats"].__setitem__(0, 1e-30), "tensor 'quats' is out of range at primitive 0"),
+    (lambda t, m: t.update(rest_metric=torch.tensor([[1.0, 1, 1, 0, 0, 0]] * 2 + [[0.0] * 6] * 2)),
+     "tensor 'rest_metric' is out of range at primitive 2 (not positive definite"),
+    (lambda t, m: t["w1"].__setitem__((1, 0, 0), 1e30), "tensor 'w1' is out of range at primitive 1"),
 ])
 def test_bad_files_are_rejected_precisely(tmp_path, change, message):
     tensors, meta = _neural_tensors(), {}
@@ -82,6 +93,24 @@ def test_not_a_safetensors_file(tmp_path):
         load_model(tmp_path / "model.pt")
     with pytest.raises(RadfieldError, match="no such model file"):
         load_model(tmp_path / "missing.safetensors")
+
+
+def test_gaussian_values_are_checked(tmp_path):
+    tensors = {k: v.contiguous() for k, v in random_gaussians(3).tensors().items()}
+    tensors["log_scales"][2, 1] = 60.0
+    _write(tmp_path / "g.safetensors", tensors, kind="gaussian", omega0=None, sh_degree="0")
+    with pytest.raises(RadfieldError, match=r"tensor 'log_scales' is out of range at primitive 2"):
+        load_model(tmp_path / "g.safetensors")
+
+
+def test_the_value_ranges_hold_for_trained_and_edited_models(tmp_path):
+    """The bounds are far from what training writes: a model saved with the extremes a trained model
+    of a scene in metres ... kilometres or millimetres could have still loads."""
+    prims = random_neural(6, sh_degree=1)
+    prims.log_scales[0] = torch.tensor([-20.0, 0.0, 20.0])   # 2 nm .. 485 000 km
+    prims.means[1] = torch.tensor([1e9, -1e9, 0.0])
+    save_model(tmp_path / "m.safetensors", prims)
+    torch.testing.assert_close(load_model(tmp_path / "m.safetensors").log_scales, prims.log_scales)
 
 
 def test_gaussian_schema(tmp_path):

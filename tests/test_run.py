@@ -94,6 +94,42 @@ def test_an_edited_run(made, cli, tmp_path):
     assert bare.config() == load_config()
 
 
+def test_info_and_the_viewer_of_an_edited_run(made, cli, tmp_path):
+    """`info` shows the edit (its spec, when, edited_from), not the reconstruction's stages as "not
+    run"; the viewer shows the source run's dataset cameras (an edited run has no data stage)."""
+    import torch
+
+    from radfield.delivery.viewer import viewer_scene
+
+    scene, run_dir = made
+    edited, again = tmp_path / "edited", tmp_path / "again"
+    assert cli("edit", run_dir, "-o", edited, "--translate", "0.1,0,0", "-q")[0] == 0
+    assert cli("edit", edited, "-o", again, "--scale", "1.1", "-q")[0] == 0
+    code, out, err = cli("info", edited, "--json")
+    assert code == 0, err
+    info = json.loads(out)
+    assert list(info["stages"]) == ["edit"] and info["stages"]["edit"]["done"]
+    assert info["edited_from"] == str(run_dir.resolve())
+    assert info["edit"]["operations"] == [{"transform": {"select": "all", "translate": [0.1, 0.0, 0.0]}}]
+    assert info["edit"]["created"] and info["edit"]["spec"] == str((edited / "edit" / "spec.yaml").resolve())
+    code, text, err = cli("info", edited)
+    assert code == 0 and "not run" not in text, text
+    assert f"edited from: {run_dir.resolve()}" in text and "1. transform {select: all, translate: [0.1, 0.0, 0.0]}" in text
+    plain = json.loads(cli("info", run_dir, "--json")[1])   # a reconstructed run: the keys, null
+    assert plain["edited_from"] is None and plain["edit"] is None and "edit" not in plain["stages"]
+
+    # the viewer: the source's cameras, through an edit of an edit too
+    assert Run(again).source_run().path == run_dir.resolve() and Run(again).dataset_scene() == Run(run_dir).scene
+    source = viewer_scene(run_dir)
+    assert len(source.cameras) == 8
+    for view in (viewer_scene(edited), viewer_scene(again)):
+        assert len(view.cameras) == len(source.cameras)
+        assert all(torch.equal(a.c2w, b.c2w) for a, b in zip(view.cameras, source.cameras))
+    # a run edited from a model file has no dataset: no cameras, no error
+    assert cli("edit", Run(run_dir).model, "-o", tmp_path / "bare", "--scale", "1.1", "-q")[0] == 0
+    assert viewer_scene(tmp_path / "bare").cameras == [] and Run(tmp_path / "bare").source_run() is None
+
+
 def test_a_run_made_before_the_bind_stage_keeps_its_binding_in_train(tmp_path):
     (tmp_path / "train").mkdir()
     (tmp_path / layout.RUN_MARKER).write_text(json.dumps({"kind": "radfield-run", "input": None}))

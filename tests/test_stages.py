@@ -341,7 +341,9 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
 
     code, out, _ = cli("info", run_dir, "--json")
     info = json.loads(out)
-    assert code == 0 and set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages"}
+    assert code == 0 and set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages",
+                                       "edited_from", "edit"}
+    assert info["edited_from"] is None and info["edit"] is None
     assert info["pending_checkpoint"] is None
     assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())

@@ -149,3 +149,31 @@ def test_viewer_shows_the_model_in_headless_chromium(colourful_model, tmp_path):
         dominant = saturated & (middle.argmax(-1) == channel)
         assert dominant.mean() > 0.01, f"colour {channel} of the model is missing"
     assert middle.std() > 0.1
+
+
+def test_sigterm_stops_the_viewer_with_one_line(colourful_model):
+    """A real `radfield view` process and a real SIGTERM: the server is stopped, one line, exit 0
+    (it used to die without closing the server; with pycolmap imported, whose glog failure handler
+    catches SIGTERM, it printed a 32-line stack dump: pycolmap is imported first when present)."""
+    import importlib.util
+    import signal
+
+    preload = "import pycolmap; " if importlib.util.find_spec("pycolmap") is not None else ""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "RADFIELD_KERNELS": "torch"}
+    server = subprocess.Popen([sys.executable, "-c", f"{preload}from radfield.cli.main import main; main()", "view",
+                               str(colourful_model), "--host", "127.0.0.1", "--port", "0"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        log = _Lines(server.stderr)
+        _wait(lambda: log.find("viewer: http://") or server.poll() is not None, "the viewer to start")
+        assert server.poll() is None, "".join(log.lines)
+        server.send_signal(signal.SIGTERM)
+        code = server.wait(timeout=WAIT)
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait(timeout=30)
+    time.sleep(0.2)   # the reader thread drains the pipe
+    after = log.lines[log.lines.index(log.find("viewer: http://")) + 1:]
+    assert code == 0, "".join(log.lines)
+    assert len(after) == 1 and after[0].rstrip().endswith("radfield: viewer stopped (SIGTERM)"), "".join(log.lines)

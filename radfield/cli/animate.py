@@ -8,13 +8,13 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import parse_background, resolve_device
+from radfield.cli.common import Force, check_output, parse_background, resolve_device
 from radfield.errors import RadfieldError
 
 
 def animate(
     run: Annotated[Path, typer.Argument(metavar="RUN", help="A run directory with a cage (reconstructed or edited).")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create: frame_NNNN.png, animation.mp4, animation.json.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create: frame_NNNN.png, animation.mp4, animation.json (an existing non-empty one needs --force).")],
     cages: Annotated[Optional[str], typer.Option(help="Cage poses: a folder of .vtk/.vtu/.msh/.npz frames or a glob pattern (same topology as the run's cage, world frame).")] = None,
     simulate: Annotated[Optional[Path], typer.Option(help="Instead of --cages: a YAML file with a 'simulate:' mapping (built-in soft-body simulation, docs/usage.md 'Animation').")] = None,
     spec: Annotated[Optional[Path], typer.Option("--spec", "-s", help="Instead of --cages/--simulate: a YAML animation spec, 'animate: {cages: PATTERN, camera: ..., fps: ...}' and/or 'simulate: {...}'; its keys replace the options of the same name (docs/usage.md 'Animation').")] = None,
@@ -25,11 +25,12 @@ def animate(
     elevation: Annotated[float, typer.Option(help="Orbit elevation in degrees.")] = 20.0,
     downscale: Annotated[int, typer.Option(help="Render at 1/K of the dataset's resolution.")] = 1,
     background: Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")] = None,
-    fps: Annotated[float, typer.Option(help="Video frame rate (default 30, or the simulation's).")] = 0.0,
-    gradient: Annotated[str, typer.Option(help="Per-primitive map: centre or tet (see radfield edit).")] = "centre",
+    fps: Annotated[Optional[float], typer.Option(help="Video frame rate.", show_default="30, or the simulation's")] = None,
+    gradient: Annotated[str, typer.Option(help="Per-primitive map from the cage: smooth, centre or tet (docs/usage.md 'How primitives follow the cage').")] = "smooth",
     split_threshold: Annotated[float, typer.Option("--split-threshold", help="Split primitives straddling non-uniform tets (0: never).")] = 0.5,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    force: Force = False,
 ):
     """Render a sequence of cage poses of a run (e.g. a soft-body simulation exported from Houdini
     or Blender, or the built-in one) frame by frame to PNGs and an MP4.
@@ -54,8 +55,9 @@ def animate(
         elevation, fps, downscale = anim.get("elevation", elevation), anim.get("fps", fps), anim.get("downscale", downscale)
         background, gradient = anim.get("background", background), anim.get("gradient", gradient)
         split_threshold = anim.get("split_threshold", split_threshold)
-    if output.exists() and (not output.is_dir() or any(output.iterdir())):
-        raise RadfieldError(f"{output}: already exists and is not an empty folder")
+    check_output(output, force, folder=True)
+    if fps is not None and fps <= 0:
+        raise RadfieldError(f"--fps must be positive, got {fps}")
     if not is_run_dir(run):
         raise RadfieldError(f"{run}: not a radfield run directory")
     dev = resolve_device(device)
@@ -64,7 +66,7 @@ def animate(
         raise RadfieldError(f"{run}: this run has no cage to animate")
     summary = animate_run(run, fld, output, cages=cages, simulation=simulation, dataset=dataset, split=split,
                           camera=camera, orbit=orbit, elevation=elevation, downscale=downscale,
-                          background=parse_background(background) if background is not None else None, fps=fps,
+                          background=parse_background(background) if background is not None else None, fps=fps or 0.0,
                           gradient=gradient, split_threshold=split_threshold, device=dev, quiet=quiet,
                           log=None if quiet else (lambda m: typer.echo(m, err=True)))
     flicker = (f", mean PSNR between consecutive frames {summary['consecutive_psnr']:.2f} dB"

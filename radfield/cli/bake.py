@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import Background, Dataset, Device, Downscale, Quiet, data_options, resolve_device
+from radfield.cli.common import Background, Dataset, Device, Downscale, Force, Quiet, check_output, data_options, resolve_device
 from radfield.errors import RadfieldError
 
 
@@ -22,6 +22,7 @@ def bake(
     background: Background = None,
     device: Device = "cpu",
     quiet: Quiet = False,
+    force: Force = False,
 ):
     """Bake a model for delivery: prune primitives no training view sees, optionally float16.
 
@@ -29,6 +30,7 @@ def bake(
     from radfield.stages.bake import bake_model, check_config
     from radfield.stages.evaluate import resolve_target
 
+    check_output(output, force, folder=False)
     options = data_options(downscale, background)
     if min_weight is not None:
         options["bake.min_weight"] = min_weight
@@ -36,8 +38,6 @@ def bake(
         options["bake.fp16"] = fp16
     model, scene, _, config = resolve_target(target, dataset, options)
     check_config(config)
-    if output.is_dir():
-        raise RadfieldError(f"{output}: is a folder; give the model file to write")
     if output.resolve() == Path(model).resolve():
         raise RadfieldError(f"{output}: would overwrite the model being baked")
     f = bake_model(model, scene, output, min_weight=config["bake"]["min_weight"], fp16=config["bake"]["fp16"],

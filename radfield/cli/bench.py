@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import progress_bar, resolve_device
+from radfield.cli.common import Device, Quiet, progress_bar, resolve_device
 from radfield.errors import RadfieldError
 
 
@@ -18,7 +18,7 @@ def bench_render(
     height: Annotated[int, typer.Option(help="Image height.")] = 256,
     views: Annotated[int, typer.Option(help="Cameras on an orbit.")] = 4,
     repeats: Annotated[int, typer.Option(help="Timed passes over the cameras.")] = 2,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    device: Device = "cpu",
     profile: Annotated[bool, typer.Option(help="Also print the torch profiler's top costs.")] = False,
     baseline: Annotated[bool, typer.Option("--baseline", help="Also time the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
@@ -48,8 +48,8 @@ def bench_train(
     sizes: Annotated[str, typer.Option(help="Square view sizes in pixels, comma-separated.")] = "64,256",
     kinds: Annotated[str, typer.Option(help="Comma-separated: neural (the windowed density of the defaults), neural-hard (the hard-edged ellipsoid, render.window=false), gaussian.")] = "neural,gaussian",
     steps: Annotated[int, typer.Option(help="Timed training steps per row (after 2 warm-up steps).")] = 5,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    device: Device = "cpu",
+    quiet: Quiet = False,
     baseline: Annotated[bool, typer.Option("--baseline", help="Also time every row on the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
     """Benchmark (not a test): ms per training step of the default recipe, split into render
@@ -103,7 +103,7 @@ def bench_quality(
     iterations: Annotated[Optional[int], typer.Option(help="Training iterations of every run (default: train.iterations of pipeline.yaml, 3000); the densification schedule of the defaults is scaled to it.")] = None,
     jobs: Annotated[int, typer.Option(help="Runs at a time (each with OMP_NUM_THREADS=1).")] = 2,
     sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Passed to every reconstruct, e.g. --set data.downscale=4 (repeatable).")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    quiet: Quiet = False,
 ):
     """Neural primitives against 3D Gaussians at equal primitive budgets (the paper's protocol).
 

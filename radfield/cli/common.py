@@ -13,8 +13,8 @@ import typer
 from radfield.errors import RadfieldError
 from radfield.util.progress import progress_bar
 
-__all__ = ["Background", "Dataset", "Device", "Downscale", "Quiet", "data_options", "parse_background", "progress_bar",
-           "resolve_device", "resolve_model"]
+__all__ = ["Background", "Dataset", "Device", "Downscale", "Force", "Quiet", "check_output", "data_options",
+           "parse_background", "progress_bar", "resolve_device", "resolve_model"]
 
 # options shared by eval and bake
 Dataset = Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth and the cameras (default: the run's input; its SfM output for photos).")]
@@ -22,6 +22,8 @@ Downscale = Annotated[Optional[int], typer.Option(help="Image downscale factor (
 Background = Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")]
 Device = Annotated[str, typer.Option(help="cpu or cuda.")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")]
+# every command that writes an output folder or file (check_output)
+Force = Annotated[bool, typer.Option("--force", help="Write even if OUTPUT exists and is not empty: a file is replaced, a folder's entries of the same names are replaced (others are kept). Never into a run directory.")]
 
 
 def data_options(downscale: int | None, background: str | None) -> dict:
@@ -57,3 +59,34 @@ def resolve_model(path: Path) -> Path:
     from radfield.run import model_file
 
     return model_file(path)
+
+
+def check_output(path: Path, force: bool, *, folder: bool) -> Path:
+    """The one output policy of every command that writes (docs/usage.md, 'Outputs'), checked
+    before any work. `path` may be missing or an empty folder; an existing file or non-empty
+    folder is refused unless `force` (a file is then replaced, a folder's entries of the same
+    names are); a run directory, or anything inside one, is refused even with `force`: a run
+    is written by `reconstruct` and `edit` only, and a report or frames dropped into it would
+    mix with (or, with --force, replace) its stage folders. `folder`: whether the command writes
+    a folder (else a file)."""
+    from radfield.run import is_run_dir
+
+    path = Path(path)
+    absolute = path.absolute()
+    for parent in (absolute, *absolute.parents):
+        if is_run_dir(parent):
+            where = "is a radfield run directory" if parent == absolute else f"is inside the radfield run directory {parent}"
+            raise RadfieldError(f"{path}: {where}; outputs are written beside a run, never into it (choose another --output)")
+    if not path.exists() and not path.is_symlink():
+        return path
+    if folder:
+        if not path.is_dir():
+            raise RadfieldError(f"{path}: exists and is not a folder")
+        if any(path.iterdir()) and not force:
+            raise RadfieldError(f"{path}: already exists and is not empty (use --force to write into it)")
+    else:
+        if path.is_dir():
+            raise RadfieldError(f"{path}: is a folder; give the file to write")
+        if not force:
+            raise RadfieldError(f"{path}: already exists (use --force to overwrite it)")
+    return path

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import resolve_device
+from radfield.cli.common import Force, check_output, resolve_device
 from radfield.errors import RadfieldError
 
 
@@ -27,32 +27,35 @@ def _vector(text: str | None, name: str) -> list[float] | None:
 
 def edit(
     source: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (reconstructed or edited) or a .safetensors model file.")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="New run directory to create (must not exist).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="New run directory to create (an existing non-empty folder needs --force; never an existing run).")],
     spec: Annotated[Optional[Path], typer.Option("--spec", "-s", help="YAML edit spec with a list 'operations:' (docs/usage.md, 'Editing').")] = None,
     rotate: Annotated[Optional[str], typer.Option(help="Rotate the whole field: rx,ry,rz degrees, R = Rz·Ry·Rx (applied after the spec).")] = None,
     translate: Annotated[Optional[str], typer.Option(help="Translate the whole field: tx,ty,tz (world units).")] = None,
     scale: Annotated[Optional[float], typer.Option(help="Scale the whole field uniformly by this factor (about --origin).")] = None,
     origin: Annotated[Optional[str], typer.Option(help="Centre of --rotate/--scale: x,y,z (default 0,0,0).")] = None,
     cage: Annotated[Optional[Path], typer.Option(help="Cage file (.npz/.vtk/.vtu/.msh) for a model file, or to replace a run's cage.")] = None,
-    gradient: Annotated[str, typer.Option(help="Per-primitive map: centre (deformation gradient interpolated at the centre) or tet (its tet's map).")] = "centre",
-    split: Annotated[float, typer.Option(help="Split primitives whose tets' maps vary by more than this (relative); 0 disables.")] = 0.5,
+    gradient: Annotated[Optional[str], typer.Option(help="Per-primitive map: map (the operation's closed-form map and Jacobian at each centre), smooth (higher-order cage interpolation), centre or tet (docs/usage.md 'How primitives follow the cage').", show_default="map for transform/twist/bend/taper, smooth for a cage file")] = None,
+    split_threshold: Annotated[float, typer.Option("--split-threshold", help="Split primitives whose tets' maps vary by more than this (relative); 0 disables.")] = 0.5,
+    # `--split` is a dataset split in render/eval/animate; edit's old name for the threshold stays
+    # one release as a hidden alias with a deprecation note (docs/usage.md, 'Editing')
+    split_old: Annotated[Optional[float], typer.Option("--split", hidden=True)] = None,
     preserve_opacity: Annotated[bool, typer.Option("--preserve-opacity", help="Measure optical depth in rest-space distance (stretching keeps opacity); adds the rest_metric tensor.")] = False,
     seed: Annotated[int, typer.Option(help="Seed for operations that sample or train.")] = 0,
     device: Annotated[str, typer.Option(help="cpu or cuda, for operations that render or train.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress messages.")] = False,
+    force: Force = False,
 ):
     """Edit a field through its cage and write a new run directory.
 
     Applies the spec's operations in order (transform, deform, twist, bend, taper, ...), then the
-    --rotate/--translate/--scale flags. The source is never modified; OUTPUT must not exist and is
-    written to a temporary folder renamed at the end. `radfield render/eval/info OUTPUT` work on it."""
+    --rotate/--translate/--scale flags. The source is never modified; OUTPUT is written to a temporary
+    folder renamed at the end (docs/usage.md, 'Outputs'). `radfield render/eval/info OUTPUT` work on it."""
     from radfield.edit.source import load_source, write_edited_run
     from radfield.edit.spec import EditContext, apply_operations, parse_spec, read_spec
     from radfield.pipeline.runner import format_figures
 
     start = time.perf_counter()
-    if output.exists():
-        raise RadfieldError(f"{output}: already exists (radfield edit writes a new run directory)")
+    check_output(output, force, folder=True)
     resolve_device(device)
     operations = read_spec(spec) if spec is not None else []
     flags = {"rotate": _vector(rotate, "rotate"), "translate": _vector(translate, "translate"),
@@ -62,8 +65,12 @@ def edit(
         operations += parse_spec({"operations": [{"transform": {"select": "all", **flags}}]}, "flags")
     elif not operations:
         raise RadfieldError("nothing to do: give --spec and/or --rotate/--translate/--scale")
+    if split_old is not None:
+        typer.echo("radfield: note: edit --split is deprecated and will be removed; use --split-threshold (same meaning)", err=True)
+        split_threshold = split_old
+    split = split_threshold
     if split < 0:
-        raise RadfieldError(f"--split must be >= 0, got {split}")
+        raise RadfieldError(f"--split-threshold must be >= 0, got {split}")
     log = (lambda message: None) if quiet else (lambda message: typer.echo(message, err=True))
 
     fld = load_source(source, cage)

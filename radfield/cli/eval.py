@@ -8,13 +8,13 @@ from typing import Annotated
 
 import typer
 
-from radfield.cli.common import Background, Dataset, Device, Downscale, Quiet, data_options, resolve_device
+from radfield.cli.common import Background, Dataset, Device, Downscale, Force, Quiet, check_output, data_options, resolve_device
 from radfield.errors import RadfieldError
 
 
 def eval_command(
     targets: Annotated[list[Path], typer.Argument(metavar="RUN_OR_MODEL...", help="A run directory (its final model) or a .safetensors model file; several with --compare.")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created; entries of an existing one are replaced).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created; an existing non-empty one needs --force, and then its entries of the same names are replaced).")],
     compare: Annotated[bool, typer.Option("--compare", help="Evaluate every RUN_OR_MODEL on the same views: one table and side-by-side grids.")] = False,
     dataset: Dataset = None,
     split: Annotated[str, typer.Option(help="train, val or test.")] = "test",
@@ -22,6 +22,7 @@ def eval_command(
     background: Background = None,
     device: Device = "cpu",
     quiet: Quiet = False,
+    force: Force = False,
 ):
     """Measure a trained model on a dataset split: PSNR, SSIM, LPIPS (AlexNet v0.1), FPS.
 
@@ -34,6 +35,7 @@ def eval_command(
     from radfield.delivery.compare import compare as compare_runs
     from radfield.stages.evaluate import eval_report
 
+    check_output(output, force, folder=True)
     dev = str(resolve_device(device))
     options = data_options(downscale, background)
     if compare:

@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from radfield.cli.common import check_output
 from radfield.errors import RadfieldError
 
 REFINE_STEPS = 300   # default --refine for a neural run: +6.8 dB held-out on the blobs demo, ~20 s on a CPU core
@@ -38,10 +39,7 @@ def export(
     if refine is not None and refine < 0:
         raise RadfieldError(f"--refine must be 0 or more steps, got {refine}")
     check_target(format, output)
-    if output.exists() and not force:
-        raise RadfieldError(f"{output}: already exists (use --force to overwrite)")
-    if output.is_dir():
-        raise RadfieldError(f"{output}: is a folder, not a file")
+    check_output(output, force, folder=False)   # the output policy of every command (docs/usage.md, 'Outputs')
     content = load_content(target, parts=parts_for(format))
     warning = supersample_warning(content.model, format)
     if warning:

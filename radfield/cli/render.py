@@ -8,12 +8,13 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import parse_background, progress_bar, resolve_device, resolve_model
+from radfield.cli.common import Force, check_output, parse_background, progress_bar, resolve_device, resolve_model
+from radfield.errors import RadfieldError
 
 
 def render(
     model_or_run: Annotated[Path, typer.Argument(metavar="MODEL_OR_RUN", help="A .safetensors model file, or a run directory (its final model).")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created; written under a temporary name and renamed at the end).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created; written under a temporary name and renamed at the end; an existing non-empty one needs --force).")],
     dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP). Default for a run: the dataset it trained on.")] = None,
     split: Annotated[str, typer.Option(help="Which cameras: train, val, test or all (without split files: every data.test_every-th view is test).")] = "test",
     background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] (default: the run's data.background, else 1,1,1).")] = None,
@@ -25,7 +26,8 @@ def render(
     elevation: Annotated[float, typer.Option(help="Orbit elevation in degrees above the horizontal.")] = 20.0,
     camera_path: Annotated[Optional[Path], typer.Option(help="Instead of the split's cameras: a nerfstudio camera-path JSON (world frame).")] = None,
     video: Annotated[Optional[Path], typer.Option(help="Also write the frames as an MP4 video (bundled ffmpeg).")] = None,
-    fps: Annotated[float, typer.Option(help="Video frame rate (default 30, or the camera path's).")] = 0.0,
+    fps: Annotated[Optional[float], typer.Option(help="Video frame rate.", show_default="30, or the camera path's")] = None,
+    force: Force = False,
 ):
     """Render every camera of a dataset split (or an orbit / a camera path) to OUTPUT/<frame name>.png.
 
@@ -37,13 +39,18 @@ def render(
 
     options = {"data.downscale": downscale, "render.near": near,
                "data.background": list(parse_background(background)) if background is not None else None}
+    check_output(output, force, folder=True)
+    if video is not None:
+        check_output(video, force, folder=False)
+    if fps is not None and fps <= 0:
+        raise RadfieldError(f"--fps must be positive, got {fps}")
     dev = resolve_device(device)
     model = resolve_model(model_or_run)
     with progress_bar(quiet) as progress:
         task = progress.add_task("rendering", total=None)
         summary = render_frames(model, model_or_run if is_run_dir(model_or_run) else None, dataset, split, output,
                                 options={k: v for k, v in options.items() if v is not None}, device=dev,
-                                orbit=orbit, elevation=elevation, camera_path=camera_path, video=video, fps=fps,
+                                orbit=orbit, elevation=elevation, camera_path=camera_path, video=video, fps=fps or 0.0,
                                 on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} views"),
                                 on_frame=lambda: progress.advance(task))
     typer.echo(f"rendered {summary['views']} views ({summary['width']}x{summary['height']}, {summary['primitives']} "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -22,23 +23,37 @@ def view(
 ):
     """Open an interactive viewer in the browser (http://HOST:PORT), rendered on this machine with
     radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums.
-    Stop it with Ctrl-C."""
-    from radfield.delivery.content import load_content
-    from radfield.delivery.viewer import Viewer, ViewerScene, viewer_cameras
+    Stop it with Ctrl-C (or SIGTERM: one line, exit 0)."""
+    from radfield.delivery.viewer import Viewer, viewer_scene
 
     if not 0 <= port < 65536:
         raise RadfieldError(f"--port must be in 0..65535, got {port}")
     if resolution < 16 or moving_downscale < 1:
         raise RadfieldError("--resolution must be at least 16 and --moving-downscale at least 1")
     resolve_device(device)
-    content = load_content(target, device, parts=("cage", "cameras"))
-    bg = parse_background(background) if background is not None else content.background or (1.0, 1.0, 1.0)
-    scene = ViewerScene(content.model, bg, content.cage, viewer_cameras(content.views))
+    scene = viewer_scene(target, device, parse_background(background) if background is not None else None)
     try:
         viewer = Viewer(scene, host=host, port=port, resolution=resolution, moving_downscale=moving_downscale,
                         log=lambda line: typer.echo(line, err=True))
     except OSError as error:
         raise RadfieldError(f"cannot listen on {host}:{port} ({error.strerror or error})") from None
-    typer.echo(f"viewer: http://{host}:{viewer.server.get_port()} ({len(content.model)} {content.model.kind} primitives); Ctrl-C stops it",
+    typer.echo(f"viewer: http://{host}:{viewer.server.get_port()} ({len(scene.model)} {scene.model.kind} primitives, "
+               f"{len(scene.cameras)} cameras); Ctrl-C stops it",
                err=True)
-    viewer.serve_forever()
+    # SIGTERM (systemd, docker stop, kill) stops the viewer like Ctrl-C, with one line and exit 0:
+    # by default it killed the process without closing the server, and a library that installs
+    # glog's failure handler (pycolmap) turned it into a 32-line stack dump
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        viewer.serve_forever()   # its `finally` stops the server
+    except _Terminated:
+        typer.echo("radfield: viewer stopped (SIGTERM)", err=True)
+
+
+class _Terminated(Exception):
+    """Raised in the main thread by the SIGTERM handler."""
+
+
+def _terminate(signum, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a second SIGTERM while stopping kills at once
+    raise _Terminated()

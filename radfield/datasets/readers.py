@@ -10,10 +10,10 @@ from pathlib import Path
 
 from radfield.errors import RadfieldError
 from radfield.datasets import formats
-from radfield.datasets.images import image_size
+from radfield.datasets.images import image_size, read_image
 from radfield.datasets.views import SPLITS, Dataset, Points, View
 
-__all__ = ["Dataset", "Points", "View", "SPLITS", "detect_format", "load_dataset", "validate"]
+__all__ = ["Dataset", "Points", "View", "SPLITS", "check_visible", "detect_format", "load_dataset", "validate"]
 
 
 def detect_format(path: str | Path) -> str:
@@ -60,3 +60,17 @@ def validate(dataset: Dataset) -> None:
             raise RadfieldError(
                 f"{view.image_path}: image is {size[0]}x{size[1]} but {what} {expected[0]}x{expected[1]}"
             )
+
+
+def check_visible(datasets, where) -> None:
+    """Refuse datasets whose images show nothing: every image has an alpha channel that is 0
+    everywhere (such a dataset reconstructed to a model of nothing, with exit 0). Reads pixels only
+    until the first image that shows something, so a usual dataset costs one decode (its first
+    image): an image without an alpha channel (a photo) shows something.
+    `datasets`: Dataset objects (the splits); `where`: the dataset named in the error."""
+    for dataset in datasets:
+        for view in dataset.views:
+            pixels = read_image(view.image_path)
+            if pixels.shape[-1] not in (2, 4) or (pixels[..., -1] > 0).any():
+                return
+    raise RadfieldError(f"{where}: no object is visible in any view (every image's alpha is 0 everywhere)")

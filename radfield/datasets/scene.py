@@ -52,7 +52,7 @@ from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
 from radfield.datasets import formats
 from radfield.datasets.images import downscaled_size, image_size
-from radfield.datasets.readers import SPLITS, Dataset, View, load_dataset, validate
+from radfield.datasets.readers import SPLITS, Dataset, View, check_visible, load_dataset, validate
 from radfield import run as layout
 
 SCENE = layout.SCENE_FILE
@@ -73,6 +73,7 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
     splits = _splits(path, data["downscale"], background, data["test_every"], data["val_every"])
     for dataset in splits.values():
         validate(dataset)
+    check_visible(splits.values(), path)
     train = splits["train"]
     points = _points(train)
     scene = {

@@ -1,8 +1,8 @@
 """Analytic shapes for the synthetic scenes: exact ray intersection (numpy, batched over rays),
 procedural albedo, and a triangulation for the ground-truth mesh.
 
-Every shape has a `bounding_sphere` (centre (3,), radius) for culling rays, and `intersect(o, d)`
-takes rays from origins o, one (3,) (a camera centre) or one per ray (R, 3) (shadow rays from
+Every shape has a `bounding_sphere` (centre (3,), radius) for culling rays, `sdf(x)` (the exact
+signed distance of points (M, 3), negative inside) and `intersect(o, d)`, which takes rays from origins o, one (3,) (a camera centre) or one per ray (R, 3) (shadow rays from
 surface points), in unit directions d (R, 3) (float64) and returns the distance to the first hit
 in front of the origin (R,) (inf on a miss) and the outward unit normal there (R, 3). The origin
 is assumed outside every shape.
@@ -61,6 +61,13 @@ def _rows(o: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
 
 
+def _box_distance(q: np.ndarray) -> np.ndarray:
+    """Exact signed Euclidean distance to the box {|q_i| <= 0} from q = |x_local| − half-extents
+    (M, k): what every shape's `sdf` reduces to. A ray marcher may step by an exact distance without
+    crossing a surface (synthetic.py, `Deformation`: the deformed demo scenes)."""
+    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(-1), 0.0)
+
+
 @dataclass(frozen=True)
 class Sphere:
     center: tuple[float, float, float]
@@ -79,6 +86,10 @@ class Sphere:
         t = _miss(t, (disc >= 0) & (t > _EPS))
         hit_t = np.where(np.isfinite(t), t, 0.0)
         return t, (oc + hit_t[:, None] * d) / self.radius
+
+    def sdf(self, x: np.ndarray) -> np.ndarray:
+        """Exact signed distance (M,) of points x (M, 3), negative inside."""
+        return np.linalg.norm(x - np.asarray(self.center), axis=-1) - self.radius
 
     def mesh(self):
         import pyvista as pv
@@ -120,6 +131,10 @@ class Box:
         rows = np.arange(len(d))
         normal[rows, axis] = -np.sign(d_local[rows, axis])
         return t, normal @ R.T
+
+    def sdf(self, x: np.ndarray) -> np.ndarray:
+        local = (x - np.asarray(self.center)) @ self.rotation
+        return _box_distance(np.abs(local) - np.asarray(self.half_size))
 
     def mesh(self):
         import pyvista as pv
@@ -167,6 +182,16 @@ class Cylinder:
         side_normal = (o_p + hit_t[:, None] * d_p) / self.radius
         normal = np.where((t == t_side)[:, None], side_normal, np.where((t == t_caps[0])[:, None], -u, u))
         return t, normal
+
+    def sdf(self, x: np.ndarray) -> np.ndarray:
+        a, b = np.asarray(self.start), np.asarray(self.end)
+        length = np.linalg.norm(b - a)
+        u = (b - a) / length
+        xa = x - a
+        z = xa @ u
+        radial = np.linalg.norm(xa - z[:, None] * u, axis=-1)
+        # a 2D box in (radial, axial) coordinates
+        return _box_distance(np.stack([radial - self.radius, np.abs(z - length / 2) - length / 2], -1))
 
     def mesh(self):
         import pyvista as pv
@@ -225,6 +250,10 @@ class Torus:
         ring *= R / np.maximum(np.linalg.norm(ring, axis=1, keepdims=True), _EPS)  # nearest point of the core circle
         normal = (p - ring) / np.maximum(np.linalg.norm(p - ring, axis=1, keepdims=True), _EPS)
         return t, normal @ F.T
+
+    def sdf(self, x: np.ndarray) -> np.ndarray:
+        local = (x - np.asarray(self.center)) @ self.frame
+        return np.hypot(np.hypot(local[:, 0], local[:, 1]) - self.major, local[:, 2]) - self.minor
 
     def mesh(self):
         import pyvista as pv

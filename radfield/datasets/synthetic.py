@@ -220,12 +220,14 @@ def intersect(scene: Scene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, n
 
 
 def shade(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, normal: np.ndarray, index: np.ndarray,
-          light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+          light: np.ndarray | None = None, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Colour (R, 3) of the hits of `intersect` and its specular part (R,), under the scene's light
     (or per-ray light directions `light` (R, 3), the samples of an area light):
     albedo · (ambient(n) + (1 − A) max(0, n·l) V) + k_s max(0, n·h)^p [n·l > 0] V, h = normalise(l − d),
     with ambient(n) = A (constant), or A (1 + s n_z)/(1 + s) under a sky dome of `sky` = s, and
-    V the light's visibility from the hit point (1 without `Lighting.shadows`)."""
+    V the light's visibility from the hit point (1 without `Lighting.shadows`). `points` (R, 3): where
+    the albedo is looked up (default the hits o + t·d; a deformed scene's rest-space points, so the
+    texture moves with the material)."""
     lighting = scene.lighting
     o = np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
     if light is None:
@@ -238,8 +240,8 @@ def shade(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, normal: np.
     if lighting.shadows:
         hit = np.flatnonzero((index >= 0) & (n_l > 0))
         # Offset along the normal so the shadow ray does not hit its own surface.
-        points = o[hit] + t[hit, None] * d[hit] + 1e-6 * normal[hit]
-        visible[hit] = np.isinf(intersect(scene, points, light[hit])[0])
+        shadow_from = o[hit] + t[hit, None] * d[hit] + 1e-6 * normal[hit]
+        visible[hit] = np.isinf(intersect(scene, shadow_from, light[hit])[0])
     ambient = lighting.ambient
     if lighting.sky:
         ambient = lighting.ambient * (1 + lighting.sky * normal[:, 2]) / (1 + lighting.sky)
@@ -251,7 +253,7 @@ def shade(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, normal: np.
     for k, primitive in enumerate(scene.primitives):
         rows = index == k
         material = primitive.material
-        colour[rows] = material.albedo(o[rows] + t[rows, None] * d[rows])
+        colour[rows] = material.albedo(o[rows] + t[rows, None] * d[rows] if points is None else points[rows])
         colour[rows] *= diffuse[rows, None]
         if material.specular > 0:  # Blinn-Phong, lit side only
             n_h = np.clip(np.einsum("ij,ij->i", normal[rows], half[rows]), 0.0, None)
@@ -308,10 +310,11 @@ def light_samples(lighting: Lighting, count: int, pixels: int, rng: np.random.Ge
 
 
 def render_view(scene: Scene, camera: Camera, samples: int | None = None,
-                rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+                rng: np.random.Generator | None = None, deform: "Deformation | None" = None) -> tuple[np.ndarray, np.ndarray]:
     """Premultiplied RGBA (H, W, 4) float32 averaged over samples x samples rays per pixel (default
     the scene's own `samples`; jittered in their cells if `scene.jitter`, drawn from `rng`), and
-    the z-depth (H, W) float32 of the pixel-centre ray (0 where it misses)."""
+    the z-depth (H, W) float32 of the pixel-centre ray (0 where it misses). With `deform` the
+    scene's shapes are seen deformed by that map (`Deformation.intersect`), through the same rays."""
     samples = scene.samples if samples is None else samples
     height, width = camera.height, camera.width
     if rng is None:
@@ -326,18 +329,224 @@ def render_view(scene: Scene, camera: Camera, samples: int | None = None,
     c2w = camera.c2w.numpy()
     d = d_cam.reshape(-1, 3) @ c2w[:3, :3].T
     o = c2w[:3, 3]
-    t, normal, index = intersect(scene, o, d)
+    if deform is None:
+        t, normal, index = intersect(scene, o, d)
+        points = None
+    else:
+        t, normal, index, points = deform.intersect(scene, o, d)
     light = None
     if scene.lighting.radius > 0:  # an area light: one light sample per ray; the centre ray (depth only) its centre
         light = light_samples(scene.lighting, samples * samples, height * width, rng)
         centre_light = np.broadcast_to(np.asarray(scene.lighting.direction), (height * width, 1, 3))
         light = np.concatenate([light, centre_light], 1).reshape(-1, 3)
-    colour, _ = shade(scene, o, d, t, normal, index, light)
+    colour, _ = shade(scene, o, d, t, normal, index, light, points)
     colour, t = colour.reshape(d_cam.shape), t.reshape(d_cam.shape[:-1])
     hit = np.isfinite(t)
     rgba = np.concatenate([colour[:, :, :-1], hit[:, :, :-1, None]], -1).mean(axis=2)
     depth = np.where(hit[:, :, -1], t[:, :, -1] * d_cam[:, :, -1, 2], 0.0)
     return rgba.astype(np.float32), depth.astype(np.float32)
+
+
+# --- deformed scenes: the ground truth of an edit (docs/usage.md "radfield demo-scene") --------
+
+MARCH_CAP = 0.05         # scene units: the longest sphere-tracing step (the Lipschitz bound holds over it)
+MARCH_HIT = 1e-6         # a ray has hit when its point's rest-space distance to a shape is below this
+MARCH_ITERATIONS = 4000  # a ray still undecided after this many steps grazes a surface: its last distance decides
+
+
+def _rotation_z(angle: np.ndarray) -> np.ndarray:
+    """Rotations (M, 3, 3) by angles (M,) radians about +z."""
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.zeros((len(angle), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1], out[:, 2, 2] = c, -s, s, c, 1.0
+    return out
+
+
+@dataclass(frozen=True)
+class Deformation:
+    """A smooth map φ of the scene (rest space x → deformed space y), known in closed form with its
+    inverse and Jacobian, in the conventions of `radfield edit`'s operations (edit/warp.py), origin 0:
+
+        twist   y = R_z(k·x_z) x                                   (k = degrees_per_unit, in radians)
+        bend    about the y axis along z: the line x = y = 0 becomes an arc of radius 1/k, centre (1/k, 0, 0):
+                y = (1/k + (x₁ − 1/k) cos θ, x₂, −(x₁ − 1/k) sin θ), θ = k·x₃
+        squash  y = A x (`matrix`)
+
+    A ray of the deformed scene is a curve in rest space; `intersect` marches along it (sphere
+    tracing on the shapes' exact signed distances at φ⁻¹(y), each step shortened by a bound of
+    |∂φ⁻¹/∂y| so that it never crosses a surface), except for the affine squash, whose rays stay
+    straight and are intersected exactly in rest space."""
+
+    kind: str
+    degrees_per_unit: float = 0.0
+    matrix: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    @property
+    def k(self) -> float:
+        return math.radians(self.degrees_per_unit)
+
+    def forward(self, x: np.ndarray) -> np.ndarray:
+        """φ(x) of rest points x (M, 3)."""
+        if self.kind == "twist":
+            return np.einsum("mij,mj->mi", _rotation_z(self.k * x[:, 2]), x)
+        if self.kind == "bend":
+            r, theta = 1.0 / self.k, self.k * x[:, 2]
+            s = x[:, 0] - r
+            return np.stack([r + s * np.cos(theta), x[:, 1], -s * np.sin(theta)], -1)
+        return x @ np.asarray(self.matrix).T
+
+    def inverse(self, y: np.ndarray) -> np.ndarray:
+        """φ⁻¹(y) of deformed points y (M, 3)."""
+        if self.kind == "twist":
+            return np.einsum("mij,mj->mi", _rotation_z(-self.k * y[:, 2]), y)
+        if self.kind == "bend":
+            r = 1.0 / self.k
+            rho = np.hypot(y[:, 0] - r, y[:, 2])
+            theta = np.arctan2(y[:, 2], r - y[:, 0])
+            return np.stack([r - rho, y[:, 1], theta / self.k], -1)
+        return np.linalg.solve(np.asarray(self.matrix), y.T).T
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """∂φ/∂x (M, 3, 3) at rest points x (M, 3)."""
+        if self.kind == "twist":
+            rot = _rotation_z(self.k * x[:, 2])
+            rx = np.einsum("mij,mj->mi", rot, x)
+            jac = rot.copy()
+            jac[:, 0, 2] += -self.k * rx[:, 1]      # ∂(R x)/∂x₃ = k (ẑ × R x)
+            jac[:, 1, 2] += self.k * rx[:, 0]
+            return jac
+        if self.kind == "bend":
+            theta = self.k * x[:, 2]
+            s = x[:, 0] - 1.0 / self.k
+            jac = np.zeros((len(x), 3, 3))
+            jac[:, 0, 0], jac[:, 0, 2] = np.cos(theta), -s * self.k * np.sin(theta)
+            jac[:, 1, 1] = 1.0
+            jac[:, 2, 0], jac[:, 2, 2] = -np.sin(theta), -s * self.k * np.cos(theta)
+            return jac
+        return np.broadcast_to(np.asarray(self.matrix, float), (len(x), 3, 3)).copy()
+
+    def inverse_lipschitz(self, y: np.ndarray, radius: float) -> np.ndarray:
+        """An upper bound (M,) of |∂φ⁻¹/∂y|₂ over the balls of `radius` around deformed points y:
+        twist 1 + k·(distance from the axis) (the inverse twist's shear), bend 1/(k·ρ) across the
+        arc (ρ the distance from the bend's centre line; 1 along the other directions), squash
+        |A⁻¹|₂."""
+        if self.kind == "twist":
+            return 1.0 + self.k * (np.hypot(y[:, 0], y[:, 1]) + radius)
+        if self.kind == "bend":
+            rho = np.hypot(y[:, 0] - 1.0 / self.k, y[:, 2]) - radius
+            return np.maximum(1.0, 1.0 / (self.k * np.maximum(rho, 1e-9)))
+        return np.full(len(y), np.linalg.norm(np.linalg.inv(np.asarray(self.matrix)), 2))
+
+    def spec(self) -> dict:
+        """The same map as one operation of a `radfield edit` spec (edit/warp.py)."""
+        if self.kind == "twist":
+            return {"twist": {"axis": "z", "degrees_per_unit": self.degrees_per_unit, "origin": [0.0, 0.0, 0.0]}}
+        if self.kind == "bend":
+            return {"bend": {"axis": "y", "along": "z", "degrees_per_unit": self.degrees_per_unit,
+                             "origin": [0.0, 0.0, 0.0]}}
+        return {"transform": {"matrix": [list(row) for row in self.matrix]}}
+
+    def intersect(self, scene: Scene, o: np.ndarray, d: np.ndarray):
+        """First hit of the deformed scene's rays from o (3,) along unit d (R, 3): distance (R,) (inf
+        on a miss), deformed unit normal (R, 3) (the rest normal mapped by J⁻ᵀ), index of the shape
+        hit (R,) (-1 on a miss) and the hit's rest-space point (R, 3) (its material)."""
+        o = np.asarray(o, np.float64)
+        if self.kind == "squash":
+            return self._intersect_affine(scene, o, d)
+        return self.march(scene, o, d)
+
+    def march(self, scene: Scene, o: np.ndarray, d: np.ndarray):
+        """`intersect` by sphere tracing, for any kind (the tests check it against the exact affine
+        path and the undeformed scene)."""
+        o = np.asarray(o, np.float64)
+        t = np.full(len(d), np.inf)
+        index = np.full(len(d), -1)
+        rest = np.zeros_like(d)
+        # only the part of each ray inside the deformed scene's bounding ball is marched
+        radius = self._bound(scene)
+        b = d @ o
+        disc = b * b - o @ o + radius**2
+        live = np.flatnonzero(disc > 0)
+        t_now = np.maximum(-b[live] - np.sqrt(disc[live]), 0.0)
+        t_end = -b[live] + np.sqrt(disc[live])
+        for _ in range(MARCH_ITERATIONS):
+            if live.size == 0:
+                break
+            y = o + t_now[:, None] * d[live]
+            x = self.inverse(y)
+            dist = np.stack([p.sdf(x) for p in scene.primitives], 1)
+            nearest, which = dist.min(1), dist.argmin(1)
+            hit = nearest < MARCH_HIT
+            t[live[hit]], index[live[hit]], rest[live[hit]] = t_now[hit], which[hit], x[hit]
+            step = np.minimum(nearest / self.inverse_lipschitz(y, MARCH_CAP), MARCH_CAP)
+            t_now = t_now + step
+            go = ~hit & (t_now <= t_end)
+            live, t_now, t_end = live[go], t_now[go], t_end[go]
+        else:
+            # grazing rays still undecided: within 1e-4 of a surface (~0.005 px at 128×128) is a hit
+            y = o + t_now[:, None] * d[live]
+            x = self.inverse(y)
+            dist = np.stack([p.sdf(x) for p in scene.primitives], 1)
+            hit = dist.min(1) < 1e-4
+            t[live[hit]], index[live[hit]], rest[live[hit]] = t_now[hit], dist.argmin(1)[hit], x[hit]
+        normal = np.zeros_like(d)
+        rows = np.flatnonzero(index >= 0)
+        if rows.size:
+            normal[rows] = self._normals(scene, rest[rows], index[rows])
+        return t, normal, index, rest
+
+    def _intersect_affine(self, scene: Scene, o: np.ndarray, d: np.ndarray):
+        # y = A x maps straight rays to straight rays: intersect in rest space along A⁻¹d, exactly
+        a_inv = np.linalg.inv(np.asarray(self.matrix, float))
+        o_rest, d_rest = a_inv @ o, d @ a_inv.T
+        length = np.linalg.norm(d_rest, axis=-1)
+        d_rest = d_rest / length[:, None]
+        t_rest, normal_rest, index = intersect(scene, o_rest, d_rest)
+        hit = np.isfinite(t_rest)
+        rest = o_rest + np.where(hit, t_rest, 0.0)[:, None] * d_rest
+        normal = normal_rest @ a_inv                                   # rows of A⁻ᵀ n
+        normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-300)
+        return t_rest / length, normal, index, rest
+
+    def _normals(self, scene: Scene, x: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Deformed unit normals at rest points x of shapes `index`: J⁻ᵀ ∇sdf (central differences)."""
+        grad = np.zeros_like(x)
+        h = 1e-6
+        for k, primitive in enumerate(scene.primitives):
+            rows = index == k
+            for axis in range(3):
+                e = np.zeros(3)
+                e[axis] = h
+                grad[rows, axis] = (primitive.sdf(x[rows] + e) - primitive.sdf(x[rows] - e)) / (2 * h)
+        normal = np.linalg.solve(np.swapaxes(self.jacobian(x), 1, 2), grad[..., None])[..., 0]
+        return normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+
+    def _bound(self, scene: Scene) -> float:
+        """Radius of a ball about the origin holding the deformed scene: the image of the rest
+        scene's bounding ball (sampled densely, with a margin)."""
+        rest = max(np.linalg.norm(c) + r for c, r in (p.bounding_sphere for p in scene.primitives))
+        n = 20000
+        k = np.arange(n) + 0.5
+        z = 1 - 2 * k / n
+        phi = k * math.pi * (3 - math.sqrt(5))
+        sphere = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], -1)
+        points = np.concatenate([sphere * rest * f for f in (0.25, 0.5, 0.75, 1.0)])
+        return 1.05 * float(np.linalg.norm(self.forward(points), axis=-1).max()) + 0.01
+
+
+# The squash: scales 1.2 / 0.9 / 0.8 with shears (det 0.864 > 0), the issue's affine map.
+SQUASH_MATRIX = ((1.2, 0.3, 0.0), (0.0, 0.9, 0.0), (0.0, 0.25, 0.8))
+DEFORMATIONS: dict[str, Deformation] = {
+    "twist": Deformation("twist", degrees_per_unit=45.0),
+    "bend": Deformation("bend", degrees_per_unit=30.0),
+    "squash": Deformation("squash", matrix=SQUASH_MATRIX),
+}
+
+
+def get_deformation(name: str) -> Deformation:
+    if name not in DEFORMATIONS:
+        raise RadfieldError(f"unknown deformation {name!r} (available: {', '.join(DEFORMATIONS)})")
+    return DEFORMATIONS[name]
 
 
 def orbit_cameras(n_train: int, n_test: int, size: int, seed: int = 0) -> tuple[list[Camera], list[Camera]]:
@@ -362,8 +571,9 @@ def orbit_cameras(n_train: int, n_test: int, size: int, seed: int = 0) -> tuple[
     return train, test
 
 
-def write_mesh(scene: Scene, path: Path) -> None:
-    """The scene's shapes triangulated into one PLY, each vertex coloured by its albedo."""
+def write_mesh(scene: Scene, path: Path, deform: Deformation | None = None) -> None:
+    """The scene's shapes triangulated into one PLY, each vertex coloured by its albedo (with
+    `deform`, the vertices moved by its map, coloured by their rest-space albedo)."""
     import pyvista as pv  # VTK is slow to import; only mesh writing needs it
 
     parts = []
@@ -372,20 +582,28 @@ def write_mesh(scene: Scene, path: Path) -> None:
         part.point_data["colors"] = np.rint(
             primitive.material.albedo(np.asarray(part.points, dtype=np.float64)) * 255
         ).astype(np.uint8)
+        if deform is not None:
+            part.points = deform.forward(np.asarray(part.points, dtype=np.float64))
         parts.append(part)
     pv.merge(parts).save(path, texture="colors")
 
 
 def generate_scene(
     name: str, out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None, size: int = 64,
-    seed: int = 0, mesh: bool = True,
+    seed: int = 0, mesh: bool = True, deform: str | None = None,
 ) -> Path:
     """Render scene `name` into a new NeRF-synthetic folder `out_dir` (see the module docstring);
     n_train / n_test default to the scene's own counts (Scene.train_views / test_views).
     mesh=False leaves out `mesh.ply` (its writer needs pyvista, which a GPU machine may lack).
     Written to a temporary sibling folder and renamed, so `out_dir` is either complete or absent;
-    an existing non-empty `out_dir` is refused."""
+    an existing non-empty `out_dir` is refused. `deform` ('twist', 'bend' or 'squash', `DEFORMATIONS`)
+    renders the scene's shapes deformed by that map through the same cameras (the ground truth of the
+    same map applied by `radfield edit`) and writes the map as an edit spec, `deform.yaml`."""
     scene = get_scene(name)
+    deformation = None if deform is None else get_deformation(deform)
+    if deformation is not None and (scene.lighting.shadows or scene.lighting.radius > 0):
+        raise RadfieldError(f"demo-scene {name}: --deform needs a scene without shadows or an area light "
+                            f"(its shadow rays would have to march the deformed scene too)")
     out_dir = Path(out_dir)
     n_train = scene.train_views if n_train is None else n_train
     n_test = scene.test_views if n_test is None else n_test
@@ -400,10 +618,18 @@ def generate_scene(
     try:
         train, test = orbit_cameras(n_train, n_test, size, seed)
         for split, cameras in (("train", train), ("test", test)):
-            _write_split(scene, tmp, split, cameras, seed)
+            _write_split(scene, tmp, split, cameras, seed, deformation)
         if scene.mesh and mesh:
-            write_mesh(scene, tmp / "mesh.ply")
-        (tmp / "scene.json").write_text(json.dumps(_describe(scene, seed), indent=2))
+            write_mesh(scene, tmp / "mesh.ply", deformation)
+        description = _describe(scene, seed)
+        if deformation is not None:
+            import yaml
+
+            description["deform"] = {"name": deform, **dataclasses.asdict(deformation), "edit_spec": deformation.spec()}
+            (tmp / "deform.yaml").write_text(
+                f"# radfield edit RUN --spec deform.yaml -o EDITED: the map this scene ({name}, {deform}) was rendered with\n"
+                + yaml.safe_dump({"operations": [deformation.spec()]}, sort_keys=False, default_flow_style=None))
+        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
         tmp.chmod(0o755)  # mkdtemp makes it private
         if out_dir.exists():
             out_dir.rmdir()
@@ -414,13 +640,14 @@ def generate_scene(
     return out_dir
 
 
-def _write_split(scene: Scene, root: Path, split: str, cameras: list[Camera], seed: int) -> None:
+def _write_split(scene: Scene, root: Path, split: str, cameras: list[Camera], seed: int,
+                 deform: Deformation | None = None) -> None:
     (root / split).mkdir()
     frames = []
     for k, camera in enumerate(cameras):
         # Each view's own sample pattern, reproducible from (seed, split, view).
         rng = np.random.default_rng([seed, ("train", "test").index(split), k])
-        rgba, depth = render_view(scene, camera, rng=rng)
+        rgba, depth = render_view(scene, camera, rng=rng, deform=deform)
         write_image(root / split / f"{camera.name}.png", rgba)
         write_image(root / split / f"{camera.name}_depth.exr", depth)
         frames.append(

@@ -127,8 +127,13 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> kinds.Pr
             raise RadfieldError(f"{path}: tensor {name!r} holds {int(bad.sum())} NaN/Inf values (first at primitive {row})")
     tensors = {name: t.to(torch.float32) for name, t in tensors.items()}
     model = kind.assemble(tensors, kind.read_metadata(path, meta), supersample=supersample)
-    if (model.quats.norm(dim=-1) == 0).any():
+    if (model.quats == 0).all(-1).any():   # exactly zero; tiny norms are check_values' (|q|² underflows)
         raise RadfieldError(f"{path}: tensor 'quats' has all-zero rows (no rotation)")
+    # finite is not enough: e.g. log_scales = 100 (s = inf in float32) rendered as background
+    out_of_range = kind.check_values(model)
+    if out_of_range is not None:
+        name, row, why = out_of_range
+        raise RadfieldError(f"{path}: tensor {name!r} is out of range at primitive {row} ({why})")
     return model.to(device)
 
 

@@ -55,6 +55,28 @@ def tet_edges(tets: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
+def viewer_scene(target, device: str = "cpu", background: tuple[float, float, float] | None = None) -> ViewerScene:
+    """What `radfield view TARGET` shows: the model of a model file or a run, and for a run its cage
+    and its dataset's cameras. An edited run has no data stage of its own: its cameras (and
+    background) are its source run's (radfield.run.Run.dataset_scene), since an edit keeps the
+    world frame. `background` overrides the run's (default white)."""
+    from pathlib import Path
+
+    from radfield.datasets.scene import load_scene
+    from radfield.delivery.content import load_content
+    from radfield.run import Run, is_run_dir
+
+    content = load_content(Path(target), device, parts=("cage", "cameras"))
+    views, run_background = content.views, content.background
+    if views is None and is_run_dir(target):
+        scene_file = Run(target).dataset_scene()
+        if scene_file is not None:
+            scene = load_scene(scene_file)
+            run_background = run_background or scene.background
+            views = scene.splits if scene.posed else None
+    return ViewerScene(content.model, background or run_background or (1.0, 1.0, 1.0), content.cage, viewer_cameras(views))
+
+
 def viewer_cameras(splits: dict[str, list[dict]] | None) -> list[Camera]:
     """radfield Cameras of scene.json views (every split; the train views first)."""
     return view_cameras([v for split in sorted(splits or {}, key=lambda s: s != "train") for v in splits[split]])

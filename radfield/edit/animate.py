@@ -79,7 +79,7 @@ def cage_poses(fld: Field, pattern: str) -> list[np.ndarray]:
 def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None,
             simulation: dict[str, Any] | Path | None = None, dataset: Path | None = None, split: str = "test",
             camera: int = 0, orbit: bool = False, elevation: float = 20.0, downscale: int = 1,
-            background: tuple[float, float, float] | None = None, fps: float = 0.0, gradient: str = "centre",
+            background: tuple[float, float, float] | None = None, fps: float = 0.0, gradient: str = "smooth",
             split_threshold: float = 0.5, device: torch.device | str = "cpu", quiet: bool = False,
             log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Animate the run at `run_dir`, whose field (with its cage) is `fld`, into the new folder
@@ -91,6 +91,10 @@ def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None
     the simulation's lines. Returns the summary written to SUMMARY."""
     from radfield.edit.simulate import read_simulation, simulate_cage
 
+    from radfield.edit.deform import CAGE_GRADIENTS
+
+    if gradient not in CAGE_GRADIENTS:   # before any work; "map" belongs to the edit operations
+        raise RadfieldError(f"--gradient: one of {', '.join(CAGE_GRADIENTS)} for cage poses, got {gradient!r}")
     run = Run(run_dir)
     config = run.config()
     bg = background if background is not None else tuple(config["data"]["background"])
@@ -119,14 +123,14 @@ def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None
 
     with torch.no_grad():
         render_model(fld.prims.to(device), cams[0], background=bg)   # warm-up, untimed (kernel loading)
-    with atomic_folder(output) as tmp:
+    with atomic_folder(output, merge=True) as tmp:  # a non-empty output only with --force (cli.common.check_output)
         frames, per_frame, cache = [], [], {}
         with progress_bar(quiet) as progress:
             task = progress.add_task(f"animating {len(poses)} frames", total=len(poses))
             for i, (pose, cam) in enumerate(zip(poses, cams)):
                 start = time.perf_counter()
                 posed = deform_field(fld, pose, gradient=gradient, split=split_threshold or None,
-                                     where=f"frame {i}", cache=cache)
+                                     where=f"frame {i}", cache=cache, rebind=False)
                 prims = posed.prims.to(device)
                 middle = time.perf_counter()
                 with torch.no_grad():

@@ -2,7 +2,7 @@
 as a file (so an animation is reproducible from one file next to its cage frames).
 
     animate: {cages: PATTERN, camera: 0, split: test, orbit: false, elevation: 20, fps: 30,
-              downscale: 1, background: [1, 1, 1], gradient: centre, split_threshold: 0.5}
+              downscale: 1, background: [1, 1, 1], gradient: smooth, split_threshold: 0.5}
     simulate: {...}        # instead of animate.cages: the built-in soft-body simulation (simulate.py)
 
 Exactly one pose source: `animate.cages` (a folder of cage frames or a glob pattern, relative to
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from radfield.errors import RadfieldError
-from radfield.edit.deform import GRADIENTS
+from radfield.edit.deform import CAGE_GRADIENTS as GRADIENTS   # an animation has cage poses only: no "map"
 from radfield.edit.select import number, vector
 from radfield.edit.simulate import parse_simulation
 from radfield.edit.spec import check_keys, read_yaml

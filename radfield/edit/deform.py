@@ -14,12 +14,25 @@ tet (barycentric λ of its centre) is mapped exactly by its A (docs/usage.md, "H
 The geometry and SH are mapped here for every kind; what happens to a kind's own tensors (the MLP
 above) is its `deformed` and `halved` hooks' (radfield.core.kinds).
 
-Which A a primitive uses (`gradient`):
-- "tet": the affine map of the tet holding its centre (exact for the piecewise-linear cage map
-  at μ, discontinuous across tet faces);
-- "centre": the deformation gradient interpolated at its centre from vertex gradients (the
-  volume-weighted mean of the A of the tets around each vertex), smooth across faces; the
-  default, as it follows bent and twisted cages more closely (docs/studies/edit-deformation.md).
+Where a primitive goes and which A it uses (`gradient`; docs/usage.md "How primitives follow the cage"):
+- "map" (the built-in operations transform, twist, bend, taper: their default): the operation's
+  own smooth map φ and its Jacobian J = ∂φ/∂x evaluated at the centre, μ' = φ(μ), A = J(μ)
+  (`map_field`; the cage vertices move by φ too). No cage interpolation at all: exact for the
+  user's map whatever the cage's resolution, and it does not need the cage's tets to stay
+  positive;
+- "smooth" (a cage moved by a file, an animation or the simulation: the default): the centre
+  from the barycentric blend of the corners' half-step Taylor predictions,
+  μ' = Σ λ_i (v'_i + ½ F_i (μ − v_i)), the mean of the linear interpolation Σ λ_i v'_i and of
+  the Taylor blend Σ λ_i (v'_i + F_i (μ − v_i)), with F_i the deformation gradient
+  at vertex i fitted to its neighbourhood (`fitted_gradients`), and centre's A. Why the mean: for
+  a smooth map φ with Hessian H, the linear interpolation errs by +½ Σ λ_i (v_i − μ)ᵀH(v_i − μ)
+  and the Taylor blend (exact gradients) by exactly minus that, so the mean is third-order
+  accurate. Exact for affine cage maps (both parts are);
+- "centre": μ' = Σ λ_i v'_i, A = Σ λ_i G_i, the deformation gradient interpolated at the centre
+  from vertex gradients G_i (the volume-weighted mean of the A of the tets around vertex i),
+  smooth across tet faces;
+- "tet": μ' = Σ λ_i v'_i and the affine map of the tet holding the centre: exactly the cage's
+  piecewise-linear map at μ (discontinuous across tet faces).
 A primitive whose tet and vertex gradients are exactly the identity keeps its parameters
 bit for bit (so an identity cage, or a local edit far away, changes nothing).
 
@@ -44,8 +57,10 @@ from radfield.errors import RadfieldError
 from radfield.core.render.sh import rotate_sh
 from radfield.edit.field import Field
 
-GRADIENTS = ("centre", "tet")
-DEFAULT_GRADIENT = "centre"
+CAGE_GRADIENTS = ("smooth", "centre", "tet")   # from the moved cage's vertices alone
+GRADIENTS = ("map",) + CAGE_GRADIENTS          # "map": an operation's closed-form map (warp.py)
+DEFAULT_GRADIENT = "smooth"   # a cage moved by a file, an animation, the simulation (measured: docs/usage.md)
+DEFAULT_MAP_GRADIENT = "map"  # the built-in operations whose map is known in closed form
 SPLIT_THRESHOLD = 0.5    # relative variation of A across a primitive's tets above which it is split
 MAX_SPLIT_ROUNDS = 2     # each round halves the flagged primitives along their longest axis
 
@@ -99,10 +114,81 @@ def vertex_gradients(a: np.ndarray, moved: np.ndarray, tets: np.ndarray, rest: n
     return grad, changed
 
 
-def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT):
+def check_cage_orientation(fld: Field, where: str = "deform") -> None:
+    """A cage with inverted tets (left so by a closed-form map that folds the cage but not the
+    field, e.g. a strong twist) cannot carry a cage-based deformation: its piecewise-linear map
+    is not a deformation of the object any more. One line telling how to go on."""
+    vol = tet_volumes(fld.cage_vertices, fld.cage_tets)
+    bad = np.flatnonzero(vol <= 1e-9 * np.median(np.abs(vol)))   # as check_deformed_cage's bound
+    if bad.size:
+        raise RadfieldError(f"{where}: the field's cage has {bad.size} inverted or flat tets (an earlier closed-form edit folded it); "
+                            f"cage-based edits need a valid cage: give one with --cage FILE, or use the built-in "
+                            f"operations with gradient: map")
+
+
+RING_MIN = 12   # neighbours a vertex needs for the 9-term fit (else its two-ring is used)
+
+
+def _neighbourhoods(tets: np.ndarray, n: int) -> list[np.ndarray]:
+    """Every vertex's one-ring (the vertices sharing a tet with it), or its two-ring where the
+    one-ring has fewer than RING_MIN vertices; without the vertex itself."""
+    import scipy.sparse as sp
+    rows = np.concatenate([tets[:, a] for a in range(4) for b in range(4) if a != b])
+    cols = np.concatenate([tets[:, b] for a in range(4) for b in range(4) if a != b])
+    adj = sp.csr_matrix((np.ones(len(rows), bool), (rows, cols)), shape=(n, n))
+    adj.setdiag(False)
+    adj.eliminate_zeros()
+    ring2 = ((adj + adj @ adj) > 0).tolil()
+    ring2.setdiag(False)
+    ring1 = adj.tolil()
+    return [np.asarray(r1 if len(r1) >= RING_MIN else r2, np.int64) for r1, r2 in zip(ring1.rows, ring2.rows)]
+
+
+def fitted_gradients(rest: np.ndarray, new: np.ndarray, tets: np.ndarray, fallback: np.ndarray,
+                     cache: dict | None = None) -> np.ndarray:
+    """Per vertex i the deformation gradient F_i (V, 3, 3) of a least-squares quadratic fit of the
+    displacements over its neighbourhood (`_neighbourhoods`: its one-ring where that has enough
+    vertices, so an edit stays nearly as local as with the tet-mean gradient): (u_j − u_i) ≈ D_i d + ½ dᵀ H d, d = v_j − v_i, u = v' − v,
+    F_i = I + D_i. The quadratic terms keep the curvature out of the gradient (a one-sided mean of
+    tet maps, as at the cage's boundary, is off by O(h); this is off by O(h²)). A fit of an affine
+    map is exact; a vertex whose neighbourhood did not move gets exactly I; a vertex with too few
+    or too ill-placed neighbours for the 9-term fit keeps `fallback` (the tet-mean gradient)."""
+    n = len(rest)
+    key = ("rings", id(tets))
+    if cache is not None and key in cache and cache[key][0] is tets:
+        rings = cache[key][1]
+    else:
+        rings = _neighbourhoods(tets, n)
+        if cache is not None:
+            cache[key] = (tets, rings)
+    u = new - rest
+    out = np.array(fallback, np.float64, copy=True)
+    eye = np.eye(3)
+    for i, js in enumerate(rings):
+        du = u[js] - u[i]
+        if not du.any():
+            out[i] = eye
+            continue
+        if len(js) < RING_MIN:
+            continue
+        d = rest[js] - rest[i]
+        scale = np.abs(d).max()
+        q = d / scale                                # conditioned: unit-sized offsets
+        m = np.concatenate([q, 0.5 * np.stack([q[:, 0] ** 2, q[:, 1] ** 2, q[:, 2] ** 2,
+                                                q[:, 0] * q[:, 1], q[:, 0] * q[:, 2], q[:, 1] * q[:, 2]], 1)], 1)
+        sv = np.linalg.svd(m, compute_uv=False)
+        if sv[-1] < 1e-3 * sv[0]:
+            continue
+        coef = np.linalg.lstsq(m, du, rcond=None)[0]
+        out[i] = eye + coef[:3].T / scale
+    return out
+
+
+def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT, cache: dict | None = None):
     """For every primitive: A (P, 3, 3), its new centre μ' (P, 3) and whether it changes (P,)."""
-    if gradient not in GRADIENTS:
-        raise RadfieldError(f"deform: gradient must be one of {', '.join(GRADIENTS)}, got {gradient!r}")
+    if gradient not in CAGE_GRADIENTS:
+        raise RadfieldError(f"deform: gradient must be one of {', '.join(CAGE_GRADIENTS)} for a moved cage "
+                            f"(map: the built-in operations only), got {gradient!r}")
     rest, tets = fld.cage_vertices, fld.cage_tets
     a_tet, _, moved = tet_maps(rest, new, tets)
     corners = tets[fld.tet]                                   # (P, 4)
@@ -114,7 +200,18 @@ def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT
     lam = np.clip(fld.bary, 0.0, None)
     lam /= np.maximum(lam.sum(1, keepdims=True), 1e-300)
     a = np.einsum("pk,pkij->pij", lam, grad[corners])
-    return a, means, changed[corners].any(1) | moved[fld.tet]
+    changed_p = changed[corners].any(1) | moved[fld.tet]
+    if gradient == "smooth":
+        # the mean of the linear interpolation and of the corners' Taylor predictions (module
+        # docstring): their second-order errors cancel. Exact for an affine map x ↦ Fx + b because
+        # Σ λ_i v_i = μ (the binding's own λ, extrapolating outside the cage as "tet" does).
+        fit = fitted_gradients(rest, new, tets, grad, cache)
+        moved_v = (fit != np.eye(3)).any(axis=(1, 2)) | (new != rest).any(1)
+        changed_p = changed_p | moved_v[corners].any(1)
+        mu = fld.prims.means.detach().double().numpy()
+        pred = new[corners] + 0.5 * np.einsum("pkij,pkj->pki", fit[corners], mu[:, None, :] - rest[corners])
+        means = np.where(changed_p[:, None], np.einsum("pk,pkd->pd", fld.bary, pred), means)
+    return a, means, changed_p
 
 
 # --- mapping primitives by per-primitive affine maps ----------------------------------------
@@ -236,13 +333,16 @@ def split_primitives(prims, index: np.ndarray):
 
 def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAULT_GRADIENT,
                  split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool = False,
-                 where: str = "deform", cache: dict | None = None) -> Field:
+                 where: str = "deform", cache: dict | None = None, rebind: bool = True) -> Field:
     """The field with its cage moved to `new_vertices` (same topology), every primitive mapped
     exactly (module docstring). `split`: threshold of `nonuniformity` above which a primitive is
-    halved first (None: never); `cache`: see `nonuniformity`. Appends {"op", "split", "moved_primitives", ...} to the notes."""
+    halved first (None: never); `cache`: see `nonuniformity` (and the cage's neighbourhoods);
+    `rebind`: bind the primitives to the new cage where μ' left its barycentric place ("smooth";
+    animation frames, deformed from the rest field each time, skip it). Appends {"op", "split", "moved_primitives", ...} to the notes."""
     if not fld.has_cage:
         raise RadfieldError(f"{where}: this field has no cage (its run has no tetra stage output)")
     new = np.asarray(new_vertices, np.float64)
+    check_cage_orientation(fld, where)
     check_deformed_cage(fld.cage_vertices, new, fld.cage_tets, where)
     a_tet, _, moved = tet_maps(fld.cage_vertices, new, fld.cage_tets)
     n_split = 0
@@ -253,10 +353,67 @@ def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAUL
                 break
             n_split += flagged.size
             fld = fld.with_prims(split_primitives(fld.prims, flagged))
-    a, means, changed = primitive_maps(fld, new, gradient)
+    a, means, changed = primitive_maps(fld, new, gradient, cache)
     prims = map_primitives(fld.prims, a, means, changed, preserve_opacity)
     out = replace(fld, prims=prims, cage_vertices=new, notes=list(fld.notes))
+    if gradient == "smooth" and rebind:
+        out.rebind()   # μ' is not Σ λ_i v'_i there: bind again for later cage-based edits
     out.notes.append({"operation": where.rsplit(".", 1)[-1], "entry": where, "gradient": gradient,
                       "split": int(n_split), "primitives": len(prims),
                       "moved_primitives": int(changed.sum()), "moved_tets": int(moved.sum())})
     return out
+
+
+# --- a closed-form map (the built-in operations) ----------------------------------------------
+
+def map_field(fld: Field, phi, jacobian, *, split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool = False,
+              where: str = "deform", rebind: bool = True) -> tuple[Field, int]:
+    """The field mapped by a smooth map known in closed form: `phi` (N, 3) -> (N, 3) and its
+    Jacobian `jacobian` (N, 3) -> (N, 3, 3). Every primitive gets μ' = φ(μ), A = J(μ) (then the
+    exact per-primitive mapping above); the cage's vertices move by φ, so the edited field's cage
+    follows the map for later edits and animation. `split`: a primitive whose Jacobian varies
+    over its probe points by more than this (relative, as `nonuniformity`) is halved first.
+    Returns the field and the number of cage tets the map inverted (the caller says so: the field
+    is fine, its cage is not any more, and cage-based edits of it are refused until re-caged)."""
+    n_split = 0
+    if split is not None:
+        for _ in range(MAX_SPLIT_ROUNDS):
+            probes = _probe_points(fld.prims)
+            p = len(fld.prims)
+            jac = jacobian(probes.reshape(-1, 3)).reshape(p, 7, 3, 3)
+            norm_c = np.linalg.norm(jac[:, 0], ord=2, axis=(-2, -1))
+            diff = np.linalg.norm(jac - jac[:, :1], ord=2, axis=(-2, -1)).max(1)
+            flagged = np.flatnonzero(diff > split * norm_c)
+            if flagged.size == 0:
+                break
+            n_split += flagged.size
+            fld = replace(fld, prims=split_primitives(fld.prims, flagged), notes=list(fld.notes))
+    mu = fld.prims.means.detach().double().numpy()
+    means, a = np.asarray(phi(mu), np.float64), np.asarray(jacobian(mu), np.float64)
+    if not (np.isfinite(means).all() and np.isfinite(a).all()):
+        raise RadfieldError(f"{where}: the map gives non-finite positions")
+    det = np.linalg.det(a)
+    folded = np.flatnonzero(det <= 0)
+    if folded.size:
+        raise RadfieldError(f"{where}: the map folds space at {folded.size} primitives (Jacobian determinant <= 0, "
+                            f"e.g. primitive {folded[0]}); use a gentler map or a wider falloff")
+    changed = (means != mu).any(1) | (a != np.eye(3)).any(axis=(1, 2))
+    prims = map_primitives(fld.prims, a, means, changed, preserve_opacity)
+    out = replace(fld, prims=prims, notes=list(fld.notes))
+    inverted = 0
+    if fld.has_cage:
+        new = np.asarray(phi(fld.cage_vertices), np.float64)
+        if not np.isfinite(new).all():
+            raise RadfieldError(f"{where}: the map gives non-finite cage vertices")
+        vol_rest, vol_new = tet_volumes(fld.cage_vertices, fld.cage_tets), tet_volumes(new, fld.cage_tets)
+        inverted = int((vol_new <= 1e-9 * np.abs(vol_rest)).sum())
+        out.cage_vertices = new
+    if inverted:
+        # the folded cage carries the field no more (cage-based edits are refused): unbound
+        out.tet, out.bary = np.full(len(prims), -1, np.int64), np.zeros((len(prims), 4))
+    elif rebind or len(prims) != len(out.tet):
+        out.rebind()   # μ' is φ(μ), not Σ λ_i v'_i: bind again for later cage-based edits
+    out.notes.append({"operation": where.rsplit(".", 1)[-1], "entry": where, "gradient": "map",
+                      "split": int(n_split), "primitives": len(prims), "moved_primitives": int(changed.sum()),
+                      "inverted_cage_tets": inverted})
+    return out, inverted

@@ -12,6 +12,18 @@ once, vectorised in numpy).
 Collision: vertices below the ground plane (height h·n = ground along n = −g/|g|) are projected
 onto it; their tangential motion in that substep is scaled by (1 − friction).
 
+Substeps adapt: `substeps` is the least number per frame. XPBD is not bound by an explicit
+integrator's CFL limit (it stays finite at any step), but with one Gauss-Seidel iteration per
+substep a step too long for the material's stiffness and the impact leaves constraints so far from
+solved that tets flip — the docs' settings at fps 12 (h = 1/240 s) inverted tets of the objects
+scene's cage at frame 3, where h = 1/600 s does not. The CFL bound (smallest tet altitude over the
+dilatational wave speed √((λ+2μ)/ρ): 1/2262 s there) is 4× more than that case needs, and a
+softer case needs fewer, so no bound is guessed: a frame whose substeps would leave any tet
+inverted or flat (volume <= 1e-9 of its rest volume, what `edit.deform` refuses to render) is
+undone and re-run with twice the substeps, and later frames keep the larger count. A frame that
+still inverts a tet at MAX_SUBSTEPS substeps is a one-line error (the material is too soft for its
+load) before anything is rendered.
+
 A CPU simulation library was considered first: warp-lang's `warp.sim` (FEM and XPBD soft bodies)
 was deprecated and moved to NVIDIA Newton, a GPU-first robotics engine (a large dependency with
 kernel compilation at first use on a 2-core machine); a cage of a few thousand tets needs none of
@@ -38,6 +50,8 @@ from radfield.edit.spec import read_yaml
 DEFAULTS = {"gravity": [0.0, 0.0, -9.8], "ground": None, "youngs_modulus": 1e6, "poisson_ratio": 0.3,
             "density": 1000.0, "damping": 0.5, "friction": 0.6, "frames": 60, "fps": 30.0, "substeps": 20,
             "initial_velocity": [0.0, 0.0, 0.0]}
+MAX_SUBSTEPS = 5120          # per frame: 20 doubled 8 times; a frame needing more is refused
+FLAT = 1e-9                  # a tet whose volume falls to FLAT × its rest volume counts as inverted
 
 
 def parse_simulation(args: Mapping, where: str = "simulate") -> dict:
@@ -99,6 +113,7 @@ class SoftBody:
         self.x = np.array(vertices, np.float64)
         self.tets = np.asarray(tets, np.int64)
         self.p = params
+        self.substeps = params["substeps"]   # the count now in use (it only grows: module docstring)
         self.v = np.broadcast_to(params["initial_velocity"], self.x.shape).copy()
         rest = self.x[self.tets]
         dm = np.swapaxes(rest[:, 1:] - rest[:, :1], 1, 2)
@@ -162,10 +177,27 @@ class SoftBody:
         self.v = (x - prev) / h * max(0.0, 1.0 - p["damping"] * h)
         self.x = x
 
-    def step(self, dt: float):
-        n = self.p["substeps"]
-        for _ in range(n):
-            self.substep(dt / n)
+    def inverted(self) -> bool:
+        """Whether any tet is inverted or flat now (volume <= FLAT × its rest volume)."""
+        return bool((tet_volumes(self.x, self.tets) <= FLAT * self.volume).any())
+
+    def step(self, dt: float) -> bool:
+        """Advance by dt in `self.substeps` substeps; a run of substeps that inverts a tet at any
+        substep is undone and repeated with twice as many (up to MAX_SUBSTEPS). Returns whether
+        the frame ended with no inverted tet."""
+        start = self.x.copy(), self.v.copy()
+        while True:
+            n = self.substeps
+            for _ in range(n):
+                self.substep(dt / n)
+                if self.inverted():
+                    break
+            else:
+                return True
+            if 2 * n > MAX_SUBSTEPS:
+                return False
+            self.x, self.v = start[0].copy(), start[1].copy()
+            self.substeps = 2 * n
 
     def energy(self) -> dict:
         """Kinetic, gravitational (relative to the ground) and elastic energy (J)."""
@@ -183,18 +215,34 @@ def simulate_cage(vertices: np.ndarray, tets: np.ndarray, params: dict,
     """Cage poses (frames of (V, 3), the first the rest pose) and figures: the ground, the
     lowest height reached, the energies at the start and the end, the largest energy seen."""
     body = SoftBody(vertices, tets, params)
+    lowest = float((body.x @ body.up).min())
+    if body.ground > lowest + 1e-9:
+        # a body starting inside the ground is shot out of it (each substep's push becomes a velocity
+        # of push/h) and its bottom tets flip, however many substeps: a mistake in the file, for this cage
+        raise RadfieldError(f"simulate.ground: {body.ground:g} is above the cage's lowest point ({lowest:.4g} along "
+                            f"-gravity): the body would start inside the ground (omit ground: 0.3 below that point)")
+    if body.inverted():
+        raise RadfieldError("simulate: the cage has flat or inverted tets at rest (volume <= 0); it cannot be simulated")
+    # said before the work, not as its success: the frames are still to be simulated and rendered
+    if log:
+        log(f"simulating {params['frames']} frames at {params['fps']:g} fps (at least {params['substeps']} substeps a frame)...")
     poses, energies = [body.x.copy()], [body.energy()["total"]]
     for frame in range(1, params["frames"]):
-        body.step(1.0 / params["fps"])
+        ok = body.step(1.0 / params["fps"])
         if not np.isfinite(body.x).all():
             raise RadfieldError(f"simulate: the simulation diverged at frame {frame} (raise substeps or lower youngs_modulus)")
+        if not ok:
+            raise RadfieldError(f"simulate: tets of the cage invert at frame {frame} even with {MAX_SUBSTEPS} substeps "
+                                f"a frame: the material is too soft for its load (raise youngs_modulus or "
+                                f"poisson_ratio, or lower density or gravity)")
         poses.append(body.x.copy())
         energies.append(body.energy()["total"])
     volumes = tet_volumes(body.x, body.tets)
     figures = {"frames": len(poses), "ground": body.ground, "min_height": float(min((p @ body.up).min() for p in poses)),
                "energy_start": energies[0], "energy_end": energies[-1], "energy_max": max(energies),
-               "inverted_tets_end": int((volumes <= 0).sum())}
+               "inverted_tets_end": int((volumes <= 0).sum()), "substeps": params["substeps"],
+               "substeps_max": body.substeps}
     if log:
-        log(f"simulated {len(poses)} frames: lowest point {figures['min_height']:.3f} (ground {body.ground:.3f}), "
-            f"energy {energies[0]:.3g} -> {energies[-1]:.3g} J")
+        log(f"simulation: lowest point {figures['min_height']:.3f} (ground {body.ground:.3f}), energy "
+            f"{energies[0]:.3g} -> {energies[-1]:.3g} J, {body.substeps} substeps a frame at the end")
     return poses, figures

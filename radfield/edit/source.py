@@ -70,7 +70,7 @@ def write_edited_run(output: Path, source: Path, edited: Field, operations: list
     marker.update({"created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "edited_from": str(source.resolve())})
     figures = {"operations": len(operations), "primitives": len(edited.prims),
                "split": sum(int(n.get("split", 0)) for n in edited.notes)}
-    with atomic_folder(output) as tmp:
+    with atomic_folder(output, merge=True) as tmp:  # a non-empty output only with --force (cli.common.check_output)
         run = Run(tmp)
         save_field(run.edit_dir, edited)
         atomic_write_text(run.edit_spec, yaml.safe_dump(

@@ -23,6 +23,7 @@ import yaml
 
 from radfield.errors import RadfieldError
 from radfield.edit.field import Field
+from radfield.pipeline.config import parse_yaml
 
 # modules whose import registers operations (one per operation family)
 OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.warp", "radfield.edit.boolean", "radfield.edit.compose",
@@ -88,7 +89,8 @@ def read_yaml(path: str | Path, what: str = "the file") -> Any:
     """A YAML file's content, or a one-line error naming the file."""
     path = Path(path)
     try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
+        # the pipeline config's loader: numbers as users write them (1e6), in one place
+        return parse_yaml(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise RadfieldError(f"{path}: cannot read {what} ({exc.strerror})") from None
     except yaml.YAMLError as exc:

@@ -58,13 +58,16 @@ _TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a 
 
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads `1e-5` and `1e3` as floats (YAML 1.2), as users write them."""
+    """SafeLoader that also reads `1e-5`, `1e3`, `1E6` and `.5e3` as floats (YAML 1.2), as users
+    write them: YAML 1.1 (PyYAML's default) wants a dot and a signed exponent (`1.0e+6`), so `1e6`
+    was the string '1e6'. The one loader of every YAML file radfield reads (the pipeline config,
+    edit, animation and simulation specs: radfield.edit.spec.read_yaml)."""
 
 
 _Loader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+.0123456789"),
 )
 
 

@@ -13,7 +13,15 @@ The JSON of `run_info` is a stable interface (scripts and docs/formats.md rely o
         "stage": "train", "step": 1500,           #   it resumes from, the step it reached and the steps asked
         "iterations": 3000, "path": "/abs/..."    #   for (the run's config; null if unreadable)
       } | null,
-      "stages": {                                 # in pipeline order
+      "edited_from": "/abs/path/SOURCE" | null,   # an edited run (`radfield edit`): the run directory
+                                                  # or model file it was made from; else null
+      "edit": {                                   # an edited run (else null): when it was written, the
+        "created": "2026-01-01T12:00:00+0000",    #   operations applied (its edit/spec.yaml) and that file
+        "operations": [{"<name>": {...}}, ...],
+        "spec": "/abs/path/RUN/edit/spec.yaml"
+      } | null,
+      "stages": {                                 # in pipeline order; an edited run has only "edit" (the
+                                                  # reconstruction's stages ran in its source run)
         "<stage>": {
           "done": true | false,                   # finished (its manifest exists)
           "seconds": 12.3 | null,                 # wall time of its last run; null if never run
@@ -71,7 +79,22 @@ def run_info(run_dir: Path) -> dict[str, Any]:
         "normalization": str(normalization.resolve()) if normalization.is_file() else None,
         "pending_checkpoint": pending_checkpoint(run),
         "stages": stages,
+        "edited_from": str(run.edited_from) if run.edited_from is not None else None,
+        "edit": edit_info(run),
     }
+
+
+def edit_info(run: Run) -> dict[str, Any] | None:
+    """What `radfield edit` made an edited run with (see the module docstring), or None."""
+    if not run.is_edited:
+        return None
+    operations = None
+    try:
+        operations = (parse_yaml(run.edit_spec.read_text(encoding="utf-8")) or {}).get("operations")
+    except (OSError, yaml.YAMLError, AttributeError):
+        pass  # unreadable: shown as unknown
+    return {"created": run.marker().get("created"), "operations": operations,
+            "spec": str(run.edit_spec.resolve()) if run.edit_spec.is_file() else None}
 
 
 def pending_checkpoint(run: Run) -> dict[str, Any] | None:
@@ -114,9 +137,26 @@ def format_info(info: dict[str, Any]) -> str:
         step = pending["step"] if pending["step"] is not None else "? (unreadable)"
         console.print(f"pending checkpoint: {pending['stage']} interrupted at step {step}{of}; "
                       f"`radfield reconstruct` on the run resumes it ({pending['path']})")
+    if info.get("edited_from"):
+        console.print(f"edited from: {info['edited_from']}")
+    edit = info.get("edit")
+    if edit:
+        operations = edit["operations"]
+        count = len(operations) if isinstance(operations, list) else "? (unreadable spec)"
+        console.print(f"edit: {count} operation(s), written {edit['created'] or '?'} from {edit['spec'] or '-'}", soft_wrap=True)
+        for i, op in enumerate(operations if isinstance(operations, list) else [], 1):
+            console.print(f"  {i}. {_operation(op)}", soft_wrap=True)
     if info["normalization"]:
         console.print(f"normalization (photos -> run frame): {info['normalization']}")
     return buffer.getvalue()
+
+
+def _operation(op: Any) -> str:
+    """One spec entry ({name: arguments}) on one line, e.g. `twist {axis: z, degrees_per_unit: 20}`."""
+    if isinstance(op, dict) and len(op) == 1:
+        (name, args), = op.items()
+        return f"{name} {yaml.safe_dump(args, default_flow_style=True, width=10**6).strip()}"
+    return str(op)
 
 
 def _status(entry: dict[str, Any]) -> str:

@@ -40,6 +40,7 @@ import torch
 from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.render.sh import sh_degree_from_coeffs
 from radfield.errors import RadfieldError
+from radfield.util.registry import Registry
 
 if TYPE_CHECKING:
     from radfield.core.geometry.cameras import Camera
@@ -174,6 +175,36 @@ class PrimitiveKind:
         """The attributes from a model file's metadata, validated (RadfieldError naming the file)."""
         return {}
 
+    # The ranges a model file's values must keep (checked on load: radfield.delivery.io). Far from
+    # what training and editing write (measured over every model of the test suite and the demo
+    # scenes: |log s| <= 6.2, |μ| <= 1.1, |q| in [0.46, 4.2]), and chosen so that what the renderer
+    # forms from them stays finite and normal in float32: s² and 1/s² for |log s| <= 25 (e^±50 ≈
+    # 1e±22; a log scale of 100 made s = inf and the primitive silently vanish), |μ|² for |μ| <= 1e12,
+    # q/|q| for |q| >= 1e-6 (|q|² underflows near 1e-19). ±25 still spans nm to 10⁵ km primitives,
+    # whatever the unit of a dataset's world frame.
+    LOG_SCALE_LIMIT = 25.0
+    MEAN_LIMIT = 1e12
+    QUAT_NORM_RANGE = (1e-6, 1e6)
+
+    def check_values(self, prims) -> tuple[str, int, str] | None:
+        """The first out-of-range value of `prims` as (tensor name, first bad primitive, why), or None.
+        Called on finite values (the loader checks that first); a kind adds its own tensors' ranges
+        to these of the shared geometry."""
+        lim = self.LOG_SCALE_LIMIT
+        bad = first_bad_row(prims.log_scales.abs() > lim)
+        if bad is not None:
+            value = prims.log_scales[bad][prims.log_scales[bad].abs() > lim][0]
+            return "log_scales", bad, f"a log scale of {float(value):g} is outside [-{lim:g}, {lim:g}]"
+        bad = first_bad_row(prims.means.abs() > self.MEAN_LIMIT)
+        if bad is not None:
+            return "means", bad, f"a coordinate beyond ±{self.MEAN_LIMIT:g}"
+        lo, hi = self.QUAT_NORM_RANGE
+        norm = prims.quats.double().norm(dim=-1)
+        bad = first_bad_row((norm < lo) | (norm > hi))
+        if bad is not None:
+            return "quats", bad, f"norm {float(norm[bad]):g} is outside [{lo:g}, {hi:g}]"
+        return None
+
     # --- rendering (core/render/rasterize.py) ---------------------------------------------------
 
     def twin_view(self, prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tensor, tuple]:
@@ -272,38 +303,32 @@ class PrimitiveKind:
 
 # --- the registry --------------------------------------------------------------------------------
 
-_KINDS: dict[str, PrimitiveKind] = {}
+_KINDS: Registry[PrimitiveKind] = Registry("primitive kind")
 
 
 def register(kind: PrimitiveKind) -> PrimitiveKind:
     """Make a kind known (by its name and its primitives' `kind` attribute, which must agree)."""
     if kind.primitives.kind != kind.name:
         raise ValueError(f"kind {kind.name!r}: its primitives say kind = {kind.primitives.kind!r}")
-    if kind.name in _KINDS:
-        raise ValueError(f"primitive kind {kind.name!r} is registered already")
-    _KINDS[kind.name] = kind
-    return kind
+    return _KINDS.register(kind.name, kind)
 
 
 def unregister(name: str) -> None:
-    _KINDS.pop(name, None)
+    _KINDS.unregister(name)
 
 
 def names() -> tuple[str, ...]:
     """The registered kinds, in registration order (neural, gaussian, then any added)."""
-    return tuple(_KINDS)
+    return _KINDS.names()
 
 
 def registered() -> tuple[PrimitiveKind, ...]:
     """The registered kinds, in registration order."""
-    return tuple(_KINDS.values())
+    return _KINDS.values()
 
 
 def get(name: str) -> PrimitiveKind:
-    try:
-        return _KINDS[name]
-    except KeyError:
-        raise RadfieldError(f"unknown primitive kind {name!r} (known: {', '.join(_KINDS)})") from None
+    return _KINDS.get(name)
 
 
 def of(prims) -> PrimitiveKind:
@@ -312,6 +337,13 @@ def of(prims) -> PrimitiveKind:
 
 
 # --- shared helpers: metadata and ellipsoid bounds ------------------------------------------------
+
+def first_bad_row(mask: torch.Tensor) -> int | None:
+    """The first primitive (row) of a (P, ...) bool mask with any True, or None."""
+    rows = mask.reshape(len(mask), -1).any(1) if len(mask) else mask.new_zeros(0, dtype=torch.bool)
+    hit = torch.nonzero(rows)
+    return int(hit[0, 0]) if len(hit) else None
+
 
 def int_metadata(path, meta: dict[str, str], key: str) -> int:
     try:

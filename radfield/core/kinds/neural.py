@@ -21,7 +21,7 @@ import torch
 from radfield.core import backends
 from radfield.core.backends import fused
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.kinds.base import (INITIAL_ALPHA, PrimitiveKind, ViewFrame, _Primitives, camera_directions,
+from radfield.core.kinds.base import (INITIAL_ALPHA, PrimitiveKind, ViewFrame, _Primitives, camera_directions, first_bad_row,
                                       ellipsoid_bounds, float_metadata, register)
 from radfield.core.render.kernels import (WINDOW_GAIN, alpha_from_optical_depth, ellipsoid_frame, neural_optical_depth,
                                           ray_ellipsoid, windowed_optical_depth)
@@ -236,6 +236,26 @@ class NeuralKind(PrimitiveKind):
         if window not in ("0", "1"):
             raise RadfieldError(f"{path}: metadata window={window!r} is not 0 or 1")
         return {"omega0": omega0, "window": window == "1"}
+
+    # ω0·|W1 row|, a hidden unit's frequency in radians per unit of the primitive's own radius: at
+    # most 16 in every model of the test suite (the frequency cap keeps trained models there); 1e4
+    # is far beyond what any pixel grid resolves, and a wild value (1e30) makes cos() meaningless.
+    MAX_FREQUENCY = 1e4
+
+    def check_values(self, prims):
+        out = super().check_values(prims)
+        if out is not None:
+            return out
+        freq = prims.omega0 * prims.w1.double().norm(dim=-1)                 # (P, N)
+        bad = first_bad_row(freq > self.MAX_FREQUENCY)
+        if bad is not None:
+            return "w1", bad, f"a frequency ω0·|w1| of {float(freq[bad].max()):g} exceeds {self.MAX_FREQUENCY:g}"
+        if prims.rest_metric is not None:   # G = c² A⁻ᵀA⁻¹ (edit/deform.py) is positive definite
+            info = torch.linalg.cholesky_ex(metric_matrix(prims.rest_metric.double())).info
+            bad = first_bad_row(info != 0)
+            if bad is not None:
+                return "rest_metric", bad, "not positive definite (a rest-space metric must be)"
+        return None
 
     # --- rendering
 

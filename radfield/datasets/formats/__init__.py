@@ -19,44 +19,35 @@ from pathlib import Path
 from radfield.datasets.formats import colmap, nerf_synthetic, nerfstudio, photos
 from radfield.datasets.formats.base import DatasetFormat, Reading, llff_split
 from radfield.errors import RadfieldError
+from radfield.util.registry import Registry
 
 __all__ = ["DatasetFormat", "Reading", "detect", "get", "llff_split", "names", "register", "unregister"]
 
-_REGISTRY: dict[str, DatasetFormat] = {}
+# listed (and tried) in priority order; equal priorities keep their registration order
+_REGISTRY: Registry[DatasetFormat] = Registry("dataset format", order=lambda fmt: fmt.priority)
 
 
 def register(fmt: DatasetFormat) -> DatasetFormat:
     """Add `fmt` to the registry and return it; ValueError when its name is empty or taken."""
     if not isinstance(fmt, DatasetFormat) or not fmt.name:
         raise ValueError(f"{fmt!r} is not a named DatasetFormat")
-    if fmt.name in _REGISTRY:
-        raise ValueError(f"dataset format {fmt.name!r} is already registered")
-    _REGISTRY[fmt.name] = fmt
-    return fmt
+    return _REGISTRY.register(fmt.name, fmt)
 
 
 def unregister(name: str) -> None:
-    """Remove the format `name` (KeyError when there is none)."""
-    del _REGISTRY[name]
-
-
-def _ordered() -> list[DatasetFormat]:
-    # sorted() is stable: equal priorities keep their registration order
-    return sorted(_REGISTRY.values(), key=lambda fmt: fmt.priority)
+    """Remove the format `name` (nothing when there is none)."""
+    _REGISTRY.unregister(name)
 
 
 def names() -> tuple[str, ...]:
     """The registered formats' names in detection order."""
-    return tuple(fmt.name for fmt in _ordered())
+    return _REGISTRY.names()
 
 
 def get(name: str) -> DatasetFormat:
     """The format called `name`; a one-line RadfieldError when none is (e.g. a scene.json written
     with a format that is not registered in this process)."""
-    try:
-        return _REGISTRY[name]
-    except KeyError:
-        raise RadfieldError(f"unknown dataset format {name!r} (known: {', '.join(names())})") from None
+    return _REGISTRY.get(name)
 
 
 def detect(path: str | Path) -> DatasetFormat:
@@ -65,7 +56,7 @@ def detect(path: str | Path) -> DatasetFormat:
     path = Path(path)
     if not path.exists():
         raise RadfieldError(f"dataset not found: {path}")
-    ordered = _ordered()
+    ordered = _REGISTRY.values()
     for fmt in ordered:
         if fmt.recognises(path):
             return fmt

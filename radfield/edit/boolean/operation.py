@@ -22,6 +22,11 @@ from radfield.edit.select import number
 from radfield.edit.spec import check_keys, operation
 
 OPS = ("union", "intersection", "difference", "xor")
+# the timed phases of a boolean, in its note: they partition its wall time `seconds`. teacher,
+# stage1 and stage2 are timed inside the retraining; retrain_other is the rest of it (the density
+# samples, the cameras, the PSNR renders before and after); other: what no phase measures (assembly)
+PHASES = ("operand_seconds", "classify_seconds", "cap_seconds", "mask_grid_seconds", "teacher_seconds",
+          "stage1_seconds", "stage2_seconds", "retrain_other_seconds", "other_seconds")
 ARGUMENTS = {"op", "shape", "mesh", "model", "epsilon", "rotate", "translate", "scale", "steps", "views", "size", "cap"}
 
 
@@ -58,17 +63,22 @@ def boolean(fld: Field, args, ctx) -> Field:
     t0 = time.perf_counter()
     operand = read_operand(fld, args, opts.op, ctx)
     parts = operand_masks(fld, operand.shape, operand.other, opts.op, operand.epsilon, operand.epsilon_e)
+    t1 = time.perf_counter()
     split = split_primitives(parts, operand, opts.op, ctx.where)
     prims, kept, straddle = split.base.prims, split.kept, split.straddle
     straddlers = prims.select(torch.as_tensor(straddle))
     note = {"operation": "boolean", "op": opts.op, "operand": opts.operand, "kept": int(kept.size),
-            "dropped": split.dropped, "retrained": int(straddle.size), "seeded": 0}
+            "dropped": split.dropped, "retrained": int(straddle.size), "seeded": 0,
+            "operand_seconds": round(t1 - t0, 2)}
+    t2 = time.perf_counter()
+    note["classify_seconds"] = round(t2 - t1, 2)
 
     caps = prims.select(torch.zeros(0, dtype=torch.int64))
     if opts.cap and straddle.size and opts.op in ("difference", "intersection"):
         # the cut face: the operand's boundary where it lies inside E (union and xor add F's own surface)
         caps = cut_caps(fld.prims, straddlers, operand.shape, operand.other, operand.epsilon, opts.op, ctx.seed)
         note["seeded"] = len(caps)
+    note["cap_seconds"] = round(time.perf_counter() - t2, 2)
 
     masks = split.masks
     if operand.shape is None and straddle.size:
@@ -78,10 +88,18 @@ def boolean(fld: Field, args, ctx) -> Field:
     if straddle.size == 0 and len(caps) == 0:
         out_prims = frozen
     else:
+        t3 = time.perf_counter()
         out_prims = retrain_boundary(frozen, straddlers, caps, split.mask_id[straddle], masks,
                                      opts.steps, opts.views, opts.size, ctx, note)
+        inside = sum(float(note.get(key, 0.0)) for key in ("teacher_seconds", "stage1_seconds", "stage2_seconds"))
+        note["retrain_other_seconds"] = round(max(time.perf_counter() - t3 - inside, 0.0), 2)
     out = result_field(fld, split.base, kept, out_prims)
-    note["seconds"] = round(time.perf_counter() - t0, 2)
+    seconds = round(time.perf_counter() - t0, 2)
+    # the phases add up to `seconds` (to the rounding): what no phase measured is `other`
+    for key in PHASES[:-1]:   # in PHASES' order, after the other figures
+        note[key] = round(float(note.pop(key, 0.0)), 2)
+    note["other_seconds"] = round(max(seconds - sum(note[key] for key in PHASES[:-1]), 0.0), 2)
+    note["seconds"] = seconds
     out.notes.append(note)
     ctx.log(f"boolean {opts.op}: {note}")
     return out
