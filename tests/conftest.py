@@ -210,3 +210,34 @@ def strategy_scene_fixture():
 def densify_config_fixture():
     """`densify_config()`: a fresh train.densify section for the strategy tests (see the function)."""
     return densify_config
+
+
+def hand_run(root: Path, half: float = 0.8):
+    """(dataset, run, cage vertices, cage tets): a 24×24 blobs dataset and a run made by hand from 20
+    random neural primitives with a box cage of half-size `half` and the binding, for the tests of
+    commands that read a run (the reconstruction itself is not what they check)."""
+    import json
+
+    from radfield.core.geometry.cage import write_binding, write_cage
+    from radfield.core.kinds import random_neural
+    from radfield.datasets.synthetic import generate_scene
+    from radfield.delivery.io import save_model
+    from radfield.edit.field import box_cage
+
+    data = generate_scene("blobs", root / "data", n_train=3, n_test=2, size=24, seed=0)
+    run = root / "run"
+    for stage in ("train", "tetra", "bind"):
+        (run / stage).mkdir(parents=True)
+    prims = random_neural(20, sh_degree=1, extent=0.4, scale=0.15, seed=2)
+    save_model(run / "train" / "model.safetensors", prims)
+    v, t = box_cage([-half] * 3, [half] * 3, 2)
+    write_cage(run / "tetra", v, t)
+    write_binding(run / "bind" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
+    (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
+    (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
+    return data, run, v, t
+
+
+@pytest.fixture(name="hand_run", scope="session")
+def hand_run_fixture():
+    return hand_run

@@ -8,30 +8,13 @@ import json
 
 import pytest
 
-from radfield.core.geometry.cage import write_binding, write_cage
-from radfield.core.kinds import random_neural
-from radfield.datasets.synthetic import generate_scene
-from radfield.delivery.io import save_model
-from radfield.edit.field import box_cage
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene(tmp_path_factory, hand_run):
     """(dataset, run): a 24×24 blobs dataset and a run of 20 random primitives with a cage and a
     binding, made by hand (the policies are checked, not the reconstruction)."""
-    root = tmp_path_factory.mktemp("policies")
-    data = generate_scene("blobs", root / "data", n_train=3, n_test=2, size=24, seed=0)
-    run = root / "run"
-    (run / "train").mkdir(parents=True)
-    (run / "tetra").mkdir()
-    prims = random_neural(20, sh_degree=1, extent=0.4, scale=0.15, seed=2)
-    save_model(run / "train" / "model.safetensors", prims)
-    v, t = box_cage([-0.8, -0.8, -0.8], [0.8, 0.8, 0.8], 2)
-    write_cage(run / "tetra", v, t)
-    (run / "bind").mkdir()
-    write_binding(run / "bind" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
-    (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
-    (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
+    data, run, _, _ = hand_run(tmp_path_factory.mktemp("policies"))
     return data, run
 
 

@@ -27,11 +27,7 @@ import numpy as np
 import pytest
 import yaml
 
-from radfield.core.geometry.cage import write_binding, write_cage
-from radfield.core.kinds import random_neural
-from radfield.datasets.synthetic import generate_scene
-from radfield.delivery.io import save_model
-from radfield.edit.field import box_cage
+from radfield.core.geometry.cage import write_cage
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ("README.md", "docs/usage.md")
@@ -115,20 +111,9 @@ def command_examples() -> list[tuple[str, str]]:
 # --- a tiny run for the spec examples ---------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, hand_run):
     root = tmp_path_factory.mktemp("docs")
-    data = root / "data"
-    generate_scene("blobs", data, n_train=3, n_test=2, size=24, seed=0)
-    run = root / "run"
-    for stage in ("train", "tetra", "bind"):
-        (run / stage).mkdir(parents=True)
-    prims = random_neural(20, sh_degree=1, extent=0.4, scale=0.15, seed=2)
-    save_model(run / "train" / "model.safetensors", prims)
-    v, t = box_cage([-0.55, -0.55, -0.55], [0.55, 0.55, 0.55], 2)   # above the docs' `ground: -0.6`
-    write_cage(run / "tetra", v, t)
-    write_binding(run / "bind" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
-    (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
-    (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
+    data, run, v, t = hand_run(root, half=0.55)   # the cage above the docs' `ground: -0.6`
     write_cage(root / "moved", v * [1.1, 1.0, 0.9], t)
     for k in range(3):
         write_cage(root / "frames" / f"frame_{k}", v + [0.0, 0.0, 0.05 * k], t)

@@ -12,32 +12,18 @@ import pytest
 import torch
 import yaml
 
-from radfield.core.geometry.cage import write_binding, write_cage
+from radfield.core.geometry.cage import write_cage
 from radfield.core.geometry.camera_path import orbit
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
-from radfield.delivery.io import load_model, save_model
-from radfield.core.kinds import random_neural
+from radfield.delivery.io import load_model
 from radfield.datasets.images import read_image
-from radfield.datasets.synthetic import generate_scene
 from radfield.edit.field import box_cage
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
+def scene(tmp_path_factory, hand_run):
     root = tmp_path_factory.mktemp("edit")
-    data = root / "data"
-    generate_scene("blobs", data, n_train=3, n_test=2, size=24, seed=0)
-    run = root / "run"
-    (run / "train").mkdir(parents=True)
-    (run / "tetra").mkdir()
-    prims = random_neural(20, sh_degree=1, extent=0.4, scale=0.15, seed=2)
-    save_model(run / "train" / "model.safetensors", prims)
-    v, t = box_cage([-0.8, -0.8, -0.8], [0.8, 0.8, 0.8], 2)
-    write_cage(run / "tetra", v, t)
-    (run / "bind").mkdir()
-    write_binding(run / "bind" / "model_binding.npz", prims.means.numpy(), run / "tetra" / "cage.npz")
-    (run / "radfield-run.json").write_text(json.dumps({"kind": "radfield-run", "input": str(data)}))
-    (run / "config.yaml").write_text("data:\n  background: [1, 1, 1]\n")
+    data, run, v, t = hand_run(root)
     return root, run, data, v, t
 
 
