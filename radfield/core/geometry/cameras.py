@@ -29,6 +29,9 @@ class Camera:
     height: int
     c2w: torch.Tensor
     name: str = ""
+    # the moment the view shows, ξ_t in [0, 1] (a dynamic dataset's frames, Splat the Net appendix
+    # C.1); None for a static scene. Time-conditioned kinds read it (kinds: PrimitiveKind.at_view).
+    time: float | None = None
 
     def __post_init__(self):
         c2w = torch.as_tensor(self.c2w, dtype=torch.float64).cpu()
