@@ -89,7 +89,11 @@ def test_deform_from_a_moved_cage_file_and_a_model_without_cage(cli, scene, tmp_
     assert code == 0, err
     cage = np.load(tmp_path / "d" / "edit" / "cage.npz")
     assert np.allclose(cage["vertices"], moved)
-    assert load_model(tmp_path / "d" / "edit" / "model.safetensors").rest_metric is None
+    # a stretch is not a similarity: preserve_opacity is on by default, and --no-preserve-opacity turns it off
+    assert load_model(tmp_path / "d" / "edit" / "model.safetensors").rest_metric is not None
+    code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "n", "--no-preserve-opacity", "-q")
+    assert code == 0, err
+    assert load_model(tmp_path / "n" / "edit" / "model.safetensors").rest_metric is None
     # preserve_opacity: the optional rest_metric tensor, G = r² A⁻ᵀA⁻¹, survives the model file
     code, _, err = cli("edit", run, "--spec", spec, "-o", tmp_path / "p", "--preserve-opacity", "-q")
     assert code == 0, err

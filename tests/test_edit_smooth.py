@@ -302,3 +302,13 @@ def test_transform_takes_a_general_matrix():
                          ([[1, 0, 0], [0, 1, 0], [0, 0, -1]], "determinant > 0")):
         with pytest.raises(RadfieldError, match=rf"operations\[0\]\.transform\.matrix: .*{message}"):
             _apply(fld, {"transform": {"matrix": bad}})
+
+
+def test_a_folded_cage_refuses_remesh_in_one_line():
+    """After a 90° twist folds the cage (the field follows the map, the cage is unbound), `remesh`
+    cannot bisect and rebind it: one line naming the way out (it was a LinAlgError traceback).
+    A boolean works in world space and needs no cage: it is taken (checked by hand, 50 s)."""
+    out = _apply(_field("neural", n=40, cage_n=2), {"twist": {"axis": "z", "degrees_per_unit": 90}})
+    with pytest.raises(RadfieldError, match=r"inverted or flat tets .*--cage FILE") as info:
+        _apply(out, {"remesh": {"select": "all", "edge_length": 0.5}})
+    assert "\n" not in str(info.value)

@@ -39,7 +39,7 @@ def edit(
     # `--split` is a dataset split in render/eval/animate; edit's old name for the threshold stays
     # one release as a hidden alias with a deprecation note (docs/usage.md, 'Editing')
     split_old: Annotated[Optional[float], typer.Option("--split", hidden=True)] = None,
-    preserve_opacity: Annotated[bool, typer.Option("--preserve-opacity", help="Measure optical depth in rest-space distance (stretching keeps opacity); adds the rest_metric tensor.")] = False,
+    preserve_opacity: Annotated[Optional[bool], typer.Option("--preserve-opacity/--no-preserve-opacity", show_default=False, help="Measure optical depth in rest-space distance, so stretching keeps opacity (adds the rest_metric tensor). Default: on exactly where the edit maps a primitive by more than a similarity (rotation, uniform scale, translation).")] = None,
     seed: Annotated[int, typer.Option(help="Seed for operations that sample or train.")] = 0,
     device: Annotated[str, typer.Option(help="cpu or cuda, for operations that render or train.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress messages.")] = False,

@@ -41,6 +41,11 @@ renderer's optical depth I of an edited primitive becomes I · max(s')·|A⁻¹d
 with G = (max(s')/max(s))² A⁻ᵀA⁻¹, stored per primitive as the optional model tensor `rest_metric`
 (P, 6: G_xx, G_yy, G_zz, G_xy, G_xz, G_yz); core/render/rasterize.py evaluates the factor at the
 direction from the camera to μ once per primitive per view (exact on that central ray).
+The default (None, "auto") takes it exactly when some primitive's A is not a similarity: under a
+similarity G = I, and without it a non-similarity map changes a primitive's optical depth by
+max(s)/(max(s')|A⁻¹d̂|), the whole of the affine squash's 1.1 dB loss against the truth
+(docs/studies/edit-truth.md: with it squash, twist and bend land within 0.15 dB of the unedited
+run at 128 px). A similarity edit therefore still writes no `rest_metric`, bit for bit as before.
 """
 
 from __future__ import annotations
@@ -222,16 +227,26 @@ def polar_rotation(a: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
+def is_similarity(a: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether every map of A (S, 3, 3) is a similarity s R (AᵀA = s² I, relative tolerance)."""
+    ata = np.einsum("sji,sjk->sik", a, a)
+    s2 = np.trace(ata, axis1=1, axis2=2) / 3
+    return bool(np.all(np.abs(ata - s2[:, None, None] * np.eye(3)) <= tol * np.maximum(s2, 1e-300)[:, None, None]))
+
+
 def map_primitives(prims, a: np.ndarray, means: np.ndarray, changed: np.ndarray | None = None,
-                   preserve_opacity: bool = False):
+                   preserve_opacity: bool | None = None):
     """Primitives mapped by per-primitive affine maps A (P, 3, 3) to new centres (P, 3) (module
-    docstring). Rows with changed == False keep their parameters exactly."""
+    docstring). Rows with changed == False keep their parameters exactly. preserve_opacity None:
+    where some changed A is not a similarity (module docstring)."""
     p = len(prims)
     a = np.broadcast_to(np.asarray(a, np.float64), (p, 3, 3))
     changed = np.ones(p, bool) if changed is None else np.asarray(changed, bool)
     idx = torch.from_numpy(np.flatnonzero(changed))
     if idx.numel() == 0:
         return prims
+    if preserve_opacity is None:
+        preserve_opacity = not is_similarity(a[changed])
     sub = prims.select(idx).to(dtype=torch.float64)
     a_t = torch.from_numpy(np.ascontiguousarray(a[changed]))
     rot = quat_to_rotmat(sub.quats)
@@ -256,7 +271,7 @@ def map_primitives(prims, a: np.ndarray, means: np.ndarray, changed: np.ndarray 
     return replace(out, **tensors)
 
 
-def affine_field(fld: Field, a: np.ndarray, t: np.ndarray, preserve_opacity: bool = False) -> Field:
+def affine_field(fld: Field, a: np.ndarray, t: np.ndarray, preserve_opacity: bool | None = None) -> Field:
     """The whole field (primitives and cage) mapped by one affine map x' = A x + t, exactly."""
     a, t = np.asarray(a, np.float64), np.asarray(t, np.float64)
     if not np.linalg.det(a) > 0:
@@ -332,7 +347,7 @@ def split_primitives(prims, index: np.ndarray):
 # --- the deformation of a field ---------------------------------------------------------------
 
 def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAULT_GRADIENT,
-                 split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool = False,
+                 split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool | None = None,
                  where: str = "deform", cache: dict | None = None, rebind: bool = True) -> Field:
     """The field with its cage moved to `new_vertices` (same topology), every primitive mapped
     exactly (module docstring). `split`: threshold of `nonuniformity` above which a primitive is
@@ -366,7 +381,7 @@ def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAUL
 
 # --- a closed-form map (the built-in operations) ----------------------------------------------
 
-def map_field(fld: Field, phi, jacobian, *, split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool = False,
+def map_field(fld: Field, phi, jacobian, *, split: float | None = SPLIT_THRESHOLD, preserve_opacity: bool | None = None,
               where: str = "deform", rebind: bool = True) -> tuple[Field, int]:
     """The field mapped by a smooth map known in closed form: `phi` (N, 3) -> (N, 3) and its
     Jacobian `jacobian` (N, 3) -> (N, 3, 3). Every primitive gets μ' = φ(μ), A = J(μ) (then the

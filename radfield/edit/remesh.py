@@ -34,6 +34,7 @@ import torch
 
 from radfield.errors import RadfieldError
 from radfield.core import kinds
+from radfield.edit.deform import check_cage_orientation
 from radfield.edit.field import Field
 from radfield.edit.select import number, signed_distance
 from radfield.edit.spec import check_keys, operation
@@ -165,6 +166,7 @@ def remesh(fld: Field, args, ctx) -> Field:
     check_keys(args, {"select", "edge_length", "split", "steps", "views", "size"}, where)
     if not fld.has_cage:
         raise RadfieldError(f"{where}: this field has no cage to remesh")
+    check_cage_orientation(fld, where)   # a cage folded by a closed-form edit cannot be bisected and rebound
     if "select" not in args:
         raise RadfieldError(f"{where}.select: required (all, box, sphere or plane)")
     edge_length = number(args, "edge_length", where, positive=True)

@@ -95,8 +95,8 @@ def _options(args: Mapping, ctx: EditContext, where: str, closed_form: bool = Fa
         split = number({"split": split}, "split", where, positive=True)
     else:
         split = None
-    preserve = args.get("preserve_opacity", ctx.options.get("preserve_opacity", False))
-    if not isinstance(preserve, bool):
+    preserve = args.get("preserve_opacity", ctx.options.get("preserve_opacity"))   # None: auto (edit/deform.py)
+    if preserve is not None and not isinstance(preserve, bool):
         raise RadfieldError(f"{where}.preserve_opacity: expected true or false, got {preserve!r}")
     return {"gradient": gradient, "split": split, "preserve_opacity": preserve}
 
