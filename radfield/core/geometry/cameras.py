@@ -6,6 +6,7 @@ point (cx, cy) is given in the same continuous coordinates, so cx = W/2 is the i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -14,6 +15,35 @@ from radfield.errors import RadfieldError
 
 # OpenGL/NeRF camera axes (x right, y up, looking down -z) -> OpenCV axes: flip y and z.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+
+@dataclass(frozen=True)
+class Light:
+    """The light a view was lit by (one-light-at-a-time captures, Splat the Net appendix C.2): a point
+    light at `position` (world frame) or a directional light shining along `direction` (unit, from the
+    light towards the scene), of known `intensity`: a point light's irradiance falls off as
+    intensity / r², a directional light's is the intensity. Relightable kinds read it (kinds:
+    PrimitiveKind.at_view); nothing learns it."""
+
+    position: tuple[float, float, float] | None = None
+    direction: tuple[float, float, float] | None = None
+    intensity: float = 1.0
+
+    def __post_init__(self):
+        if (self.position is None) == (self.direction is None):
+            raise RadfieldError("a light is a point light (position) or a directional one (direction), one of the two")
+        vector = self.position if self.position is not None else self.direction
+        if len(vector) != 3 or not all(math.isfinite(float(x)) for x in vector):
+            raise RadfieldError(f"a light's position or direction must be three finite numbers, got {vector!r}")
+        if not (math.isfinite(self.intensity) and self.intensity > 0):
+            raise RadfieldError(f"a light's intensity must be a positive number, got {self.intensity!r}")
+        if self.direction is not None:
+            norm = math.sqrt(sum(float(x) ** 2 for x in self.direction))
+            if norm == 0:
+                raise RadfieldError("a directional light needs a non-zero direction")
+            object.__setattr__(self, "direction", tuple(float(x) / norm for x in self.direction))
+        else:
+            object.__setattr__(self, "position", tuple(float(x) for x in self.position))
 
 
 @dataclass(frozen=True)
@@ -32,6 +62,8 @@ class Camera:
     # the moment the view shows, ξ_t in [0, 1] (a dynamic dataset's frames, Splat the Net appendix
     # C.1); None for a static scene. Time-conditioned kinds read it (kinds: PrimitiveKind.at_view).
     time: float | None = None
+    # the light the view is lit by (Light above); None for a scene under fixed lighting
+    light: Light | None = None
 
     def __post_init__(self):
         c2w = torch.as_tensor(self.c2w, dtype=torch.float64).cpu()
