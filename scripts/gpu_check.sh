@@ -37,8 +37,11 @@ secs radfield render "$W/run" -o "$W/frames" --device cuda -q
 secs radfield eval "$W/run" -o "$W/report" --device cuda -q
 secs radfield export "$W/run" -f ply-3dgs -o "$W/model.ply" --refine 20 -q
 
-echo "== bench-render on the GPU (torch twins: the GPU backend is issue 27's)"
-secs radfield bench-render --device cuda --primitives 10000 --views 4 --repeats 3
+echo "== the Triton backend's kernels compiled on CUDA tensors against the torch twin (tests/test_triton.py, no interpreter)"
+secs env -u TRITON_INTERPRET $PY -m pytest -q -p no:cacheprovider tests/test_triton.py 2>&1 | tail -5
+
+echo "== bench-render on the GPU (the Triton view kernels; --baseline: the torch twins in the same run)"
+secs radfield bench-render --device cuda --primitives 10000 --views 4 --repeats 3 --baseline
 echo "== bench-train on the GPU"
 secs radfield bench-train --device cuda --primitives 10000 --sizes 64,256 --steps 5 --quiet
 rm -rf "$W"

@@ -11,8 +11,9 @@ The command examples (```sh fences and the README's table) that use the demo pat
 `demo/run`, …) run as printed, in order, in an empty folder, except the ones SKIPPED names with
 the reason (full-size reconstructions, benchmarks, a server); templates with placeholders
 (`RUN`, `DATA`, `OUT`) are not commands. The demo run itself is made cheaper than the printed
-command (CHEAP_RUN: 300 primitives, 30 steps): the commands after it read it as they would the
-full one.
+command (CHEAP_RUN: 300 primitives, 30 steps), and so is the dynamic demo (CHEAPER: a 16 px smoke scene of 4
+cameras × 3 moments, a cage-less 30-step run): the commands after them read them as they would the
+full ones.
 """
 
 from __future__ import annotations
@@ -173,6 +174,10 @@ def test_every_spec_example_runs(cli, tiny, tmp_path, where, text):
 # --- the command examples on the demo scene ---------------------------------------------------------
 
 CHEAP_RUN = ["--iterations", "30", "--set", "init.num_points=300"]
+CHEAPER = {   # the start of a printed command -> what this test adds to it
+    "demo-scene smoke -o demo/smoke": ["--size", "16", "--times", "3", "--train-views", "4", "--test-views", "2"],
+    "reconstruct demo/smoke -o demo/smoke-run": ["--no-cage", *CHEAP_RUN],
+}
 SKIPPED = {   # the start of a command -> why it does not run here
     "radfield reconstruct demo/blobs -o demo/run --iterations 6000": "continues training to 6000 steps (minutes)",
     "radfield reconstruct demo/blobs -o demo/gauss": "a second reconstruction (test_pipeline covers --primitive gaussian)",
@@ -209,6 +214,7 @@ def test_the_command_examples_run_as_printed(cli, tmp_path, monkeypatch):
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         if args[:4] == ["reconstruct", "demo/blobs", "-o", "demo/run"] and len(args) == 4:
             args += CHEAP_RUN
+        args += next((extra for start, extra in CHEAPER.items() if " ".join(args).startswith(start)), [])
         code, _, err = cli(*args)
         assert code == 0, f"{where}: {command}: {err}"
         done.append(command)

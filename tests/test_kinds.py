@@ -176,16 +176,16 @@ def test_a_model_file_of_an_unknown_kind_is_refused_in_one_line(ellipsoid, tmp_p
     with pytest.raises(RadfieldError) as error:
         load_model(tmp_path / "ellipsoids.safetensors")
     message = str(error.value)
-    assert "\n" not in message and "metadata kind is 'ellipsoid', expected one of ['gaussian', 'neural']" in message
+    assert "\n" not in message and "metadata kind is 'ellipsoid', expected one of ['gaussian', 'gaussian-dynamic', 'gaussian-relight', 'neural', 'neural-dynamic', 'neural-relight']" in message
 
     meta = {"format": "radfield", "kind": "tetrahedra", "version": "1", "sh_degree": "0"}
     save_file({"means": torch.zeros(2, 3)}, str(tmp_path / "odd.safetensors"), metadata=meta)
-    with pytest.raises(RadfieldError, match=r"metadata kind is 'tetrahedra', expected one of \['gaussian', 'neural'\]$"):
+    with pytest.raises(RadfieldError, match=r"metadata kind is 'tetrahedra', expected one of \['gaussian', 'gaussian-dynamic', 'gaussian-relight', 'neural', 'neural-dynamic', 'neural-relight'\]$"):
         load_model(tmp_path / "odd.safetensors")
 
 
 def test_the_config_offers_the_registered_kinds(ellipsoid):
     assert load_config(sets=["train.primitive=ellipsoid"])["train"]["primitive"] == "ellipsoid"
     kinds.unregister("ellipsoid")
-    with pytest.raises(RadfieldError, match='train.primitive must be one of neural, gaussian, got "ellipsoid"'):
+    with pytest.raises(RadfieldError, match='train.primitive must be one of neural, gaussian, neural-dynamic, gaussian-dynamic, neural-relight, gaussian-relight, got "ellipsoid"'):
         load_config(sets=["train.primitive=ellipsoid"])

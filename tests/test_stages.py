@@ -382,7 +382,7 @@ def test_demo_scene_command(tmp_path, cli):
                        "--size", "8")
     assert code == 0 and (tmp_path / "c" / "transforms_train.json").is_file() and "checker" in out
     code, _, err = cli("demo-scene", "nope", "-o", tmp_path / "d")
-    assert code == 1 and "unknown synthetic scene" in err
+    assert code == 1 and "unknown demo scene" in err
 
 
 # --- reconstruct end to end -------------------------------------------------------------------------

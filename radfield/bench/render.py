@@ -42,9 +42,12 @@ def reference_twin(enabled: bool = True):
             os.environ["RADFIELD_KERNELS"] = saved
 
 
-# the rows of the benchmarks: every registered kind's variants ("neural" (the windowed density of
-# the defaults), "neural-hard" (the paper's hard-edged ellipsoid), "gaussian")
-BENCH_KINDS = tuple(variant for kind in registry.registered() for variant in kind.bench_variants)
+# every registered kind's benchmark variants ("neural" (the windowed density of the defaults),
+# "neural-hard" (the paper's hard-edged ellipsoid), "gaussian", "neural-dynamic", ...); bench-train
+# takes any of them (--kinds), bench-render's rows are those of the kinds a plain view draws (no
+# conditions such as a time)
+ALL_BENCH_KINDS = tuple(variant for kind in registry.registered() for variant in kind.bench_variants)
+BENCH_KINDS = tuple(variant for kind in registry.registered() if not kind.conditions for variant in kind.bench_variants)
 
 
 def bench_models(num: int, kinds=BENCH_KINDS, scale: float = 0.04, sh_degree: int = 3, seed: int = 0) -> dict:
@@ -72,13 +75,15 @@ def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0
 
 
 def bench_cameras(count: int, width: int, height: int) -> list[Camera]:
+    """`count` views on an orbit around the scene; each shows its own moment (i + ½)/count, which a
+    time-conditioned kind draws and every other kind ignores."""
     focal = 0.5 * width / math.tan(math.radians(25))
     cams = []
     for i in range(count):
         a = 2 * math.pi * i / count
         eye = (3.2 * math.cos(a), 3.2 * math.sin(a), 1.0)
         cams.append(Camera(fx=focal, fy=focal, cx=width / 2, cy=height / 2, width=width, height=height,
-                           c2w=look_at(eye, (0, 0, 0)), name=f"orbit{i}"))
+                           c2w=look_at(eye, (0, 0, 0)), name=f"orbit{i}", time=(i + 0.5) / count))
     return cams
 
 

@@ -165,7 +165,8 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
     cfg = bench_config(steps)
     echo(f"bench-train: {steps} timed steps (+{warmup} warm-up) per row, {views} orbit views, device={device}, "
          f"threads={torch.get_num_threads()}; ms per step")
-    echo(f"  {'kind':11s} {'count':>6s} {'size':>7s} {'path':>6s} " + " ".join(f"{p:>10s}" for p in PARTS)
+    w = max(11, *map(len, kinds))   # the kind column fits the longest name
+    echo(f"  {'kind':{w}s} {'count':>6s} {'size':>7s} {'path':>6s} " + " ".join(f"{p:>10s}" for p in PARTS)
          + f" {'sum':>8s} {'train()':>8s} {'setup':>7s} {'Mpairs/s':>9s}")
     results = {}
     for kind in kinds:
@@ -179,13 +180,13 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
                     with reference_twin(path == "torch"):
                         t = time_steps(prims, cams, images, cfg, steps, warmup, device)
                     rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
-                    echo(f"  {kind:11s} {count:6d} {size:3d}x{size:<3d} {path:>6s} "
+                    echo(f"  {kind:{w}s} {count:6d} {size:3d}x{size:<3d} {path:>6s} "
                          + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS)
                          + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {t.setup_ms:7.1f} {rate:9.1f}")
                     rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "setup": t.setup_ms, "pairs": t.pairs}
                 if baseline:
                     before, after = rows["torch"], rows["fused"]
-                    echo(f"  {'':11s} {'':6s} {'':7s} {'x':>6s} " + " ".join(f"{before[p] / after[p]:10.1f}" for p in PARTS)
+                    echo(f"  {'':{w}s} {'':6s} {'':7s} {'x':>6s} " + " ".join(f"{before[p] / after[p]:10.1f}" for p in PARTS)
                          + f" {before['sum'] / after['sum']:8.1f} {before['train'] / after['train']:8.1f}")
                     results[f"{kind}/{count}/{size}/torch"] = before
                 results[f"{kind}/{count}/{size}"] = rows["fused"]

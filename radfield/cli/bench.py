@@ -46,7 +46,7 @@ def _ints(text: str, option: str) -> tuple[int, ...]:
 def bench_train(
     primitives: Annotated[str, typer.Option(help="Primitive counts, comma-separated (each row keeps its count fixed).")] = "2000,10000,20000",
     sizes: Annotated[str, typer.Option(help="Square view sizes in pixels, comma-separated.")] = "64,256",
-    kinds: Annotated[str, typer.Option(help="Comma-separated: neural (the windowed density of the defaults), neural-hard (the hard-edged ellipsoid, render.window=false), gaussian.")] = "neural,gaussian",
+    kinds: Annotated[str, typer.Option(help="Comma-separated: neural (the windowed density of the defaults), neural-hard (the hard-edged ellipsoid, render.window=false), gaussian, and the conditioned kinds' variants (neural-dynamic, gaussian-dynamic, ...: each orbit view at its own time).")] = "neural,gaussian",
     steps: Annotated[int, typer.Option(help="Timed training steps per row (after 2 warm-up steps).")] = 5,
     device: Device = "cpu",
     quiet: Quiet = False,
@@ -55,13 +55,13 @@ def bench_train(
     """Benchmark (not a test): ms per training step of the default recipe, split into render
     forward, loss, render backward, optimiser and population control, for each primitive kind,
     count and view size; also trainer.train's own ms per step and the forward's pairs/s."""
-    from radfield.bench.render import BENCH_KINDS
+    from radfield.bench.render import ALL_BENCH_KINDS
     from radfield.bench.train import run_bench_train
 
     counts, view_sizes = _ints(primitives, "--primitives"), _ints(sizes, "--sizes")
     kind_list = tuple(k.strip() for k in kinds.split(","))
-    if not kind_list or any(k not in BENCH_KINDS for k in kind_list):
-        raise RadfieldError(f"--kinds must be among {', '.join(BENCH_KINDS)}, comma-separated, got {kinds!r}")
+    if not kind_list or any(k not in ALL_BENCH_KINDS for k in kind_list):
+        raise RadfieldError(f"--kinds must be among {', '.join(ALL_BENCH_KINDS)}, comma-separated, got {kinds!r}")
     if steps < 1:
         raise RadfieldError("--steps must be positive")
     dev = str(resolve_device(device))

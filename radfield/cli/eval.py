@@ -54,3 +54,8 @@ def eval_command(
     typer.echo(f"{metrics['split']}: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {lp}, "
                f"{metrics['fps']:.1f} fps over {metrics['views']} views ({metrics['num_primitives']} "
                f"{metrics['kind']} primitives); report in {output / 'report.md'}")
+    if metrics.get("per_time"):   # a dynamic scene: the spread over its moments (the report plots it)
+        moments = metrics["per_time"]
+        worst, best = min(moments, key=lambda t: t["psnr"]), max(moments, key=lambda t: t["psnr"])
+        typer.echo(f"{len(moments)} moments: PSNR from {worst['psnr']:.2f} dB (time {worst['time']:.4g}) "
+                   f"to {best['psnr']:.2f} dB (time {best['time']:.4g})")

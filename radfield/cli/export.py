@@ -11,15 +11,24 @@ import typer
 from radfield.cli.common import check_output
 from radfield.errors import RadfieldError
 
-REFINE_STEPS = 300   # default --refine for a neural run: +6.8 dB held-out on the blobs demo, ~20 s on a CPU core
+# The default export of a neural run (issue 28; docs/studies/export-fidelity.md): 2 Gaussians a
+# primitive refined 2000 steps against the model's renders from the training cameras and as many
+# orbit views, with densification; within 1 dB of the run's own held-out PSNR on the demo scenes
+# (300 steps of one Gaussian a primitive lost 1.5-2.8 dB), 20-40 s a 64×64 scene on a CPU core.
+REFINE_STEPS = 2000
+REFINE_COMPONENTS = 2   # a model file (no cameras, moment matching only) keeps 1: more are worse unrefined
 
 
 def export(
     target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory or a .safetensors model file (model files: ply-3dgs, splat, points only).")],
     format: Annotated[str, typer.Option("--format", "-f", help="ply-3dgs (3D-Gaussian PLY for 3DGS viewers), splat (antimatter15 .splat for web viewers), points (centres as a coloured point cloud PLY), cage (.vtk or .msh), envelope (PLY), cameras (nerfstudio transforms.json).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="File to write (.ply, .splat, .vtk, .msh or .json, as the format needs).")],
-    components: Annotated[int, typer.Option(help="ply-3dgs/splat from neural primitives: Gaussians fitted to each primitive by moment matching.")] = 1,
-    refine: Annotated[Optional[int], typer.Option(metavar="STEPS", help=f"ply-3dgs/splat from a neural run: optimise the moment-matched Gaussians this many steps against renders of the model from the run's training cameras (default {REFINE_STEPS} for a run, 0 for a model file; 0: moment matching only).")] = None,
+    components: Annotated[Optional[int], typer.Option(help=f"ply-3dgs/splat from neural primitives: Gaussians fitted to each primitive by moment matching (default {REFINE_COMPONENTS} for a refined run, 1 otherwise).")] = None,
+    refine: Annotated[Optional[int], typer.Option(metavar="STEPS", help=f"ply-3dgs/splat from a neural run: optimise the moment-matched Gaussians this many steps against renders of the model from the run's training cameras and as many random views around the object, with 3DGS densification (default {REFINE_STEPS} for a run, 0 for a model file; 0: moment matching only).")] = None,
+    time: Annotated[Optional[float], typer.Option("--time", help="A dynamic model: ply-3dgs, splat and points of the moment T in [0, 1] (a static model of that moment; required for a dynamic model).")] = None,
+    light: Annotated[Optional[str], typer.Option("--light", metavar="X,Y,Z", help="A relightable model: ply-3dgs, splat and points under a point light at X,Y,Z (the dataset's world frame; a static model of that lighting; a light is required for a relightable model).")] = None,
+    light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: under a directional light shining along X,Y,Z instead.")] = None,
+    light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir (a point light's irradiance is K/r²; default: the mean of the run's dataset lights, else 1).")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT if it exists.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ):
@@ -28,25 +37,49 @@ def export(
     From a Gaussian model ply-3dgs and splat are exact; neural primitives are approximated by
     moment-matched Gaussians (--components per primitive), for a run refined against renders of
     the model (--refine). A model trained with render.supersample > 1 draws each pixel with n x n
-    rays, which ply-3dgs/splat viewers cannot: a one-line warning on stderr."""
-    from radfield.delivery.content import gaussians_for, load_content, parts_for
+    rays, which ply-3dgs/splat viewers cannot: a one-line warning on stderr. A dynamic model is
+    exported at one moment: --time T; a relightable model under one light: --light X,Y,Z (or
+    --light-dir X,Y,Z)."""
+    from radfield.delivery.content import at_moment, gaussians_for, load_content, parts_for, under_light
+    from radfield.delivery.lights import light_from_options
     from radfield.delivery.export import FORMATS, check_target, export as export_content, supersample_warning
+    from radfield.delivery.times import check_time
 
     if format not in FORMATS:
         raise RadfieldError(f"unknown --format {format!r} (choose one of {', '.join(FORMATS)})")
-    if components < 1:
+    if components is not None and components < 1:
         raise RadfieldError(f"--components must be at least 1, got {components}")
     if refine is not None and refine < 0:
         raise RadfieldError(f"--refine must be 0 or more steps, got {refine}")
+    if time is not None:
+        check_time(time)
+    lit = light_from_options(light, light_dir, light_intensity)
+    if light_intensity is not None and lit is None:
+        raise RadfieldError("--light-intensity is the intensity of --light or --light-dir: give one")
     check_target(format, output)
     check_output(output, force, folder=False)   # the output policy of every command (docs/usage.md, 'Outputs')
     content = load_content(target, parts=parts_for(format))
+    kind = content.model.kind
+    at_moment(content, format, time)   # a dynamic model: its static model of that moment
+    lit = under_light(content, format, lit, light_intensity)   # a relightable model: its static model of that lighting
     warning = supersample_warning(content.model, format)
     if warning:
         typer.echo(warning, err=True)
     steps = refine if refine is not None else (REFINE_STEPS if content.views else 0)
-    how = gaussians_for(content, format, components, steps, quiet)
+    components = components or (REFINE_COMPONENTS if steps else 1)
+    made = gaussians_for(content, format, components, steps, quiet)
     figures = export_content(content, format, output, components=components)
-    if how:
-        figures["from"] = how
+    if made:
+        figures["from"] = made.how
+    if time is not None:
+        figures["time"] = f"{time:g}"
+    if lit is not None:
+        vector = lit.position if lit.position is not None else lit.direction
+        figures["light" if lit.position is not None else "light direction"] = ",".join(f"{x:g}" for x in vector)
+        figures["light intensity"] = f"{lit.intensity:g}"
+    if (time is not None or lit is not None) and not made and "from" in figures:
+        figures["from"] = kind
     typer.echo(f"wrote {format} to {output} (" + ", ".join(f"{k} {v}" for k, v in figures.items()) + ")")
+    if made:
+        for line in made.report():
+            typer.echo(line)

@@ -65,5 +65,8 @@ def reconstruct(
         what = "held-out" if split != "train" else "training-view"
         typer.echo(f"{what} PSNR {evaluation['psnr']:.2f} dB, SSIM {evaluation['ssim']:.4f} "
                    f"({evaluation['views']} {split} views); report {output / 'eval'}")
+    moments = info["stages"].get("data", {}).get("times")
+    if moments and "kind" in info["stages"].get("init", {}):   # docs/usage.md "Dynamic scenes"
+        typer.echo(f"dynamic scene: {moments} moments, {info['stages']['init']['kind']} primitives")
     if info["model"]:
         typer.echo(f"model: {info['model']}")

@@ -27,14 +27,30 @@ def render(
     camera_path: Annotated[Optional[Path], typer.Option(help="Instead of the split's cameras: a nerfstudio camera-path JSON (world frame).")] = None,
     video: Annotated[Optional[Path], typer.Option(help="Also write the frames as an MP4 video (bundled ffmpeg).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Video frame rate.", show_default="30, or the camera path's")] = None,
+    camera: Annotated[Optional[str], typer.Option("--camera", help="Only this view of the split (its frame name, or its index): e.g. the fixed camera of a time-lapse (--times).")] = None,
+    time: Annotated[Optional[float], typer.Option("--time", help="A dynamic model: draw every view at this moment in [0, 1] (default: each dataset view at its own time).")] = None,
+    times: Annotated[Optional[str], typer.Option("--times", metavar="A:B:N", help="A dynamic model: N moments from A to B; one image per view and moment (<view>_t<k>.png), or along an --orbit/--camera-path of N frames a time-lapse, one moment a frame.")] = None,
+    light: Annotated[Optional[str], typer.Option("--light", metavar="X,Y,Z", help="A relightable model: draw every view under a point light at X,Y,Z (the dataset's world frame; default: each dataset view under its own light).")] = None,
+    light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: a directional light shining along X,Y,Z instead.")] = None,
+    light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir/--light-orbit (a point light's irradiance is K/r²; default: the mean of the dataset's lights, else 1).")] = None,
+    light_orbit: Annotated[int, typer.Option("--light-orbit", metavar="N", help="A relightable model: N lights circling the object at the dataset lights' mean distance and elevation; one image per view and light (<view>_l<k>.png), or along an --orbit/--camera-path of N frames one light a frame.")] = 0,
     force: Force = False,
 ):
     """Render every camera of a dataset split (or an orbit / a camera path) to OUTPUT/<frame name>.png.
 
     For a run directory every default is the run's own: its dataset, its split rule
     (data.test_every), background, downscale and near plane; explicit options win. Each pixel is
-    drawn with the model's own n x n rays (its file's supersample, from render.supersample)."""
+    drawn with the model's own n x n rays (its file's supersample, from render.supersample).
+
+    A dynamic model (a dynamic dataset's run) draws each view at its own time, or at --time T, or
+    at the --times A:B:N; a time-lapse video: --camera NAME (or --orbit N) with --times and --video.
+
+    A relightable model (a relighting dataset's run) draws each view under its own light, or under
+    --light X,Y,Z / --light-dir X,Y,Z, or under --light-orbit N lights; a video of the light going
+    round: --camera NAME (or --orbit N) with --light-orbit and --video."""
     from radfield.delivery.render_views import render_frames
+    from radfield.delivery.lights import light_from_options
+    from radfield.delivery.times import check_time, parse_times
     from radfield.run import is_run_dir
 
     options = {"data.downscale": downscale, "render.near": near,
@@ -44,6 +60,11 @@ def render(
         check_output(video, force, folder=False)
     if fps is not None and fps <= 0:
         raise RadfieldError(f"--fps must be positive, got {fps}")
+    moment = check_time(time) if time is not None else None
+    moments = parse_times(times) if times is not None else None
+    lit = light_from_options(light, light_dir, light_intensity)
+    if light_orbit < 0:
+        raise RadfieldError(f"--light-orbit takes a frame count >= 1, got {light_orbit}")
     dev = resolve_device(device)
     model = resolve_model(model_or_run)
     with progress_bar(quiet) as progress:
@@ -51,8 +72,12 @@ def render(
         summary = render_frames(model, model_or_run if is_run_dir(model_or_run) else None, dataset, split, output,
                                 options={k: v for k, v in options.items() if v is not None}, device=dev,
                                 orbit=orbit, elevation=elevation, camera_path=camera_path, video=video, fps=fps or 0.0,
+                                camera=camera, time=moment, times=moments,
+                                light=lit, light_orbit=light_orbit, light_intensity=light_intensity,
                                 on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} views"),
                                 on_frame=lambda: progress.advance(task))
-    typer.echo(f"rendered {summary['views']} views ({summary['width']}x{summary['height']}, {summary['primitives']} "
+    at = f" at {summary['moments']} moment{'s' if summary['moments'] != 1 else ''}" if summary["moments"] else ""
+    at += f" under {summary['lights']} light{'s' if summary['lights'] != 1 else ''}" if summary["lights"] else ""
+    typer.echo(f"rendered {summary['views']} views{at} ({summary['width']}x{summary['height']}, {summary['primitives']} "
                f"{summary['kind']} primitives) to {output}{f' and {video}' if video is not None else ''}; "
                f"mean render time {summary['ms_per_frame']:.1f} ms/frame")

@@ -20,25 +20,39 @@ def view(
     moving_downscale: Annotated[int, typer.Option(help="Frames rendered while the camera moves are this many times smaller.")] = 4,
     background: Annotated[Optional[str], typer.Option(help="Background R,G,B in [0, 1] (default: the run's, else 1,1,1).")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda: where the model is rendered.")] = "cpu",
+    time: Annotated[Optional[float], typer.Option("--time", help="A dynamic model: the moment in [0, 1] shown first (the viewer's Time slider moves it).")] = None,
+    light: Annotated[Optional[str], typer.Option("--light", metavar="X,Y,Z", help="A relightable model: the point light it is first drawn under (the dataset's world frame; the light sliders move it; default: where the dataset's lights are).")] = None,
+    light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: start with a directional light shining along X,Y,Z instead.")] = None,
+    light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir (default: the mean of the run's dataset lights, else 1).")] = None,
 ):
     """Open an interactive viewer in the browser (http://HOST:PORT), rendered on this machine with
-    radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums.
-    Stop it with Ctrl-C (or SIGTERM: one line, exit 0)."""
+    radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums,
+    for a dynamic model a Time slider, and for a relightable model light sliders (azimuth,
+    elevation, distance). Stop it with Ctrl-C (or SIGTERM: one line, exit 0)."""
+    from radfield.delivery.lights import light_from_options
+    from radfield.delivery.times import check_time
     from radfield.delivery.viewer import Viewer, viewer_scene
 
     if not 0 <= port < 65536:
         raise RadfieldError(f"--port must be in 0..65535, got {port}")
     if resolution < 16 or moving_downscale < 1:
         raise RadfieldError("--resolution must be at least 16 and --moving-downscale at least 1")
+    if time is not None:
+        check_time(time)
+    lit = light_from_options(light, light_dir, light_intensity)
+    if light_intensity is not None and lit is None:
+        raise RadfieldError("--light-intensity is the intensity of --light or --light-dir: give one")
     resolve_device(device)
-    scene = viewer_scene(target, device, parse_background(background) if background is not None else None)
+    scene = viewer_scene(target, device, parse_background(background) if background is not None else None, time, lit,
+                         light_intensity)
     try:
         viewer = Viewer(scene, host=host, port=port, resolution=resolution, moving_downscale=moving_downscale,
                         log=lambda line: typer.echo(line, err=True))
     except OSError as error:
         raise RadfieldError(f"cannot listen on {host}:{port} ({error.strerror or error})") from None
     typer.echo(f"viewer: http://{host}:{viewer.server.get_port()} ({len(scene.model)} {scene.model.kind} primitives, "
-               f"{len(scene.cameras)} cameras); Ctrl-C stops it",
+               f"{len(scene.cameras)} cameras{', a time slider' if viewer.dynamic else ''}"
+               f"{', light sliders' if viewer.relightable else ''}); Ctrl-C stops it",
                err=True)
     # SIGTERM (systemd, docker stop, kill) stops the viewer like Ctrl-C, with one line and exit 0:
     # by default it killed the process without closing the server, and a library that installs

@@ -10,7 +10,10 @@ writes (RUN/data/), read back as a Scene (cameras, splits, normalisation; images
      "splits": {"train": [VIEW, ...], "test": [VIEW, ...], "val": [...] (when the dataset has one)}}
 
     VIEW = {"name", "image": "/abs/file", "fx", "fy", "cx", "cy", "width", "height",
-            "c2w": 4x4 list, "file_width", "file_height", "distortion": [k1, k2, p1, p2(, k3)] | null}
+            "c2w": 4x4 list, "file_width", "file_height", "distortion": [k1, k2, p1, p2(, k3)] | null,
+            "time": ξ_t in [0, 1] (only in a dynamic dataset's views: D-NeRF, nerfstudio with time),
+            "light": {"position" | "direction": [x, y, z], "intensity": k} (only in a one-light-at-a-
+                     time capture's views: the light the image was lit by, world frame)}
 
 Cameras are OpenCV (x right, y down, z forward) camera-to-world in the dataset's own world frame
 (for photos: the sfm stage's output, a COLMAP dataset in its normalised frame, is the dataset);
@@ -25,7 +28,9 @@ x_norm = (x − center) · scale. `center` is the median of the SfM points when 
 converge (object-centric captures: the middle of the object, where the mean of the camera centres
 would sit above it for a hemisphere of views), else the mean of the train camera centres.
 `scale` puts every train camera within radius 1 of the centre. `extent` = 1.1 × that radius, in
-world units (3DGS's camera extent; 1.1 in normalised units).
+world units (3DGS's camera extent; 1.1 in normalised units). A view's point light moves with the
+cameras and its intensity is multiplied by scale², which keeps the irradiance intensity / r² of
+every point as it was (`Normalization.light`); directional lights are unchanged.
 
 Splits: the dataset's own (NeRF-synthetic split files, nerfstudio *_filenames lists), else every
 `data.test_every`-th view by file name is a test view (the LLFF protocol). With `data.val_every`
@@ -48,16 +53,16 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from radfield.core.geometry.cameras import Camera
+from radfield.core.geometry.cameras import Camera, Light
 from radfield.errors import RadfieldError
 from radfield.datasets import formats
+from radfield.datasets.bounds import MESH, focus_point, read_mesh
 from radfield.datasets.images import downscaled_size, image_size
 from radfield.datasets.readers import SPLITS, Dataset, View, check_visible, load_dataset, validate
 from radfield import run as layout
 
 SCENE = layout.SCENE_FILE
 POINTS = "points.npz"
-MESH = "mesh.ply"  # a dataset's own mesh (our synthetic scenes ship one), used to initialise
 FORMAT_VERSION = 1
 
 
@@ -173,41 +178,32 @@ def _view_json(dataset: Dataset, view: View) -> dict[str, Any]:
         "c2w": cam.c2w.tolist(),
         "file_width": view.camera.width, "file_height": view.camera.height,
         "distortion": None if view.distortion is None else [float(k) for k in view.distortion],
+        # only when the view has one, so a static scene's scene.json stays as it was
+        **({} if cam.time is None else {"time": cam.time}),
+        **({} if cam.light is None else {"light": light_json(cam.light)}),
     }
+
+
+def light_json(light: Light) -> dict[str, Any]:
+    """A scene.json VIEW's "light": {"position" | "direction": [x, y, z], "intensity": k}."""
+    key, vector = ("position", light.position) if light.position is not None else ("direction", light.direction)
+    return {key: list(vector), "intensity": light.intensity}
+
+
+def light_from_json(light: dict[str, Any] | None) -> Light | None:
+    """The Light of a scene.json VIEW's "light" (None when the view has none)."""
+    if light is None:
+        return None
+    return Light(light.get("position"), light.get("direction"), light["intensity"])
 
 
 def _points(train: Dataset) -> dict[str, np.ndarray]:
     """SfM points of the dataset (the readers load them with every split) and its mesh's vertices."""
     empty = np.zeros((0, 3), np.float32)
     xyz, rgb = (empty, empty) if train.points is None else (train.points.xyz.numpy(), train.points.rgb.numpy())
-    mesh = _read_mesh(train.root / MESH) if (train.root / MESH).is_file() else {
+    mesh = read_mesh(train.root / MESH) if (train.root / MESH).is_file() else {
         "mesh_vertices": empty, "mesh_rgb": empty, "mesh_faces": np.zeros((0, 3), np.int64)}
     return {"xyz": xyz.astype(np.float32), "rgb": rgb.astype(np.float32), **mesh}
-
-
-def _read_mesh(path: Path) -> dict[str, np.ndarray]:
-    """`mesh_vertices` (V, 3), `mesh_rgb` (V, 3) in [0, 1] or (0, 3) without colours, and
-    `mesh_faces` (F, 3) triangles (quads split in two; (0, 3) for a point cloud) of a mesh file."""
-    import meshio
-
-    try:
-        mesh = meshio.read(path)
-    except Exception as error:  # meshio raises many kinds (ReadError, ValueError, struct.error)
-        message = " ".join(str(error).split()) or type(error).__name__
-        raise RadfieldError(f"{path}: cannot read mesh ({message})") from None
-    cells = mesh.cells_dict
-    quads = cells.get("quad", np.zeros((0, 4), np.int64))
-    faces = np.concatenate([cells.get("triangle", np.zeros((0, 3), np.int64)), quads[:, :3], quads[:, [0, 2, 3]]])
-    channels = [mesh.point_data.get(name) for name in ("red", "green", "blue")]
-    if any(c is None for c in channels):
-        rgb = np.zeros((0, 3), np.float32)
-    else:
-        # meshio reads PLY `uchar` properties as int8: reinterpret the bytes
-        rgb = np.stack([c.view(np.uint8) if c.dtype == np.int8 else c for c in channels], -1)
-        rgb = rgb / 255.0 if np.issubdtype(rgb.dtype, np.integer) else rgb
-    return {"mesh_vertices": np.asarray(mesh.points, dtype=np.float32)[:, :3],
-            "mesh_rgb": np.clip(rgb, 0.0, 1.0).astype(np.float32),
-            "mesh_faces": faces.astype(np.int64)}
 
 
 def _normalization(cameras: list[Camera], points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -216,25 +212,10 @@ def _normalization(cameras: list[Camera], points: np.ndarray) -> tuple[np.ndarra
     if len(points):
         center = np.median(points.astype(np.float64), axis=0)
     else:
-        focus = _focus_point(cameras)
+        focus = focus_point(cameras)
         center = centres.mean(axis=0) if focus is None else focus
     radius = float(np.linalg.norm(centres - center, axis=1).max())
     return center, radius if radius > 1e-9 else 1.0  # a single camera position: keep world units
-
-
-def _focus_point(cameras: list[Camera]) -> np.ndarray | None:
-    """The point nearest to every optical axis in the least-squares sense, or None when the axes
-    are close to parallel (forward-facing rigs) or the point is not in front of the cameras."""
-    c2w = np.stack([cam.c2w.numpy() for cam in cameras])
-    origins, axes = c2w[:, :3, 3], c2w[:, :3, 2]
-    projectors = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # onto each axis' normal plane
-    a, b = projectors.sum(0), (projectors @ origins[:, :, None]).sum(0)[:, 0]
-    # axes spread by less than ~20 degrees leave a nearly singular system
-    if np.linalg.eigvalsh(a)[0] < 0.1 * len(cameras):
-        return None
-    point = np.linalg.solve(a, b)
-    in_front = np.einsum("ij,ij->i", point - origins, axes) > 0
-    return point if in_front.mean() >= 0.9 else None
 
 
 # --- reading scene.json back --------------------------------------------------------------------
@@ -255,10 +236,20 @@ class Normalization(NamedTuple):
         return xyz / self.scale + self.center.to(xyz)
 
     def camera(self, camera: Camera) -> Camera:
-        """The same view in the normalised frame (rotation and intrinsics unchanged)."""
+        """The same view in the normalised frame (rotation and intrinsics unchanged), lit by the
+        same light (`light`)."""
         c2w = camera.c2w.clone()
         c2w[:3, 3] = self.apply(c2w[:3, 3])
-        return replace(camera, c2w=c2w)
+        return replace(camera, c2w=c2w, light=self.light(camera.light))
+
+    def light(self, light: Light | None) -> Light | None:
+        """A light in the normalised frame: a point light moves with the cameras and its intensity
+        grows by scale², so that the irradiance intensity / r² at every point of the scene is what
+        it was (r grows by `scale`); a directional light is unchanged (a similarity keeps directions)."""
+        if light is None or light.position is None:
+            return light
+        position = self.apply(torch.tensor(light.position, dtype=torch.float64))
+        return Light(position=tuple(position.tolist()), intensity=light.intensity * self.scale**2)
 
 
 @dataclass(frozen=True)
@@ -279,6 +270,28 @@ class Scene:
         if split not in self.splits:
             raise RadfieldError(f"{self.root}: the dataset has no {split!r} split (it has {', '.join(self.splits)})")
         return self.splits[split]
+
+    @property
+    def dynamic(self) -> bool:
+        """Whether the views show moments of a changing scene (each carries a time ξ_t)."""
+        return any("time" in view for views in self.splits.values() for view in views)
+
+    @property
+    def relightable(self) -> bool:
+        """Whether each view carries the light it was lit by (a one-light-at-a-time capture)."""
+        return any("light" in view for views in self.splits.values() for view in views)
+
+    def lights(self, split: str) -> list[Light | None]:
+        """Each view's light (None under fixed lighting), in the split's order, world frame."""
+        return [light_from_json(view.get("light")) for view in self.views(split)]
+
+    def times(self, split: str) -> list[float | None]:
+        """Each view's time ξ_t in [0, 1] (None in a static scene), in the split's order."""
+        return [view.get("time") for view in self.views(split)]
+
+    def time_steps(self) -> list[float]:
+        """The distinct times of every split, ascending ([] for a static scene)."""
+        return sorted({view["time"] for views in self.splits.values() for view in views if "time" in view})
 
     def cameras(self, split: str) -> list[Camera]:
         if not self.posed:
@@ -345,7 +358,8 @@ def scene_from_json(scene: dict[str, Any], path: Path) -> Scene:
 
 def _camera(view: dict[str, Any]) -> Camera:
     return Camera(view["fx"], view["fy"], view["cx"], view["cy"], view["width"], view["height"],
-                  torch.tensor(view["c2w"], dtype=torch.float64), view["name"])
+                  torch.tensor(view["c2w"], dtype=torch.float64), view["name"], view.get("time"),
+                  light_from_json(view.get("light")))
 
 
 def _dataset_view(view: dict[str, Any]) -> View:
@@ -355,6 +369,6 @@ def _dataset_view(view: dict[str, Any]) -> View:
     sx, sy = view["file_width"] / view["width"], view["file_height"] / view["height"]
     camera = Camera(view["fx"] * sx, view["fy"] * sy, view["cx"] * sx, view["cy"] * sy,
                     view["file_width"], view["file_height"], torch.tensor(view["c2w"], dtype=torch.float64),
-                    view["name"])
+                    view["name"], view.get("time"), light_from_json(view.get("light")))
     distortion = None if view["distortion"] is None else np.asarray(view["distortion"], dtype=np.float64)
     return View(Path(view["image"]), camera, distortion)

@@ -68,6 +68,17 @@ class Lighting:
 
 
 @dataclass(frozen=True)
+class PointLight:
+    """A point light at `position` (world) of `intensity`: irradiance intensity / r² at distance r,
+    hard shadows toward the point (when the scene's Lighting has shadows). It replaces the scene's
+    distant light in `shade`; the scene's ambient (and sky) term stays. `radfield demo-scene olat`
+    moves one through the studio scene (datasets/olat.py)."""
+
+    position: tuple
+    intensity: float = 1.0
+
+
+@dataclass(frozen=True)
 class Scene:
     name: str
     description: str
@@ -220,28 +231,37 @@ def intersect(scene: Scene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, n
 
 
 def shade(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, normal: np.ndarray, index: np.ndarray,
-          light: np.ndarray | None = None, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+          light: np.ndarray | None = None, points: np.ndarray | None = None,
+          point_light: PointLight | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Colour (R, 3) of the hits of `intersect` and its specular part (R,), under the scene's light
-    (or per-ray light directions `light` (R, 3), the samples of an area light):
-    albedo · (ambient(n) + (1 − A) max(0, n·l) V) + k_s max(0, n·h)^p [n·l > 0] V, h = normalise(l − d),
-    with ambient(n) = A (constant), or A (1 + s n_z)/(1 + s) under a sky dome of `sky` = s, and
-    V the light's visibility from the hit point (1 without `Lighting.shadows`). `points` (R, 3): where
-    the albedo is looked up (default the hits o + t·d; a deformed scene's rest-space points, so the
-    texture moves with the material)."""
+    (or per-ray light directions `light` (R, 3), the samples of an area light; or `point_light`):
+    albedo · (ambient(n) + (1 − A) max(0, n·l) V E) + k_s max(0, n·h)^p [n·l > 0] V E, h = normalise(l − d),
+    with ambient(n) = A (constant), or A (1 + s n_z)/(1 + s) under a sky dome of `sky` = s,
+    V the light's visibility from the hit point (1 without `Lighting.shadows`) and E its irradiance
+    relative to the distant light's: 1, or intensity / r² for a point light at distance r (l then
+    points from each hit to it). `points` (R, 3): where the albedo is looked up (default the hits
+    o + t·d; a deformed scene's rest-space points, so the texture moves with the material)."""
     lighting = scene.lighting
     o = np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
+    distance = None  # to a point light, per ray
+    if point_light is not None:
+        light, distance = _towards(point_light, o, d, t, index)
     if light is None:
         light = np.asarray(lighting.direction)
         n_l = normal @ light
     else:
         n_l = np.einsum("ij,ij->i", normal, light)
     light = np.broadcast_to(light, d.shape)
-    visible = np.ones(len(d))
+    visible = np.ones(len(d))  # V E: the light arriving at each hit
     if lighting.shadows:
         hit = np.flatnonzero((index >= 0) & (n_l > 0))
         # Offset along the normal so the shadow ray does not hit its own surface.
         shadow_from = o[hit] + t[hit, None] * d[hit] + 1e-6 * normal[hit]
-        visible[hit] = np.isinf(intersect(scene, shadow_from, light[hit])[0])
+        blocker = intersect(scene, shadow_from, light[hit])[0]
+        # a point light is shadowed only by what lies between the hit and the light
+        visible[hit] = np.isinf(blocker) if distance is None else blocker >= distance[hit]
+    if distance is not None:
+        visible = visible * (point_light.intensity / distance**2)  # 1/r² falloff
     ambient = lighting.ambient
     if lighting.sky:
         ambient = lighting.ambient * (1 + lighting.sky * normal[:, 2]) / (1 + lighting.sky)
@@ -260,6 +280,20 @@ def shade(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, normal: np.
             specular[rows] = material.specular * n_h**material.shininess * (n_l[rows] > 0) * visible[rows]
             colour[rows] += specular[rows, None]
     return np.clip(colour, 0.0, 1.0), specular
+
+
+def _towards(point_light: PointLight, o: np.ndarray, d: np.ndarray, t: np.ndarray,
+             index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (R, 3) from each hit o + t·d to the point light and the distances (R,) to
+    it; rays that miss get +z and distance 1 (they are not shaded)."""
+    light = np.zeros_like(d)
+    light[:, 2] = 1.0
+    distance = np.ones(len(d))
+    hit = np.flatnonzero(index >= 0)
+    towards = np.asarray(point_light.position, dtype=np.float64) - (o[hit] + t[hit, None] * d[hit])
+    distance[hit] = np.linalg.norm(towards, axis=-1)
+    light[hit] = towards / distance[hit, None]
+    return light, distance
 
 
 def trace(scene: Scene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -310,11 +344,13 @@ def light_samples(lighting: Lighting, count: int, pixels: int, rng: np.random.Ge
 
 
 def render_view(scene: Scene, camera: Camera, samples: int | None = None,
-                rng: np.random.Generator | None = None, deform: "Deformation | None" = None) -> tuple[np.ndarray, np.ndarray]:
+                rng: np.random.Generator | None = None, deform: "Deformation | None" = None,
+                point_light: PointLight | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Premultiplied RGBA (H, W, 4) float32 averaged over samples x samples rays per pixel (default
     the scene's own `samples`; jittered in their cells if `scene.jitter`, drawn from `rng`), and
     the z-depth (H, W) float32 of the pixel-centre ray (0 where it misses). With `deform` the
-    scene's shapes are seen deformed by that map (`Deformation.intersect`), through the same rays."""
+    scene's shapes are seen deformed by that map (`Deformation.intersect`), through the same rays;
+    with `point_light` the scene is lit by it instead of its distant light (see `shade`)."""
     samples = scene.samples if samples is None else samples
     height, width = camera.height, camera.width
     if rng is None:
@@ -335,11 +371,11 @@ def render_view(scene: Scene, camera: Camera, samples: int | None = None,
     else:
         t, normal, index, points = deform.intersect(scene, o, d)
     light = None
-    if scene.lighting.radius > 0:  # an area light: one light sample per ray; the centre ray (depth only) its centre
+    if scene.lighting.radius > 0 and point_light is None:  # an area light: one light sample per ray; the centre ray (depth only) its centre
         light = light_samples(scene.lighting, samples * samples, height * width, rng)
         centre_light = np.broadcast_to(np.asarray(scene.lighting.direction), (height * width, 1, 3))
         light = np.concatenate([light, centre_light], 1).reshape(-1, 3)
-    colour, _ = shade(scene, o, d, t, normal, index, light, points)
+    colour, _ = shade(scene, o, d, t, normal, index, light, points, point_light)
     colour, t = colour.reshape(d_cam.shape), t.reshape(d_cam.shape[:-1])
     hit = np.isfinite(t)
     rgba = np.concatenate([colour[:, :, :-1], hit[:, :, :-1, None]], -1).mean(axis=2)

@@ -7,6 +7,19 @@ Both store camera-to-world matrices in OpenGL axes (converted to OpenCV here) an
 file level, which nerfstudio lets each frame override. Principal points use the same continuous
 pixel coordinates as `Camera` (cx = w/2 is the centre), as instant-ngp and nerfstudio do.
 Lens distortion (k1 k2 p1 p2 [k3], OpenCV model) is recorded per view and removed on load.
+
+A dynamic dataset (D-NeRF, nerfstudio with time) gives each frame a `time`, the moment ξ_t in
+[0, 1] it shows (Splat the Net appendix C.1); it becomes the view's `Camera.time`. Either every
+frame of the dataset carries one or none does (`check_times`), so a scene is wholly static or
+wholly dynamic.
+
+A one-light-at-a-time capture (Splat the Net appendix C.2; GS³, Kang et al.) gives each frame the
+light it was lit by: `light_position` ([x, y, z], a point light in the world frame of
+`transform_matrix`) or `light_direction` ([x, y, z], a directional light, pointing from the light
+towards the scene), and optionally `light_intensity` (> 0, default 1). It becomes the view's
+`Camera.light`. As with time, every frame of the dataset carries a light or none does
+(`check_lights`), and a point light may not sit inside the object's bounds (`check_light_bounds`:
+the readers call it once every frame they read has its camera).
 """
 
 from __future__ import annotations
@@ -20,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.core.geometry.cameras import Camera, opengl_to_opencv
+from radfield.core.geometry.cameras import Camera, Light, opengl_to_opencv
 from radfield.errors import RadfieldError
 from radfield.datasets.images import image_size
 from radfield.datasets.views import View
@@ -29,6 +42,7 @@ from radfield.datasets.views import View
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV order
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+_LIGHT_KEYS = ("light_position", "light_direction")  # a frame's light is one of these (+ light_intensity)
 
 
 def read_json(path: Path) -> dict:
@@ -47,7 +61,126 @@ def read_json(path: Path) -> dict:
         raise RadfieldError(f"{path}: missing key 'frames'")
     if not isinstance(meta["frames"], list) or not all(isinstance(f, dict) for f in meta["frames"]):
         raise RadfieldError(f"{path}: 'frames' must be a list of objects")
+    check_frames([(path, meta)])
     return meta
+
+
+def check_frames(files: list[tuple[Path, dict]]) -> None:
+    """What must agree across the frames of these transforms files (path, content) together:
+    their times (`check_times`) and their lights (`check_lights`)."""
+    check_times(files)
+    check_lights(files)
+
+
+def check_times(files: list[tuple[Path, dict]]) -> None:
+    """Every frame's `time` of these transforms files (path, content) together: a number in
+    [0, 1] on every frame, or on none. The first offending frame raises, named by file and index."""
+    first = None  # (path, index, has a time) of the first frame: the others must agree with it
+    for path, meta in files:
+        for i, frame in enumerate(meta["frames"]):
+            timed = "time" in frame
+            if timed:
+                _check_time(frame, i, path)
+            if first is None:
+                first = (path, i, timed)
+            elif timed != first[2]:
+                what = "has a 'time'" if timed else "has no 'time'"
+                other = "has none" if timed else "has one"
+                where = "" if first[0] == path else f" of {first[0]}"
+                raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}) {what} but frames[{first[1]}]{where} "
+                                    f"{other}: give every frame a time or none")
+
+
+def _check_time(frame: dict, i: int, json_path: Path) -> None:
+    value = frame["time"]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise RadfieldError(f"{json_path}: frames[{i}] ({_frame_name(frame)}): 'time' must be a number in [0, 1], "
+                            f"not {value!r:.40}")
+    if not 0.0 <= value <= 1.0:
+        raise RadfieldError(f"{json_path}: frames[{i}] ({_frame_name(frame)}): 'time' {value!r} is outside [0, 1]")
+
+
+def check_lights(files: list[tuple[Path, dict]]) -> None:
+    """Every frame's light of these transforms files (path, content) together: a valid light on
+    every frame, or none on any. The first offending frame raises, named by file and index."""
+    first = None  # (path, index, has a light) of the first frame: the others must agree with it
+    for path, meta in files:
+        for i, frame in enumerate(meta["frames"]):
+            lit = any(key in frame for key in _LIGHT_KEYS)
+            if first is None:
+                first = (path, i, lit)
+            elif lit != first[2]:
+                what = "has a light" if lit else "has no light"
+                other = "has none" if lit else "has one"
+                where = "" if first[0] == path else f" of {first[0]}"
+                raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}) {what} but frames[{first[1]}]{where} "
+                                    f"{other}: give every frame a 'light_position' or 'light_direction', or none")
+            frame_light(frame, i, path)  # checks the values (None when the frame has no light)
+
+
+def frame_light(frame: dict, i: int, json_path: Path) -> Light | None:
+    """The Light of frames[i] (None when it has none); a bad one raises naming the file and frame."""
+    where = f"{json_path}: frames[{i}] ({_frame_name(frame)})"
+    given = [key for key in _LIGHT_KEYS if key in frame]
+    if not given:
+        if "light_intensity" in frame:
+            raise RadfieldError(f"{where}: 'light_intensity' without a 'light_position' or 'light_direction'")
+        return None
+    if len(given) == 2:
+        raise RadfieldError(f"{where}: a light has a 'light_position' (a point light) or a 'light_direction' "
+                            "(a directional one), not both")
+    key = given[0]
+    vector = frame[key]
+    if not (isinstance(vector, list) and len(vector) == 3 and all(_is_number(x) for x in vector)):
+        raise RadfieldError(f"{where}: '{key}' must be three finite numbers [x, y, z], not {vector!r:.60}")
+    if key == "light_direction" and not any(vector):
+        raise RadfieldError(f"{where}: 'light_direction' must not be [0, 0, 0]")
+    intensity = frame.get("light_intensity", 1.0)
+    if not (_is_number(intensity) and intensity > 0):
+        raise RadfieldError(f"{where}: 'light_intensity' must be a positive number, not {intensity!r:.40}")
+    vector = tuple(float(x) for x in vector)
+    if key == "light_position":
+        return Light(position=vector, intensity=float(intensity))
+    return Light(direction=vector, intensity=float(intensity))
+
+
+def _is_number(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def _frame_name(frame: dict) -> str:
+    """The frame's file_path for messages (its own checks come later)."""
+    name = frame.get("file_path")
+    return name if isinstance(name, str) else "no file_path"
+
+
+def check_light_bounds(placed: list[tuple[Path, int, dict, View]], root: Path) -> None:
+    """No point light of these views inside the object's bounds (datasets/bounds.py: the box of
+    `root`/mesh.ply, else the ball all these views' cameras frame). `placed`: (transforms file,
+    frame index, frame, its view) for every frame read. Checked here, once every frame read has its
+    camera, because only the cameras (or the mesh) say where the object is, and here the offending
+    frame can still be named; a light inside the object lights nothing the cameras see, and a
+    light given in the wrong units or frame usually lands there."""
+    point_lit = [item for item in placed if item[3].camera.light is not None and item[3].camera.light.position is not None]
+    if not point_lit:
+        return
+    from radfield.datasets.bounds import MESH, object_bounds
+
+    bounds = object_bounds([view.camera for *_, view in placed], root / MESH)
+    if bounds is None:
+        return
+    for path, i, frame, view in point_lit:
+        position = view.camera.light.position
+        if bounds.contains(position):
+            raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}): light_position "
+                                f"[{', '.join(f'{x:.4g}' for x in position)}] is inside the object's bounds "
+                                f"({bounds.describe()}): a point light must be outside the object")
+
+
+def placed_views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[tuple[Path, int, dict, View]]:
+    """`frame_views` with where each view came from: (file, frame index, frame, view)."""
+    views = frame_views(meta, frames, json_path)
+    return [(json_path, i, frame, view) for (i, frame), view in zip(frames, views)]
 
 
 def frame_views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[View]:
@@ -122,8 +255,10 @@ def _camera(
         coeffs = coeffs[:4]  # the usual k1 k2 p1 p2
     distortion = coeffs if coeffs.any() else None
     c2w = opengl_to_opencv(_matrix(frame, i, json_path))
+    time = None if "time" not in frame else float(frame["time"])  # checked by read_json
+    light = frame_light(frame, i, json_path)
     try:
-        return Camera(fx, fy, cx, cy, round(w), round(h), c2w, name), distortion
+        return Camera(fx, fy, cx, cy, round(w), round(h), c2w, name, time, light), distortion
     except RadfieldError as e:
         raise RadfieldError(f"{json_path}: frames[{i}]: {e}") from None
 

@@ -4,19 +4,26 @@ the run's files are found through radfield.run.Run).
 
 Only the parts asked for are read, so that exporting a model from a run does not need the
 envelope's mesh library (pymeshlab); a part a run lacks is None, and `Content.missing` says why.
+A dynamic model is exported at one moment (`at_moment`: the static model of `--time T`), a
+relightable one under one light (`under_light`: the static model of `--light X,Y,Z`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection
 from pathlib import Path
+from typing import NamedTuple
+
+import torch
 
 from radfield.delivery.export import ONE_RAY_FORMATS, Content
+from radfield.delivery.moments import MIN_OPACITY
 from radfield.errors import RadfieldError
 from radfield.run import Run, model_file
 from radfield.util.progress import progress_bar
 
 PARTS = ("cage", "envelope", "cameras")
+ORBIT_VIEWS = 100   # at most this many random views besides the training cameras refine a neural export
 
 
 def load_content(target: Path, device: str = "cpu", parts: Collection[str] = PARTS) -> Content:
@@ -70,17 +77,99 @@ def _load_cameras(run: Run, content: Content) -> None:
         content.missing["cameras"] = f"the run has no cameras ({run.scene} is missing)"
 
 
+def at_moment(content: Content, format: str, time: float | None) -> None:
+    """A dynamic model is exported at one moment (issue 29): content.model becomes the static model
+    of `time` (its kind's at_time, eq. 10-13) before any conversion, so that moment matching,
+    refinement (whose teacher renders the run's training cameras, each with its own time) and the
+    fidelity figure all see that moment's model. A dynamic model without a time, a time for a
+    static model, or a time for a format that holds no model: one error line."""
+    from radfield.delivery.export import MODEL_FORMATS
+    from radfield.delivery.times import check_takes_time, is_dynamic, model_at
+
+    if time is None:
+        if format in MODEL_FORMATS and is_dynamic(content.model):
+            raise RadfieldError(f"{content.source}: the model is dynamic ({content.model.kind}) and {format} holds one "
+                                "moment: give a time (--time T, T in [0, 1])")
+        return
+    if format not in MODEL_FORMATS:
+        raise RadfieldError(f"--time is for the exports of a model ({', '.join(MODEL_FORMATS)}), not {format}")
+    check_takes_time(content.model, content.source)
+    content.model = model_at(content.model, time)
+
+
+def under_light(content: Content, format: str, light, intensity: float | None = None):
+    """A relightable model is exported under one light (issue 30): content.model becomes the static
+    model of `light` (its kind's at_light: the colour over view directions fitted by SH of degree 3)
+    before any conversion, as `at_moment` does for a time, so that moment matching, refinement and
+    the fidelity figure all see that lighting. A relightable model without a light, a light for a
+    model that is not relightable or for a format that holds no model, or a point light inside the
+    run's object bounds: one error line. `intensity`: the one the user gave (None: the run's
+    dataset lights' mean, delivery/lights.py: as_bright_as). Returns the light used (None without one)."""
+    from radfield.delivery.export import MODEL_FORMATS
+    from radfield.datasets.scene import light_from_json
+    from radfield.delivery.lights import (as_bright_as, check_outside, check_takes_light, is_relightable, light_option,
+                                          model_at)
+
+    if light is None:
+        if format in MODEL_FORMATS and is_relightable(content.model):
+            raise RadfieldError(f"{content.source}: the model is relightable ({content.model.kind}) and {format} holds "
+                                "one lighting: give a light (--light X,Y,Z or --light-dir X,Y,Z)")
+        return None
+    option = light_option(light)
+    if format not in MODEL_FORMATS:
+        raise RadfieldError(f"{option} is for the exports of a model ({', '.join(MODEL_FORMATS)}), not {format}")
+    check_takes_light(content.model, content.source, option)
+    check_outside(light, run_bounds(content), option)
+    if intensity is None:
+        light = as_bright_as(light, [light_from_json(view.get("light")) for views in (content.views or {}).values()
+                                     for view in views])
+    content.model = model_at(content.model, light)
+    return light
+
+
+def run_bounds(content: Content):
+    """The object's bounds of a run's dataset (delivery/lights.py: dataset_bounds), None for a model
+    file or a run without cameras or dataset."""
+    from radfield.delivery.export import view_cameras
+    from radfield.delivery.lights import dataset_bounds
+
+    if not content.views or not Path(content.source).is_dir():
+        return None
+    cameras = view_cameras([view for views in content.views.values() for view in views])
+    return dataset_bounds(cameras, Run(Path(content.source)).dataset())
+
+
 def parts_for(format: str) -> tuple[str, ...]:
     """The parts of a run an export `format` reads: its own, and the cameras (with background and
     extent) that refine the Gaussians of ply-3dgs and splat."""
     return {"cage": ("cage",), "envelope": ("envelope",), "points": ()}.get(format, ("cameras",))
 
 
-def gaussians_for(content: Content, format: str, components: int, steps: int, quiet: bool = True) -> str | None:
+class Conversion(NamedTuple):
+    """How `gaussians_for` made the Gaussians of a neural model, for the export's report."""
+
+    how: str                          # one phrase for the "wrote …" line
+    dropped: int                      # moment-matched components left out (opacity < MIN_OPACITY)
+    fidelity: tuple[float, int, str] | None   # (PSNR dB, views, split) of the Gaussians against the model
+
+    def report(self) -> list[str]:
+        lines = []
+        if self.dropped:
+            lines.append(f"left out {self.dropped} moment-matched Gaussians fainter than opacity {MIN_OPACITY:g} "
+                         "(they would not change a pixel by 1/255)")
+        if self.fidelity is not None:
+            psnr, views, split = self.fidelity
+            lines.append(f"the Gaussians against the model's own renders: {psnr:.2f} dB PSNR on {views} {split} views "
+                         "(one ray a pixel, as other tools draw them)")
+        return lines
+
+
+def gaussians_for(content: Content, format: str, components: int, steps: int, quiet: bool = True) -> Conversion | None:
     """For a ply-3dgs or splat `format` of neural primitives: replace content.model by Gaussians
     moment-matched to them (`components` a primitive), refined `steps` steps against renders of the
-    model from the run's training cameras (0: moment matching only). Returns how the Gaussians
-    were made, for the report; None when the model is left as it is."""
+    model from the run's training cameras and orbit views, with densification (0: moment matching
+    only), and measure them against the model on the run's test views. None when the model is
+    left as it is (Gaussians are exported exactly)."""
     from radfield.core import kinds
     from radfield.delivery.export import as_gaussians
 
@@ -89,23 +178,51 @@ def gaussians_for(content: Content, format: str, components: int, steps: int, qu
     if steps and not content.views:
         raise RadfieldError(f"{content.source}: --refine needs a run directory with cameras "
                             f"({content.missing.get('cameras', 'a model file has none')})")
-    gaussians = as_gaussians(content.model, components)
+    teacher = content.model
+    gaussians = as_gaussians(teacher, components)
+    dropped = components * len(teacher) - len(gaussians)
     if steps:
         gaussians = refined(gaussians, content, steps, quiet)
     content.model = gaussians
-    return f"moment-matched neural primitives, {components} a primitive" + (f", refined {steps} steps" if steps else "")
+    how = f"moment-matched neural primitives, {components} a primitive" + (f", refined {steps} steps" if steps else "")
+    return Conversion(how, dropped, fidelity(gaussians, teacher, content))
+
+
+def fidelity(gaussians, teacher, content: Content) -> tuple[float, int, str] | None:
+    """Mean PSNR of the Gaussians drawn with one ray a pixel against the model's own renders, over
+    the run's test views (train views when it has none); None for a model file."""
+    from radfield.core.render.antialias import render_model
+    from radfield.core.render.rasterize import render
+    from radfield.delivery.export import view_cameras
+
+    if not content.views:
+        return None
+    split = next((s for s in ("test", "val", "train") if content.views.get(s)), None)
+    if split is None:
+        return None
+    background = content.background or (1.0, 1.0, 1.0)
+    values = []
+    with torch.no_grad():
+        for camera in view_cameras(content.views[split]):
+            truth = render_model(teacher, camera, background=background).color.clamp(0, 1)
+            mine = render(gaussians, camera, background=background).color.clamp(0, 1)
+            values.append(float(-10 * torch.log10(((mine - truth) ** 2).mean().clamp_min(1e-12))))
+    return sum(values) / len(values), len(values), split
 
 
 def refined(gaussians, content: Content, steps: int, quiet: bool = True):
     """`gaussians` optimised `steps` steps against renders of content.model from the run's training
-    cameras (radfield.delivery.moments.refine_gaussians, with the defaults' train settings)."""
+    cameras and as many orbit views (up to ORBIT_VIEWS), with densification
+    (radfield.delivery.moments.refine_gaussians, with the defaults' train settings)."""
     from radfield.delivery.export import view_cameras
     from radfield.delivery.moments import refine_gaussians
     from radfield.pipeline.config import load_config
 
     cameras = view_cameras(content.views["train"])
+    orbit = min(len(cameras), ORBIT_VIEWS)
     with progress_bar(quiet) as progress:
-        task = progress.add_task(f"refining {len(gaussians)} Gaussians on {len(cameras)} views", total=steps)
+        task = progress.add_task(f"refining {len(gaussians)} Gaussians on {len(cameras) + orbit} views", total=steps)
         return refine_gaussians(gaussians, content.model, cameras, load_config()["train"], steps=steps,
                                 extent=content.extent or 1.0, background=content.background or (1.0, 1.0, 1.0),
+                                orbit=orbit, densify=True,
                                 on_step=lambda step, info: progress.update(task, completed=step))

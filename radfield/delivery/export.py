@@ -19,7 +19,11 @@ Formats (all in the dataset's world frame):
 - ``cage``      the cage as a tetrahedral mesh, ``.vtk`` (legacy VTK) or ``.msh`` (Gmsh 2.2), meshio.
 - ``envelope``  the envelope triangle mesh as a binary PLY.
 - ``cameras``   the run's cameras as a nerfstudio ``transforms.json`` (OpenGL axes, per-frame
-  intrinsics at the image files' resolution, OpenCV distortion, train/val/test file name lists).
+  intrinsics at the image files' resolution, OpenCV distortion, train/val/test file name lists;
+  a dynamic scene's frames keep their ``time``).
+
+A dynamic model (a time-conditioned kind) is exported at one moment: `radfield export --time T`
+hands these functions the static model of that moment (delivery/content.py: at_moment).
 """
 
 from __future__ import annotations
@@ -104,9 +108,11 @@ def export(content: Content, format: str, path: str | Path, *, components: int =
 
 
 def view_cameras(views: list[dict]) -> list[Camera]:
-    """radfield Cameras of scene.json VIEW dicts (posed views only)."""
+    """radfield Cameras of scene.json VIEW dicts (posed views only), each at its view's time (a
+    dynamic scene's; None otherwise)."""
     return [Camera(v["fx"], v["fy"], v["cx"], v["cy"], v["width"], v["height"],
-                   torch.tensor(v["c2w"], dtype=torch.float64), v["name"]) for v in views if "c2w" in v]
+                   torch.tensor(v["c2w"], dtype=torch.float64), v["name"], v.get("time"))
+            for v in views if "c2w" in v]
 
 
 def check_target(format: str, path: str | Path) -> Path:
@@ -253,6 +259,8 @@ def nerfstudio_transforms(splits: dict[str, list[dict]]) -> dict:
             dist = view.get("distortion")
             if dist:
                 frame.update(dict(zip(("k1", "k2", "p1", "p2", "k3"), dist)))
+            if "time" in view:   # a dynamic scene's moment, as nerfstudio's dynamic datasets write it
+                frame["time"] = view["time"]
             frames[frame["file_path"]] = frame   # a view in two splits is one frame
             lists.setdefault(f"{split}_filenames", []).append(str(view["image"]))
     return {"camera_model": "OPENCV", "frames": list(frames.values()), **lists}

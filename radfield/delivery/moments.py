@@ -33,6 +33,7 @@ import torch
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.core.kinds.gaussian import Gaussians
 from radfield.core.kinds.neural import NeuralPrimitives, density_window
+from radfield.core.render.sh import fibonacci_sphere
 
 GRID = 14          # samples per ellipsoid axis (about 1400 inside the ball)
 LLOYD_STEPS = 8    # k-means iterations when splitting a primitive into components
@@ -46,15 +47,6 @@ def _ball_grid(n: int, dtype) -> tuple[torch.Tensor, float]:
     g = -1 + h * (torch.arange(n, dtype=dtype) + 0.5)
     y = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     return y[y.norm(dim=-1) <= 1], h
-
-
-def _sphere_directions(n: int, dtype) -> torch.Tensor:
-    """n near-uniform unit directions (Fibonacci sphere)."""
-    i = torch.arange(n, dtype=dtype) + 0.5
-    z = 1 - 2 * i / n
-    phi = math.pi * (3 - math.sqrt(5)) * i
-    r = torch.sqrt(1 - z * z)
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
 
 
 def neural_density_samples(prims: NeuralPrimitives, grid: int = GRID):
@@ -104,7 +96,7 @@ def gaussians_from_neural(prims: NeuralPrimitives, components: int = 1, grid: in
     if components < 1:
         raise ValueError("components must be at least 1")
     prims = prims.to(dtype=torch.float64)
-    dirs = _sphere_directions(64, torch.float64).to(prims.means.device)
+    dirs = fibonacci_sphere(64).to(prims.means.device)
     parts = []
     for lo in range(0, len(prims), chunk):
         p = prims.select(slice(lo, lo + chunk))

@@ -1,5 +1,5 @@
 """`radfield render`: draw every camera of a dataset split (or an orbit around them, or a camera
-path) with a trained model into a folder of PNGs, and optionally an MP4.
+path, or one of its views) with a trained model into a folder of PNGs, and optionally an MP4.
 
 For a run directory every default is the run's own (RUN/config.yaml): the dataset it trained on
 (radfield.run.Run.dataset), its split rule (data.test_every), background, downscale and near plane;
@@ -8,11 +8,21 @@ A run or a model file is drawn as it was trained: each pixel the mean of the mod
 rays (its `supersample`, core/antialias.render_model).
 The frames are written into a temporary folder beside the output and moved into place at the end,
 so a failed render leaves no partial output.
+
+A dynamic model (a time-conditioned kind, core/kinds/dynamic.py) draws each view at its time
+(Camera.time; delivery/times.py): a dynamic dataset's views at their own times, `time` one moment
+for every view, `times` several (timed_frames: one image per view and moment, `<view>_t<k>.png`,
+or a time-lapse along an orbit or a camera path, its frames and moments paired one to one).
+A relightable model (core/kinds/relight.py) draws each view under its light (Camera.light;
+delivery/lights.py) the same way: a relighting dataset's views under their own lights, `light`
+one light for every view, `light_orbit` N lights circling the object (lit_frames: one image per
+view and light, `<view>_l<k>.png`, or along an orbit or a camera path one light a frame).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +38,9 @@ from radfield.util.timing import clock
 from radfield.datasets.images import write_image
 from radfield.pipeline.config import load_config
 from radfield.datasets.scene import load_split
+from radfield.delivery.lights import (as_bright_as, check_lit, check_outside, check_takes_light, dataset_bounds,
+                                      is_relightable, light_option, orbit_lights, under)
+from radfield.delivery.times import at_time, check_takes_time, check_timed, is_dynamic
 from radfield.run import Run
 
 DEFAULT_FPS = 30.0
@@ -53,10 +66,76 @@ def path_cameras(cameras, names, orbit: int, elevation: float, camera_path: Path
     return cameras, names, fps or DEFAULT_FPS
 
 
+def fixed_camera(cameras, names, which: str, split: str):
+    """([camera], [name]) of the split's view named `which` (a frame name, else its index)."""
+    if which in names:
+        k = names.index(which)
+    elif which.isdigit() and int(which) < len(cameras):
+        k = int(which)
+    else:
+        shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+        raise RadfieldError(f"--camera {which!r}: no view of that name (or index) in the {split} split ({shown})")
+    return [cameras[k]], [names[k]]
+
+
+def timed_frames(cameras, names, time: float | None, times: list[float] | None, path: str | None):
+    """The (cameras, names) to draw at the moments asked for (module docstring): `time` for every
+    camera; `times` along an orbit or a camera path pairs its frames with the moments one to one
+    (a time-lapse while the camera moves; `path` names it), else every view at every moment,
+    `<name>_t<k>`."""
+    if time is not None:
+        return at_time(cameras, time), names
+    if times is None:
+        return cameras, names
+    return varied_frames(cameras, names, "time", times, "t", path, f"--times gives {len(times)} moments",
+                         "a time-lapse pairs them one to one")
+
+
+def lit_frames(cameras, names, light, lights: list | None, path: str | None):
+    """The (cameras, names) to draw under the lights asked for (module docstring): `light` for
+    every camera; `lights` (a light orbit) along an orbit or a camera path one light a frame (both
+    move), else every view under every light, `<name>_l<k>`."""
+    if light is not None:
+        return under(cameras, light), names
+    if lights is None:
+        return cameras, names
+    return varied_frames(cameras, names, "light", lights, "l", path, f"--light-orbit gives {len(lights)} lights",
+                         "the light and the camera move together, one light a frame")
+
+
+def varied_frames(cameras, names, condition: str, values: list, tag: str, path: str | None, given: str,
+                  pairing: str):
+    """The cameras with their `condition` (a Camera field: time, light) set to each of `values`:
+    along an orbit or a camera path (`path` names it) its frames and the values paired one to one,
+    else every camera at every value; frame names gain `_<tag><k>`. `given` and `pairing` word the
+    error of a path with another number of frames."""
+    suffixes = [f"_{tag}{k:04d}" for k in range(len(values))]
+    if path is not None:
+        if len(values) != len(cameras):
+            raise RadfieldError(f"{given} but {path} has {len(cameras)} frames: {pairing} (give as many)")
+        return ([replace(c, **{condition: v}) for c, v in zip(cameras, values)],
+                [name + suffix for name, suffix in zip(names, suffixes)])
+    return ([replace(c, **{condition: v}) for c in cameras for v in values],
+            [name + suffix for name in names for suffix in suffixes])
+
+
+def light_orbit_lights(cameras, count: int, intensity: float | None, bounds) -> list:
+    """`count` lights circling the object (delivery/lights.py: orbit_lights) about the centre of its
+    bounds (else the cameras' focus) and the cameras' mean up, from the split's own lights."""
+    if not cameras:
+        raise RadfieldError("--light-orbit circles the dataset's lights: give --dataset for a model file")
+    params = orbit_from_cameras(cameras)
+    centre = params["target"] if bounds is None else (bounds.center if bounds.center is not None
+                                                      else (bounds.low + bounds.high) / 2)
+    return orbit_lights([camera.light for camera in cameras], centre, params["up"], count, intensity)
+
+
 def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, split: str, out_dir: Path, *,
                   options: dict[str, Any] | None = None, device: str | torch.device = "cpu",
                   orbit: int = 0, elevation: float = 20.0, camera_path: Path | None = None,
-                  video: Path | None = None, fps: float = 0.0,
+                  video: Path | None = None, fps: float = 0.0, camera: str | None = None,
+                  time: float | None = None, times: list[float] | None = None,
+                  light=None, light_orbit: int = 0, light_intensity: float | None = None,
                   on_start: Callable[[int], None] | None = None,
                   on_frame: Callable[[], None] | None = None) -> dict[str, Any]:
     """Render `split` of `dataset` (default: the run's) with the model into out_dir/<view>.png.
@@ -64,43 +143,81 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     `orbit` frames around the split's cameras, or the cameras of the nerfstudio file `camera_path`,
     replace them (path_cameras); `video`: also write the frames as an MP4 at `fps` frames per
     second (0: the camera path's, else DEFAULT_FPS). A model file with a camera path needs no
-    dataset; an orbit needs one to circle.
+    dataset; an orbit needs one to circle. `camera`: only the split's view of that name (or index),
+    e.g. the fixed camera of a time-lapse.
+
+    A dynamic model: `time` (one moment for every view) or `times` (several; timed_frames), else
+    each view's own time (a dynamic dataset's); a camera without a time is one error before
+    anything is written. A time for a static model is one error too (delivery/times.py).
+
+    A relightable model: `light` (a Light, the dataset's world frame, for every view) or
+    `light_orbit` N lights circling the object (lit_frames; at the dataset's lights' mean distance
+    and elevation), else each view's own light (a relighting dataset's); `light_intensity` is the
+    one given for either (None: the dataset lights' mean intensity, delivery/lights.py:
+    as_bright_as, as the orbit's); a camera without a light, a light for a model that is not
+    relightable, or a point light inside the object's bounds is one error (delivery/lights.py).
 
     on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
-    primitives, kind and ms_per_frame (rendering only, after one untimed warm-up render, the
-    device synchronised before each clock reading)."""
+    primitives, kind, moments (the distinct times drawn of a dynamic model, else 0), lights (the
+    distinct lights drawn of a relightable model, else 0) and
+    ms_per_frame (rendering only, after one untimed warm-up render, the device synchronised before
+    each clock reading)."""
     on_path = bool(orbit) or camera_path is not None
+    if camera is not None and on_path:
+        raise RadfieldError(f"--camera and --{'orbit' if orbit else 'camera-path'} exclude each other")
+    if time is not None and times is not None:
+        raise RadfieldError("--time and --times exclude each other")
+    if light is not None and light_orbit:
+        raise RadfieldError(f"{light_option(light)} and --light-orbit exclude each other")
+    if light_intensity is not None and light is None and not light_orbit:
+        raise RadfieldError("--light-intensity is the intensity of --light, --light-dir or --light-orbit: give one")
     # a run edited from a model file (radfield edit MODEL -o RUN) has no config and no dataset of its own
     run = Run(run_dir) if run_dir is not None else None
     config = run.config(options) if run is not None else load_config(None, options=options or {})
     if dataset is None:
         dataset = run.dataset() if run is not None else None
-        if dataset is None and not on_path:
+        if dataset is None and (not on_path or camera is not None):
             what = f"{run_dir} (edited from a model file)" if run_dir is not None else "a model file"
             raise RadfieldError(f"--dataset is required to render {what}: a reconstructed run knows its dataset")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
     model = load_model(model_file, device=device)
+    if time is not None or times is not None:
+        check_takes_time(model, model_file, "--time" if time is not None else "--times")
+    if light is not None or light_orbit:
+        check_takes_light(model, model_file, light_option(light) if light is not None else "--light-orbit")
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
     draw = lambda camera: render_model(model, camera, background=background, near=near)  # its own n × n rays a pixel
     cameras, names = [], []
     if dataset is not None:
         data = load_split(dataset, split, config["data"])
         cameras, names = data.cameras, [view.image_path.stem for view in data.views]
+    if light_intensity is None:   # a light as bright as the dataset's (delivery/lights.py: as_bright_as)
+        light = as_bright_as(light, [view.light for view in cameras])
+    bounds = dataset_bounds(cameras, dataset) if light is not None or light_orbit else None
+    check_outside(light, bounds, light_option(light))
+    lights = light_orbit_lights(cameras, light_orbit, light_intensity, bounds) if light_orbit else None
     frame_rate = fps or DEFAULT_FPS
+    if camera is not None:
+        cameras, names = fixed_camera(cameras, names, camera, split)
     if on_path:
         cameras, names, frame_rate = path_cameras(cameras, names, orbit, elevation, camera_path, fps)
+    path = "the orbit" if orbit else f"the camera path {camera_path}" if camera_path is not None else None
+    cameras, names = timed_frames(cameras, names, time, times, path)
+    check_timed(model, model_file, cameras, path or f"the {split} views of {dataset}")
+    cameras, names = lit_frames(cameras, names, light, lights, path)
+    check_lit(model, model_file, cameras, path or f"the {split} views of {dataset}")
     if on_start is not None:
         on_start(len(cameras))
     with torch.no_grad():  # warm-up, untimed: the first render loads the fused kernels
         draw(cameras[0])
     seconds, frames = 0.0, []
     with atomic_folder(out_dir, merge=True) as tmp:
-        for name, camera in zip(names, cameras):
+        for name, view in zip(names, cameras):
             start = clock(device)
             with torch.no_grad():
-                color = draw(camera).color
+                color = draw(view).color
             seconds += clock(device) - start
             pixels = color.clamp(0, 1).cpu().numpy()
             write_image(tmp / f"{name}.png", pixels)
@@ -111,5 +228,8 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
         if video is not None:
             write_video(video, frames, frame_rate)
     first = cameras[0]
+    moments = {view.time for view in cameras} if is_dynamic(model) else set()
+    lit = {view.light for view in cameras} if is_relightable(model) else set()
     return {"views": len(cameras), "width": first.width, "height": first.height, "primitives": len(model),
-            "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(cameras)}
+            "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(cameras), "moments": len(moments),
+            "lights": len(lit)}

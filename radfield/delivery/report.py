@@ -5,10 +5,14 @@
     view_grid(photo, render)          ground truth | render | error map, one (H, 3W + 2·GAP, 3) image
     side_by_side(photo, renders, labels)   ground truth | render A | render B | ..., labelled
     report_markdown(metrics, ...)     the report.md of one evaluation
+    time_plot(per_time)               a dynamic scene's PSNR over time, as PNG bytes
     compare_markdown(rows)            the table of `radfield eval --compare`
 
 Images are float (H, W, 3) numpy arrays in [0, 1]. No file is written here: that is for the
 callers, through radfield.util.atomic.
+
+TIME_PLOT (figures/psnr_over_time.png, beside report.md) is where a caller puts `time_plot`'s
+picture; report_markdown links it when metrics has "per_time".
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import numpy as np
 ERROR_SCALE = 0.25  # |render − photo| (mean over RGB) shown at full brightness
 GAP = 2             # white pixels between the panels of a grid
 LABEL_HEIGHT = 14   # pixels of the caption row of side-by-side grids
+FIGURES = "figures"                         # the report's plots, beside report.md
+TIME_PLOT = f"{FIGURES}/psnr_over_time.png"   # a dynamic scene's per-time PSNR (time_plot)
 
 
 def error_map(render: np.ndarray, photo: np.ndarray) -> np.ndarray:
@@ -111,6 +117,8 @@ def report_markdown(metrics: dict[str, Any], *, model: str, grids_dir: str | Non
         lines += [f"LPIPS not computed: {m['lpips_note']}.", ""]
     lines += ["PSNR over all pixels and channels (data range 1); SSIM with the 11×11 Gaussian window (σ = 1.5); "
               "LPIPS AlexNet v0.1 (lower is better).", ""]
+    if m.get("per_time"):
+        lines += time_section(m["per_time"])
     if grids_dir is not None:
         lines += ["## Views", "", f"ground truth | render | error |render − photo| (mean over RGB; black 0, "
                   f"yellow ≥ {ERROR_SCALE})", ""]
@@ -120,6 +128,39 @@ def report_markdown(metrics: dict[str, Any], *, model: str, grids_dir: str | Non
         lines += ["## Training", ""] + [f"![training curves]({c})" if c.endswith(".png") else f"- [{c}]({c})"
                                         for c in curves] + [""]
     return "\n".join(lines)
+
+
+def time_section(per_time: Sequence[dict[str, Any]]) -> list[str]:
+    """The report's "Over time" section of a dynamic scene: the plot and the per-time table."""
+    lines = ["## Over time", "", f"![PSNR over time]({TIME_PLOT})", "",
+             "| time | views | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {t['time']:.4g} | {t['views']} | {t['psnr']:.2f} | {t['ssim']:.4f} | {_fmt(t.get('lpips'), 4)} |"
+              for t in per_time]
+    return lines + [""]
+
+
+def time_plot(per_time: Sequence[dict[str, Any]], title: str = "held-out views over time") -> bytes:
+    """PNG bytes (matplotlib, Agg backend): PSNR per moment ξ_t, the mean over its views, with the
+    overall mean as a dashed line."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display; must precede pyplot
+    from matplotlib.figure import Figure
+
+    times, values = [t["time"] for t in per_time], [t["psnr"] for t in per_time]
+    weights = [t["views"] for t in per_time]
+    figure = Figure(figsize=(6, 3.2), layout="constrained")
+    axes = figure.subplots()
+    axes.plot(times, values, "o-", ms=3, lw=1.0, label="mean over the moment's views")
+    axes.axhline(sum(v * w for v, w in zip(values, weights)) / sum(weights), ls="--", lw=0.8, color="grey",
+                 label="mean over all views")
+    axes.set(title=title, xlabel="time ξ", ylabel="PSNR (dB)", xlim=(-0.02, 1.02))
+    axes.legend(loc="lower right", fontsize="small")
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=100)
+    return buffer.getvalue()
 
 
 COMPARE_COLUMNS = ("run", "kind", "PSNR (dB)", "SSIM", "LPIPS", "primitives", "parameters", "size", "FPS", "train time")

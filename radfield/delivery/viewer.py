@@ -6,6 +6,18 @@ Each connected browser gets its own frames: while its camera moves the view is r
 1/`moving_downscale` of `resolution` (long side, pixels), and once the camera has rested for
 `SETTLE_SECONDS` at the full `resolution`. viser's cameras use OpenCV axes, as radfield does, so a
 viser camera (wxyz, position, vertical fov, aspect) is a radfield Camera without conversion.
+
+A dynamic model (a time-conditioned kind, core/kinds/dynamic.py) gets a "Time" slider in [0, 1]:
+every frame is drawn at its moment (Camera.time), and moving it redraws every browser's view. A
+dynamic dataset photographs each camera at many moments: its frustums are drawn once a pose.
+
+A relightable model (core/kinds/relight.py) gets a light control: "Light azimuth" and "Light
+elevation" sliders (degrees about the model's centre and the dataset's up) and, for a point light,
+"Light distance"; every frame is drawn under that light (Camera.light), and moving one redraws
+every browser's view. The light starts where `--light` / `--light-dir` puts it, else at the mean
+distance and elevation of the dataset's lights (delivery/lights.py: orbit_lights), else (a model
+file) at 45 degrees and three times the model's spread, of intensity distance², which lights the
+centre with irradiance 1 as the olat demo scene's lights do.
 """
 
 from __future__ import annotations
@@ -14,7 +26,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -24,11 +36,15 @@ from radfield.core.geometry.cameras import Camera
 from radfield.delivery.export import view_cameras
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.core.render.rasterize import render
+from radfield.delivery.lights import check_takes_light, is_relightable, light_angles, light_at
+from radfield.delivery.times import is_dynamic
 
 SETTLE_SECONDS = 0.3    # camera still this long -> render at full resolution
 POLL_SECONDS = 0.02
 MAX_FRUSTUMS = 300      # dataset cameras drawn (evenly subsampled beyond this)
 MAX_CAGE_EDGES = 60_000
+LIGHT_DISTANCES = (0.25, 4.0)   # the distance slider's range, times the starting light's distance
+TIME_STEP = 0.01        # the time slider's resolution: the model is continuous in time, the data's moments need not be k/100
 
 
 @dataclass
@@ -36,17 +52,24 @@ class _ClientState:
     stamp: float = 0.0          # camera update time of the last frame sent
     full: bool = False          # whether that frame was at full resolution
     frames: int = 0
+    moment: float | None = None  # the time a dynamic model's last frame showed
+    light: object = None         # the light a relightable model's last frame was drawn under
 
 
 @dataclass
 class ViewerScene:
     """What the viewer shows: primitives (on `device`), and optionally the cage (V, 3) + (T, 4) and
-    the dataset cameras (radfield Cameras)."""
+    the dataset cameras (radfield Cameras). `time`: the moment a dynamic model is first shown;
+    `light`: the light a relightable model is first drawn under (None for other models); `lights`:
+    the dataset views' lights (a relighting dataset's; where the default light comes from)."""
 
     model: object
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     cage: tuple[np.ndarray, np.ndarray] | None = None
     cameras: list[Camera] = field(default_factory=list)
+    time: float = 0.0
+    light: object = None
+    lights: list = field(default_factory=list)
 
 
 def tet_edges(tets: np.ndarray) -> np.ndarray:
@@ -55,18 +78,31 @@ def tet_edges(tets: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
-def viewer_scene(target, device: str = "cpu", background: tuple[float, float, float] | None = None) -> ViewerScene:
+def viewer_scene(target, device: str = "cpu", background: tuple[float, float, float] | None = None,
+                 time: float | None = None, light=None, light_intensity: float | None = None) -> ViewerScene:
     """What `radfield view TARGET` shows: the model of a model file or a run, and for a run its cage
     and its dataset's cameras. An edited run has no data stage of its own: its cameras (and
     background) are its source run's (radfield.run.Run.dataset_scene), since an edit keeps the
-    world frame. `background` overrides the run's (default white)."""
+    world frame. `background` overrides the run's (default white); `time`: a dynamic model's first
+    moment (default 0; a time for a static model is one error, delivery/times.py); `light`: a
+    relightable model's first light (default: module docstring; a light for another model, or a
+    point light inside the run's object bounds, is one error, delivery/lights.py), as bright as the
+    dataset's lights unless `light_intensity` (the user's) is given (delivery/lights.py: as_bright_as)."""
     from pathlib import Path
 
     from radfield.datasets.scene import load_scene
-    from radfield.delivery.content import load_content
+    from radfield.datasets.scene import light_from_json
+    from radfield.delivery.content import load_content, run_bounds
+    from radfield.delivery.lights import as_bright_as, check_outside, light_option
+    from radfield.delivery.times import check_takes_time
     from radfield.run import Run, is_run_dir
 
     content = load_content(Path(target), device, parts=("cage", "cameras"))
+    if time is not None:
+        check_takes_time(content.model, target)
+    if light is not None:
+        check_takes_light(content.model, target, light_option(light))
+        check_outside(light, run_bounds(content), light_option(light))
     views, run_background = content.views, content.background
     if views is None and is_run_dir(target):
         scene_file = Run(target).dataset_scene()
@@ -74,12 +110,30 @@ def viewer_scene(target, device: str = "cpu", background: tuple[float, float, fl
             scene = load_scene(scene_file)
             run_background = run_background or scene.background
             views = scene.splits if scene.posed else None
-    return ViewerScene(content.model, background or run_background or (1.0, 1.0, 1.0), content.cage, viewer_cameras(views))
+    lights = [lit for lit in (light_from_json(v.get("light")) for split in (views or {}).values() for v in split)
+              if lit is not None]
+    if light_intensity is None:
+        light = as_bright_as(light, lights)
+    return ViewerScene(content.model, background or run_background or (1.0, 1.0, 1.0), content.cage,
+                       viewer_cameras(views), time or 0.0, light, lights)
 
 
 def viewer_cameras(splits: dict[str, list[dict]] | None) -> list[Camera]:
-    """radfield Cameras of scene.json views (every split; the train views first)."""
-    return view_cameras([v for split in sorted(splits or {}, key=lambda s: s != "train") for v in splits[split]])
+    """radfield Cameras of scene.json views (every split; the train views first), one a pose: a
+    dynamic dataset's camera photographs many moments from the same place."""
+    cameras = view_cameras([v for split in sorted(splits or {}, key=lambda s: s != "train") for v in splits[split]])
+    poses = {}
+    for camera in cameras:
+        poses.setdefault(camera.c2w.numpy().tobytes(), camera)
+    return list(poses.values())
+
+
+def dataset_up(cameras: list[Camera]) -> np.ndarray:
+    """The dataset's mean "up" (−y of each camera, OpenCV axes), unit; +z without cameras."""
+    if not cameras:
+        return np.array([0.0, 0.0, 1.0])
+    up = -np.mean([c.c2w[:3, 1].numpy() for c in cameras], axis=0)
+    return up / max(np.linalg.norm(up), 1e-12)
 
 
 def viser_camera(wxyz, position, fov: float, aspect: float, height: int) -> Camera:
@@ -99,14 +153,20 @@ class Viewer:
         import viser
 
         self.scene, self.resolution, self.moving_downscale, self.log = scene, resolution, moving_downscale, log
+        self.dynamic = is_dynamic(scene.model)
+        self.relightable = is_relightable(scene.model)
+        self.time_slider = None
+        self.centre = scene.model.means.detach().median(0).values.cpu().double().numpy()
+        self.up = dataset_up(scene.cameras)
+        self.start_light = (scene.light or self.default_light()) if self.relightable else None
         # one tiny render first: the fused kernels load (or compile) before a browser waits on them
-        render(scene.model, Camera(8.0, 8.0, 4.0, 4.0, 8, 8, torch.eye(4, dtype=torch.float64)))
+        render(scene.model, Camera(8.0, 8.0, 4.0, 4.0, 8, 8, torch.eye(4, dtype=torch.float64),
+                                   time=scene.time if self.dynamic else None, light=self.start_light))
         # a browser probing the port before it connects makes websockets log a handshake traceback
         logging.getLogger("websockets").setLevel(logging.CRITICAL)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.clients: dict[int, _ClientState] = {}
         self.lock = threading.Lock()
-        self.centre = scene.model.means.detach().median(0).values.cpu().double().numpy()
         self._add_overlays()
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(lambda client: self.clients.pop(client.client_id, None))
@@ -116,8 +176,7 @@ class Viewer:
         scene, gui = self.server.scene, self.server.gui
         if self.scene.cameras:
             # the dataset's mean "up" (−y of each camera) becomes the orbit's up direction
-            up = -np.mean([c.c2w[:3, 1].numpy() for c in self.scene.cameras], axis=0)
-            scene.set_up_direction(tuple(up / max(np.linalg.norm(up), 1e-12)))
+            scene.set_up_direction(tuple(self.up))
         if self.scene.cage is not None:
             vertices, tets = self.scene.cage
             edges = tet_edges(tets)[:MAX_CAGE_EDGES]
@@ -139,7 +198,37 @@ class Viewer:
             toggle.on_update(lambda _: [setattr(f, "visible", toggle.value) for f in frustums])
         self.res_slider = gui.add_slider("Resolution", min=64, max=2048, step=32, initial_value=self.resolution)
         self.res_slider.on_update(lambda _: self._redraw_all())
+        if self.dynamic:
+            # no redraw callback: step() compares each client's last moment with the slider's
+            self.time_slider = gui.add_slider("Time", min=0.0, max=1.0, step=TIME_STEP, initial_value=self.scene.time,
+                                              hint="the moment shown, in [0, 1]")
+        if self.relightable:
+            self._add_light_control(gui)
         gui.add_markdown(f"{len(self.scene.model)} {self.scene.model.kind} primitives")
+
+    def default_light(self):
+        """A relightable model's first light without --light (module docstring)."""
+        from radfield.delivery.lights import orbit_lights
+
+        if self.scene.lights:
+            return orbit_lights(self.scene.lights, self.centre, self.up, 1)[0]
+        spread = float(self.scene.model.means.detach().std(0).norm().cpu())
+        distance = 3.0 * max(spread, 1e-3)
+        return light_at(self.centre, self.up, 0.0, 45.0, distance, distance**2)
+
+    def _add_light_control(self, gui) -> None:
+        """Azimuth, elevation (and a point light's distance) sliders; no redraw callback: step()
+        compares each client's last light with the sliders'."""
+        azimuth, elevation, distance = light_angles(self.centre, self.up, self.start_light)
+        self.light_sliders = [gui.add_slider("Light azimuth", min=-180.0, max=180.0, step=1.0,
+                                             initial_value=azimuth, hint="degrees about the up direction"),
+                              gui.add_slider("Light elevation", min=-89.0, max=89.0, step=1.0,
+                                             initial_value=elevation, hint="degrees above the horizon")]
+        if distance is not None:
+            low, high = (distance * f for f in LIGHT_DISTANCES)
+            self.light_sliders.append(gui.add_slider("Light distance", min=low, max=high, step=(high - low) / 200,
+                                                     initial_value=distance, hint="from the model's centre"))
+        self.light_start_values = [slider.value for slider in self.light_sliders]
 
     def _connect(self, client) -> None:
         if self.scene.cameras:
@@ -162,12 +251,35 @@ class Viewer:
                 state.stamp, state.full = -1.0, False
 
     # --- rendering ----------------------------------------------------------------------------
-    def render_frame(self, client, height: int) -> np.ndarray:
-        cam = client.camera
-        camera = viser_camera(cam.wxyz, cam.position, cam.fov, cam.aspect, height)
+    @property
+    def time(self) -> float | None:
+        """The moment a dynamic model is drawn at (the Time slider's), None for a static model."""
+        return float(self.time_slider.value) if self.time_slider is not None else None
+
+    @property
+    def light(self):
+        """The light a relightable model is drawn under (the light sliders'), None for other models."""
+        if not self.relightable:
+            return None
+        if [slider.value for slider in self.light_sliders] == self.light_start_values:
+            return self.start_light   # exactly the light asked for, not its round trip through the angles
+        azimuth, elevation, *distance = (float(slider.value) for slider in self.light_sliders)
+        return light_at(self.centre, self.up, azimuth, elevation, distance[0] if distance else None,
+                        self.start_light.intensity)
+
+    def render_view(self, camera: Camera, moment: float | None = None, light=None) -> np.ndarray:
+        """`camera`'s frame (H, W, 3) uint8; a dynamic model's at `moment` (default: the slider's), a
+        relightable model's under `light` (default: the light sliders')."""
+        moment = self.time if moment is None else moment
+        light = self.light if light is None else light
         with torch.no_grad():
-            out = render_model(self.scene.model, camera, background=self.scene.background)
+            out = render_model(self.scene.model, replace(camera, time=moment, light=light),
+                               background=self.scene.background)
         return (out.color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+
+    def render_frame(self, client, height: int, moment: float | None = None, light=None) -> np.ndarray:
+        cam = client.camera
+        return self.render_view(viser_camera(cam.wxyz, cam.position, cam.fov, cam.aspect, height), moment, light)
 
     def step(self) -> int:
         """Render one frame for every client that needs one; returns how many were rendered."""
@@ -178,7 +290,8 @@ class Viewer:
             if state is None or client.camera.update_timestamp == 0.0:
                 continue   # the browser has not reported its camera yet
             stamp = client.camera.update_timestamp
-            moved = stamp != state.stamp
+            moment, light = self.time, self.light   # read once: a slider may move while this frame renders
+            moved = stamp != state.stamp or moment != state.moment or light != state.light
             settled = time.time() - stamp > SETTLE_SECONDS
             if not moved and (state.full or not settled):
                 continue
@@ -187,13 +300,16 @@ class Viewer:
             aspect = client.camera.aspect
             height = long_side if aspect < 1 else max(1, round(long_side / aspect))
             start = time.perf_counter()
-            image = self.render_frame(client, height)
+            image = self.render_frame(client, height, moment, light)
             client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
-            state.stamp, state.full = stamp, full
+            state.stamp, state.full, state.moment, state.light = stamp, full, moment, light
             state.frames += 1
             rendered += 1
+            at = f" at time {moment:.2f}" if moment is not None else ""
+            at += f" under a light at {', '.join(f'{x:.2f}' for x in light.position)}" if light and light.position else ""
+            at += f" under a light along {', '.join(f'{x:.2f}' for x in light.direction)}" if light and light.direction else ""
             self.log(f"viewer: frame {state.frames} for client {client_id}: {image.shape[1]}x{image.shape[0]}"
-                     f"{' (full)' if full else ''} in {1e3 * (time.perf_counter() - start):.0f} ms")
+                     f"{' (full)' if full else ''}{at} in {1e3 * (time.perf_counter() - start):.0f} ms")
         return rendered
 
     def serve_forever(self) -> None:

@@ -52,6 +52,7 @@ CHOICES: dict[str, tuple[str, ...] | Callable[[], tuple[str, ...]]] = {
     "train.primitive": _primitive_kinds,
     "init.source": ("auto", "mesh", "points", "random"),
     "eval.split": ("train", "val", "test"),
+    "data.time": ("auto", "ignore"),
 }
 
 _TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}

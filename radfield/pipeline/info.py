@@ -131,6 +131,10 @@ def format_info(info: dict[str, Any]) -> str:
     console.print(table)
     console.print(f"input: {info['input'] or '-'}")
     console.print(f"model: {info['model'] or '- (not trained yet)'}")
+    moments = info["stages"].get("data", {}).get("times")
+    if moments:   # a dynamic scene (the data stage's figure); its kind is the init stage's
+        kind = info["stages"].get("init", {}).get("kind", "not initialised yet")
+        console.print(f"dynamic scene: {moments} moments, primitive kind {kind}")
     pending = info.get("pending_checkpoint")
     if pending:
         of = f" of {pending['iterations']}" if pending["iterations"] is not None else ""

@@ -38,6 +38,11 @@ def check(config: dict[str, Any], input_path: Path) -> None:
     for module in (sfm, envelope, tetra, bake):
         module.check_config(config)
     init.check_config(config, points, posed=scene["posed"])
+    dynamic = config["data"]["time"] != "ignore" and bool(data.scene_times(scene))
+    try:
+        init.primitive_kind(config, dynamic)   # a time-conditioned kind on views without time
+    except RadfieldError as e:
+        raise RadfieldError(f"{input_path}: {e}") from None
     if config["eval"]["split"] not in scene["splits"]:
         raise RadfieldError(f"config key eval.split is {config['eval']['split']} but {input_path} has only the "
                             f"{', '.join(scene['splits'])} splits")

@@ -24,12 +24,16 @@ def run(ctx: Context) -> dict[str, Any]:
     # photos arrive posed by the sfm stage (its COLMAP folder); other datasets are read as given
     source = ctx.inputs[SFM_DATASET] or ctx.inputs[INPUT]
     scene, points = read_dataset(source, ctx.config["data"])
+    if ctx.config["data"]["time"] == "ignore":
+        scene = without_times(scene)
+    times = scene_times(scene)
     ctx.outputs[SCENE].write_text(json.dumps(scene, indent=1) + "\n")
     np.savez(ctx.outputs[POINTS], **points)
     splits = scene["splits"]
     first = splits["train"][0]
     ctx.log(f"{scene['format']} dataset, {len(splits['train'])} train / {len(splits['test'])} test views"
-            + ("" if scene["posed"] else " (unposed: the sfm stage poses them)"))
+            + ("" if scene["posed"] else " (unposed: the sfm stage poses them)")
+            + (f", dynamic: {len(times)} times" if times else ""))
     return {
         "images": sum(len(views) for views in splits.values()),
         "train_images": len(splits["train"]),
@@ -38,7 +42,21 @@ def run(ctx: Context) -> dict[str, Any]:
         "height": first["height"],
         "points": len(points["xyz"]),
         "format": scene["format"],
+        **({"times": len(times)} if times else {}),   # a dynamic scene: its distinct moments
     }
+
+
+def without_times(scene: dict[str, Any]) -> dict[str, Any]:
+    """The scene.json content with every view's time dropped (data.time ignore): the views of a
+    dynamic dataset read as one moment, the "trained as if static" baseline of issue 29."""
+    splits = {name: [{k: v for k, v in view.items() if k != "time"} for view in views]
+              for name, views in scene["splits"].items()}
+    return {**scene, "splits": splits}
+
+
+def scene_times(scene: dict[str, Any]) -> list[float]:
+    """The distinct times of a scene.json's views, ascending ([] for a static scene)."""
+    return sorted({view["time"] for views in scene["splits"].values() for view in views if "time" in view})
 
 
 STAGE = Stage("data", run, config_keys=("data",), inputs=(INPUT, SFM_DATASET), outputs=(SCENE, POINTS),

@@ -7,6 +7,12 @@ mesh.ply), `hull` (the alpha masks of the training images), `triangulate` (featu
 the posed training images: posed photos without points), `auto` (the first of these the dataset
 has) or `none` (no envelope and no cage, on purpose: this stage and tetra are not applicable).
 When `auto` ends at `triangulate` and too few points come out, the run has no envelope either.
+
+A dynamic scene (views that carry a time) must be enclosed at every moment, so that the cage
+edits every moment alike: its visual hull is the union of the per-moment hulls (each carved by
+that moment's training views only: views of other moments would carve away what moved) when
+every moment has at least MIN_VIEWS_PER_TIME views (the paper's 40-camera rigs, `demo-scene
+smoke`), else (D-NeRF's monocular captures, one view a moment) the box about the cameras' focus.
 A fallback (convex hull, box) is recorded in the figures and printed as one warning line.
 """
 
@@ -17,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from radfield.core.geometry.envelope import (MIN_POINTS, build_envelope, choose_source, overlay_picture, visual_hull,
-                                    write_envelope)
+from radfield.core.geometry.envelope import (MIN_POINTS, build_envelope, choose_source, focus_box, overlay_picture,
+                                             visual_hull, write_envelope)
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import require
 from radfield.datasets.scene import POINTS, SCENE, load_scene
@@ -27,6 +33,9 @@ from radfield import run as layout
 
 ENVELOPE = layout.ENVELOPE_FILE
 OVERLAY = "envelope.png"
+# a moment's hull needs silhouettes from several sides: fewer views per moment than this, and a
+# dynamic scene's envelope is the box about the cameras' focus
+MIN_VIEWS_PER_TIME = 3
 
 
 def run(ctx: Context) -> dict[str, Any]:
@@ -53,8 +62,7 @@ def run(ctx: Context) -> dict[str, Any]:
         mesh = points["mesh_vertices"]
         v, f, figures = build_envelope((mesh, points["mesh_faces"]) if len(points["mesh_faces"]) else mesh, cfg)
     else:
-        _, masks = train.load_images()  # views without alpha count as all foreground
-        v, f, figures = visual_hull(train.cameras, list(masks.numpy()), cfg)
+        v, f, figures = hull_of_every_moment(train, cfg)
     write_envelope(ctx.outputs[ENVELOPE], v, f)
     overlay_picture(v, f, train.cameras[0], train.load_image(0)[0].numpy(), ctx.outputs[OVERLAY])
     ctx.log(f"{figures['faces']} faces from the {source} ({figures['method']}), margin {figures['margin']:.3g}")
@@ -62,6 +70,24 @@ def run(ctx: Context) -> dict[str, Any]:
         print(f"radfield: warning: envelope: fell back to the {figures['fallback']} ({figures['fallback_reason']})",
               file=sys.stderr, flush=True)
     return {"source": source, **figures}
+
+
+def hull_of_every_moment(train, cfg: dict[str, Any]):
+    """The visual hull of the training masks; for a dynamic scene the union of its moments' hulls,
+    or the box about the cameras' focus when a moment has too few views (module docstring)."""
+    moments: dict[float, list[int]] = {}
+    for k, camera in enumerate(train.cameras):
+        if camera.time is not None:
+            moments.setdefault(camera.time, []).append(k)
+    fewest = min((len(group) for group in moments.values()), default=0)
+    if moments and fewest < MIN_VIEWS_PER_TIME:
+        v, f, figures = focus_box(train.cameras, f"a dynamic scene with {fewest} training view(s) at some moment, "
+                                                 f"too few for per-moment hulls (at least {MIN_VIEWS_PER_TIME})")
+        return v, f, {**figures, "moments": len(moments)}
+    _, masks = train.load_images()  # views without alpha count as all foreground
+    groups = [moments[t] for t in sorted(moments)] or None
+    v, f, figures = visual_hull(train.cameras, list(masks.numpy()), cfg, groups=groups)
+    return v, f, {**figures, **({"moments": len(moments)} if moments else {})}
 
 
 STAGE = Stage("envelope", run, config_keys=("envelope", "sfm", "seed"), inputs=(SCENE, POINTS),

@@ -8,7 +8,9 @@ only ever added)::
      "num_primitives": P, "num_params": n, "file_size_bytes": b,
      "fps": f,                              # renders per second (rendering only, after one warm-up)
      "views": N, "width": W, "height": H,
-     "per_view": [{"name", "psnr", "ssim", "seconds", "lpips"}, ...],
+     "per_view": [{"name", "psnr", "ssim", "seconds", "lpips"(, "time")}, ...],
+     "per_time": [{"time", "views", "psnr", "ssim", "lpips"}, ...],   # dynamic scenes only: each
+                                            # moment ξ_t's views averaged (delivery/metrics.per_time)
      "lpips": l | null,                     # AlexNet LPIPS v0.1 (radfield.delivery.lpips), mean over the views;
      "lpips_note": "why lpips is null"}     # null when the weights are not installed or the images are
                                             # smaller than 31×31 (then lpips_note says which)
@@ -18,8 +20,13 @@ measured on their valid pixels only (Scene.valid_masks; radfield.delivery.metric
 PSNR over the valid pixels, SSIM over the 11×11 windows lying wholly on valid pixels).
 
 Besides metrics.json and renders/, it writes (radfield.delivery.report) `report.md` (the tables),
-`grids/<view name>.png` (ground truth | render | error map) and `training/` (a copy of the run's
-train/curves.png and train/log.jsonl, when the run has them).
+`grids/<view name>.png` (ground truth | render | error map), `training/` (a copy of the run's
+train/curves.png and train/log.jsonl, when the run has them) and `figures/` (for a dynamic scene,
+psnr_over_time.png; empty otherwise).
+
+A dynamic scene's views each show one moment (Camera.time): the model is drawn at the view's time
+(the kind's at_view), each per-view entry records it, and per_time and the report's "Over time"
+section (table and plot) average the views of each moment.
 """
 
 from __future__ import annotations
@@ -32,19 +39,20 @@ from typing import Any
 
 import torch
 
-from radfield.util.atomic import atomic_folder, atomic_write_text
+from radfield.util.atomic import atomic_folder, atomic_write_bytes, atomic_write_text
 from radfield.errors import RadfieldError
 from radfield.util.progress import progress_bar
 from radfield.delivery import lpips as lpips_metric
 from radfield.delivery import report
-from radfield.delivery.io import load_model
-from radfield.delivery.metrics import psnr, ssim
+from radfield.delivery.io import load_model, read_metadata
+from radfield.delivery.metrics import per_time, psnr, ssim
 from radfield.core.render.antialias import render_model
 from radfield.datasets.images import write_image
 from radfield.pipeline.config import load_config
 from radfield.datasets.scene import SCENE, Scene, load_scene, read_dataset, scene_from_json
 from radfield.pipeline.runner import Context, Stage
 from radfield.run import MODEL_STAGE, Run, is_run_dir
+from radfield.stages.data import without_times
 from radfield.stages.train import CURVES, LOG, MODEL_FILE
 from radfield import run as layout
 
@@ -53,6 +61,7 @@ RENDERS = "renders"
 REPORT = "report.md"
 GRIDS = "grids"
 TRAINING = "training"
+FIGURES = report.FIGURES
 TRAIN_CURVES = (CURVES, LOG)  # written by the train stage into RUN/train/, when it logs
 
 
@@ -69,7 +78,7 @@ def run(ctx: Context) -> dict[str, Any]:
 
 
 STAGE = Stage("eval", run, config_keys=("eval", "render.near", "render.supersample"), inputs=(SCENE, MODEL_FILE),
-              outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING), version=2)
+              outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING, FIGURES), version=3)
 
 
 def check_supersample(model_file: Path, trained_with: int) -> None:
@@ -109,7 +118,8 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
             seconds = time.perf_counter() - start
             write_image(renders / f"{camera.name}.png", color.numpy())
             per_view.append({"name": camera.name, "psnr": float(psnr(color, photo, mask)),
-                             "ssim": float(ssim(color, photo, mask=mask)), "seconds": seconds})
+                             "ssim": float(ssim(color, photo, mask=mask)), "seconds": seconds,
+                             **({} if camera.time is None else {"time": camera.time})})
             # LPIPS sees the photo in the invalid pixels (a render there is never judged)
             judged = color if mask is None else torch.where(mask[..., None].cpu(), color, photo.cpu())
             per_view[-1]["lpips"] = lpips_metric.lpips(judged, photo, lpips_net) if lpips_net is not None else None
@@ -132,6 +142,7 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
         "per_view": per_view,
         "lpips": None if lpips_net is None else sum(v["lpips"] for v in per_view) / count,
         **({"lpips_note": lpips_note} if lpips_net is None else {}),
+        **({"per_time": per_time(per_view)} if any("time" in v for v in per_view) else {}),
     }
 
 
@@ -146,7 +157,10 @@ def _lpips_network(device: str, camera) -> tuple[lpips_metric.AlexLPIPS | None, 
 
 
 def write_report(out_dir: Path, metrics: dict[str, Any], *, model: str, run_dir: Path | None) -> None:
-    """report.md and training/ in `out_dir` (beside metrics.json and grids/)."""
+    """report.md, training/ and figures/ in `out_dir` (beside metrics.json and grids/)."""
+    (out_dir / FIGURES).mkdir(parents=True, exist_ok=True)
+    if metrics.get("per_time"):
+        atomic_write_bytes(out_dir / report.TIME_PLOT, report.time_plot(metrics["per_time"]))
     curves = []
     (out_dir / TRAINING).mkdir(parents=True, exist_ok=True)
     for name in TRAIN_CURVES:
@@ -188,5 +202,21 @@ def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] |
         dataset = run.dataset() if run else None
         if dataset is None:
             raise RadfieldError("--dataset is required to evaluate a model file")
-    scene = scene_from_json(read_dataset(dataset, config["data"])[0], dataset)
+    scene_json = read_dataset(dataset, config["data"])[0]
+    if config["data"]["time"] == "ignore":   # as the run's data stage saw the views (stages/data.py)
+        scene_json = without_times(scene_json)
+    scene = scene_from_json(scene_json, dataset)
+    check_times(model, scene, dataset)
     return model, scene, target if run else None, config
+
+
+def check_times(model_file: Path, scene: Scene, dataset: Path) -> None:
+    """A time-conditioned model (kinds/dynamic.py) is drawn at each view's time: a dataset whose
+    views carry none cannot measure it (one line, before anything is rendered or written). A static
+    model on a dynamic dataset is measured as it is (the data.time=ignore baseline)."""
+    from radfield.core import kinds
+
+    kind = read_metadata(model_file).get("kind")
+    if kind in kinds.names() and "time" in kinds.get(kind).conditions and not scene.dynamic:
+        raise RadfieldError(f"{model_file}: a dynamic model ({kind}) is measured on views that show a moment, "
+                            f"but the views of {dataset} carry no time")

@@ -15,6 +15,11 @@ its density has the Gaussian's variance d² along every axis: k = √7 for the w
 1/√7 as far as the Gaussian's (5 % of the volume), leaving gaps between neighbours that
 densification must fill (docs/studies/seeds-radius-sh-viewsize.md:
 k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
+The kind is `train.primitive`'s, or for a dynamic scene (views that carry a time) its
+time-conditioned kind (`primitive_kind`: neural -> neural-dynamic, gaussian -> gaussian-dynamic;
+kinds/dynamic.py), which starts as the static kind with zero temporal tensors. D-NeRF datasets and
+the dynamic demo scenes have no points: their centres are all sampled uniformly in the envelope,
+the union of the moments' hulls (stages/envelope.py), or in the `random` ball without one.
 SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives:
 SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray
 through the centre crosses τ-length 2 (the diameter in units of max(s)) and the cos terms average
@@ -74,7 +79,7 @@ def run(ctx: Context) -> dict[str, Any]:
     else:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
-    kind = cfg["train"]["primitive"]
+    kind = primitive_kind(cfg, scene.dynamic)
     prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
                             kinds.get(kind).init_settings(cfg))
     save_model(ctx.outputs[INIT_MODEL], prims)
@@ -82,7 +87,9 @@ def run(ctx: Context) -> dict[str, Any]:
     ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
             + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
-            "cage_samples": in_volume, "bound": cage_file is not None}
+            "cage_samples": in_volume, "bound": cage_file is not None,
+            # a time-conditioned kind, chosen for a dynamic scene's views, is recorded (`radfield info`)
+            **({"kind": prims.kind} if kinds.get(kind).conditions else {})}
 
 
 STAGE = Stage(
@@ -100,7 +107,8 @@ STAGE = Stage(
 def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: bool = True) -> None:
     """The init settings a user can get wrong, checked before anything runs (`points`: the data
     stage's points.npz arrays; for unposed photos, whose points the sfm stage makes, only a
-    mesh source can be missing)."""
+    mesh source can be missing). The kind against the views' times: `primitive_kind`."""
+    require(config, "render.time_frequency", lambda x: 0 < x <= 100, "in (0, 100] (1: the paper's ω; 2π: one period)")
     for key, value in (("init.num_points", config["init"]["num_points"]),
                        ("train.max_primitives", config["train"]["max_primitives"])):
         if value is not None and value < 1:
@@ -115,6 +123,39 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
+
+
+def primitive_kind(config: dict[str, Any], dynamic: bool) -> str:
+    """The kind the run trains (the one place train.primitive is read): train.primitive, or on a
+    dynamic scene (views that carry a time, data.time auto) the time-conditioned kind that extends
+    it (neural -> neural-dynamic, gaussian -> gaussian-dynamic). A time-conditioned kind asked for
+    on views without time is an error: it could not be drawn at any of them."""
+    name = config["train"]["primitive"]
+    kind = kinds.get(name)
+    timed = "time" in kind.conditions
+    if dynamic and not timed:
+        return time_conditioned(kind).name
+    if timed and not dynamic:
+        ignored = config.get("data", {}).get("time") == "ignore"   # the init stage sees scene.json only
+        why = "data.time is ignore" if ignored else "the dataset's views carry no time"
+        raise RadfieldError(f"config key train.primitive is {name}, a time-conditioned kind, but {why}: "
+                            f"train a static kind (e.g. {kind_without_time(kind)})")
+    return name
+
+
+def time_conditioned(kind: kinds.PrimitiveKind) -> kinds.PrimitiveKind:
+    """The registered kind that extends `kind` (a subclass of its class) with the time condition."""
+    for other in kinds.registered():
+        if "time" in other.conditions and isinstance(other, type(kind)):
+            return other
+    raise RadfieldError(f"primitive kind {kind.name} has no time-conditioned variant for this dynamic dataset; "
+                        f"set data.time=ignore to train it as if every view showed one moment")
+
+
+def kind_without_time(kind: kinds.PrimitiveKind) -> str:
+    """The registered static kind that `kind` extends (for the error's hint)."""
+    return next((other.name for other in kinds.registered()
+                 if not other.conditions and isinstance(kind, type(other))), "neural")
 
 
 def choose_source(source: str, points: dict[str, np.ndarray]) -> str:

@@ -14,9 +14,11 @@ implementations in backends. This module is the one place that decides which one
 Backends, best first:
 - "fused-cpu": the C++/OpenMP ops of core/backends/fused.py (csrc/), for CPU float32/float64
   tensors, when the extension builds (it is compiled at first use; a failed build warns once);
+- "triton": the Triton kernels of core/backends/gpu/ (issue 27), for CUDA tensors, and for CPU
+  tensors only under TRITON_INTERPRET=1 inside using("triton") (tests/test_triton.py);
 - "torch": the twins, on every device and dtype.
-A GPU backend registers itself ahead of them (`register(Backend("cuda", runs=...), before=FUSED_CPU)`)
-and its ops with `implement(op, "cuda", fn)`; a kind registers its whole-view renderer for a
+Another backend registers itself where it belongs in that order (`register(Backend(name, runs=...),
+before=...)`) and its ops with `implement(op, name, fn)`; a kind registers its whole-view renderer for a
 backend as op "view.<kind>" (kinds/neural.py, kinds/gaussian.py). No call site changes.
 
 The ops and their signatures are those of the fused-cpu functions registered at the bottom (the
@@ -40,6 +42,7 @@ import torch
 
 TORCH = "torch"
 FUSED_CPU = "fused-cpu"
+TRITON = "triton"
 
 
 @dataclass(frozen=True)
@@ -138,6 +141,11 @@ def kernel(op: str, device: torch.device | str | None, dtype: torch.dtype | None
     return None
 
 
+def chosen() -> str | None:
+    """The backend the innermost `using()` restricts to, or None."""
+    return _ONLY[-1] if _ONLY else None
+
+
 @contextlib.contextmanager
 def using(name: str):
     """Within the block only backend `name` (and the torch twins, for what it does not implement)
@@ -160,3 +168,10 @@ for _op in ("sh_color", "sh_color_parts", "ssim_map", "photometric", "anisotropy
             "gaussian_accumulate", "project_nonnegative_"):
     implement(_op, FUSED_CPU, getattr(fused, _op))
 del _op
+
+# --- the Triton GPU kernels (core/backends/gpu/; triton is imported at the first view drawn) ----------
+# after fused-cpu in the list, which changes nothing: fused-cpu never runs CUDA tensors, and triton
+# runs CPU tensors only inside using("triton") (its tests), where no other backend is offered
+from radfield.core.backends import gpu  # noqa: E402
+
+register(Backend(TRITON, gpu.runs, gpu.why_not))

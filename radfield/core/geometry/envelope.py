@@ -1,7 +1,9 @@
 """The coarse envelope: a closed, outward-offset, decimated triangle mesh that encloses the object,
 inside which the cage is built and the initial primitives are sampled.
 
-From points (SfM) or a given mesh: `build_envelope`. From posed silhouettes: `visual_hull`.
+From points (SfM) or a given mesh: `build_envelope`. From posed silhouettes: `visual_hull`; for a
+dynamic scene (views of several moments) the union of the moments' hulls (`visual_hull(...,
+groups=)`: carving with views of different moments would remove what moves).
 Every branch ends in the same finish and the same fallbacks, so a valid input always gives an
 envelope:
 
@@ -124,7 +126,7 @@ def build_envelope(geometry, cfg: dict) -> tuple[np.ndarray, np.ndarray, dict]:
     return v, f, {**figures, "inliers": len(inliers), "outliers": len(points) - len(inliers)}
 
 
-def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
+def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict, groups: list[list[int]] | None = None):
     """Envelope carved from silhouettes, with the `envelope` section `cfg` of the config.
     `masks[k]` is (H, W) for `cameras[k]` (bool, or alpha in [0, 1]: foreground above
     MASK_THRESHOLD). A voxel is removed when some view sees it entirely on background, and kept
@@ -135,7 +137,11 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
     sphere projects onto background, so the object lies within half a voxel diagonal of the kept
     voxel centres; the marching-cubes surface at that distance goes through `finish`, which must
     hold every kept voxel centre. Returns vertices, faces and the figures of `build_envelope`
-    plus `voxels` and `voxel_size`; silhouettes with no common volume give the box fallback."""
+    plus `voxels` and `voxel_size`; silhouettes with no common volume give the box fallback.
+    `groups`: lists of indices into `cameras`, each carved on its own (the views of one moment
+    of a dynamic scene, each voxel judged by its group's views only) on one shared grid; the
+    hull is the union of the groups' hulls, so it holds the object at every moment. None: one
+    group of every view."""
     import cv2
     from skimage.measure import marching_cubes
 
@@ -150,15 +156,17 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
         # distance (pixels) from each pixel to the nearest foreground pixel
         views.append((cam, cv2.distanceTransform(background, cv2.DIST_L2, 5)))
 
+    view_groups = [[views[k] for k in group] for group in (groups or [range(len(views))])]
     rig_lo, rig_hi = _rig_box(cameras)
     # Silhouette cones from a ring of cameras also meet far outside the object, where only a few
     # views see; asking for many views bounds the hull to the region the capture covers.
-    for min_views in dict.fromkeys((max(1, int(np.ceil(HULL_MIN_VIEWS * len(views)))), 1)):
+    strict = tuple(max(1, int(np.ceil(HULL_MIN_VIEWS * len(group)))) for group in view_groups)
+    for min_views in dict.fromkeys((strict, (1,) * len(view_groups))):
         box = rig_lo, rig_hi
         # a coarse pass finds the object's box, a fine one carves it, and a second fine pass in
         # the fine pass's box (large coarse voxels survive farther out) spends the resolution on it
         for resolution in (32, int(cfg["hull_resolution"]), int(cfg["hull_resolution"])):
-            occupied, origin, h = _carve(views, *box, resolution, min_views)
+            occupied, origin, h = _carve_union(view_groups, *box, resolution, min_views)
             if not occupied.any():
                 break
             idx = np.argwhere(occupied)
@@ -166,11 +174,7 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
         if occupied.any():
             break
     else:
-        centre, half = (rig_lo + rig_hi) / 2, RIG_BOX * np.mean([np.linalg.norm(c.center.numpy() - (rig_lo + rig_hi) / 2)
-                                                                 for c in cameras])
-        v, f = box_envelope(centre - half, centre + half, 0.0)
-        reason = "the silhouettes have no common volume (empty masks or wrong poses?)"
-        return v, f, {**_figures(v, f, "box", "none", 0, 0.0, "box", reason), "voxels": 0, "voxel_size": None}
+        return focus_box(cameras, "the silhouettes have no common volume (empty masks or wrong poses?)")
 
     centres = origin + (idx + 0.5) * h
     diag = float(np.linalg.norm((idx.max(0) - idx.min(0) + 1) * h))
@@ -181,6 +185,18 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict):
     verts = verts + origin + (0.5 - pad) * h  # grid index k is the voxel centre origin + (k + 0.5) h
     v, f, figures = finish([("hull", lambda: (verts, faces))], centres, diag, cfg, extra_margin=reach)
     return v, f, {**figures, "voxels": int(occupied.sum()), "voxel_size": h}
+
+
+def focus_box(cameras: list[Camera], reason: str):
+    """The box fallback of `visual_hull`: a cube about the point the cameras look at (nearest to
+    all optical axes), half-size RIG_BOX × the mean camera distance from it; also the envelope of a
+    dynamic scene whose moments have too few views each for their own hulls (D-NeRF's monocular
+    captures: one view a moment). Vertices, faces and `visual_hull`'s figures, `reason` the fallback's."""
+    rig_lo, rig_hi = _rig_box(cameras)
+    centre = (rig_lo + rig_hi) / 2
+    half = RIG_BOX * np.mean([np.linalg.norm(c.center.numpy() - centre) for c in cameras])
+    v, f = box_envelope(centre - half, centre + half, 0.0)
+    return v, f, {**_figures(v, f, "box", "none", 0, 0.0, "box", reason), "voxels": 0, "voxel_size": None}
 
 
 # --- the common finish ----------------------------------------------------------------------------
@@ -517,6 +533,14 @@ def _rig_box(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
     target, *_ = np.linalg.lstsq(projectors.sum(0), np.einsum("nij,nj->i", projectors, centers), rcond=None)
     radius = max(float(np.linalg.norm(centers - target, axis=1).max()), 1e-6)
     return target - radius, target + radius
+
+
+def _carve_union(view_groups, lo: np.ndarray, hi: np.ndarray, resolution: int, min_views: tuple[int, ...]):
+    """`_carve` of each group of views (with its own min_views) on the same grid, united."""
+    occupied, origin, h = _carve(view_groups[0], lo, hi, resolution, min_views[0])
+    for views, least in zip(view_groups[1:], min_views[1:]):
+        occupied |= _carve(views, lo, hi, resolution, least)[0]
+    return occupied, origin, h
 
 
 def _carve(views, lo: np.ndarray, hi: np.ndarray, resolution: int, min_views: int):

@@ -1,10 +1,15 @@
 """The primitive-kind registry: the one place that says what a kind of primitive is.
 
     kinds.get("neural"), kinds.of(prims)   the PrimitiveKind of a name or of a primitives object
-    kinds.names()                          the registered kinds ("neural", "gaussian", then any added)
+    kinds.names()                          the registered kinds ("neural", "gaussian", "neural-dynamic",
+                                           "gaussian-dynamic", "neural-relight", "gaussian-relight",
+                                           then any added)
     kinds.register(kind), unregister(name) add a kind (a PrimitiveKind subclass instance, kinds/base.py)
 
-Built in: splattable neural primitives (kinds/neural.py) and 3D Gaussians (kinds/gaussian.py).
+Built in: splattable neural primitives (kinds/neural.py), 3D Gaussians (kinds/gaussian.py), and
+their time-conditioned variants for dynamic scenes (kinds/dynamic.py; `kind.conditions` says that
+a view must give a time) and their relightable variants for one-light-at-a-time captures
+(kinds/relight.py; a view must give a light).
 A new kind is one module that defines its primitives dataclass (a `_Primitives` subclass), a
 `PrimitiveKind` subclass with the hooks it needs, registers it, and registers its fast renderers
 with radfield.core.backends; training, the model file, rendering, editing and export then take it
@@ -17,11 +22,14 @@ from radfield.core.kinds.base import (INITIAL_ALPHA, PixelRay, PrimitiveKind, Vi
 from radfield.core.kinds.neural import (DEFAULT_HIDDEN, DEFAULT_OMEGA0, NeuralPrimitives, density_window,
                                         ellipsoid_radius_sq, random_neural, siren_mlp_init)
 from radfield.core.kinds.gaussian import Gaussians, random_gaussians
+from radfield.core.kinds.dynamic import DynamicGaussians, DynamicNeuralPrimitives
+from radfield.core.kinds.relight import RelightGaussians, RelightNeuralPrimitives
 from radfield.core.render.kernels import WINDOW_GAIN
 
 Primitives = _Primitives   # any kind's primitives, for annotations
 
-__all__ = ["DEFAULT_HIDDEN", "DEFAULT_OMEGA0", "INITIAL_ALPHA", "WINDOW_GAIN", "Gaussians", "NeuralPrimitives",
+__all__ = ["DEFAULT_HIDDEN", "DEFAULT_OMEGA0", "INITIAL_ALPHA", "WINDOW_GAIN", "DynamicGaussians",
+           "DynamicNeuralPrimitives", "Gaussians", "NeuralPrimitives", "RelightGaussians", "RelightNeuralPrimitives",
            "PixelRay", "PrimitiveKind", "Primitives", "ViewFrame", "_Primitives", "density_window",
            "ellipsoid_radius_sq", "get", "names", "of", "quat_to_rotmat", "random_gaussians", "random_neural",
            "register", "registered", "rotmat_to_quat", "siren_mlp_init", "unregister"]

@@ -137,6 +137,9 @@ class PrimitiveKind:
     has_line_integral_density: bool = False    # a density σ(x) whose line integral makes α (edit/retrain.py)
     exact_gaussians: bool = False              # its primitives are 3D Gaussians (exported as they are)
     bench_variants: tuple[str, ...] = ()       # the rows it adds to bench-render / bench-train
+    # what a view must say for the kind to be drawn ("time": Camera.time, the moment ξ_t in [0, 1]
+    # of a time-conditioned kind, kinds/dynamic.py); commands ask it before rendering or exporting
+    conditions: tuple[str, ...] = ()
 
     # --- parameters ----------------------------------------------------------------------------
 
@@ -206,6 +209,13 @@ class PrimitiveKind:
         return None
 
     # --- rendering (core/render/rasterize.py) ---------------------------------------------------
+
+    def at_view(self, prims, camera: "Camera"):
+        """The primitives as `camera` sees them: render() (and the slow reference) calls this first
+        and draws what it returns, so a kind conditioned on the view (e.g. on its time, `conditions`)
+        hands the renderer primitives of a kind without conditions (differentiably: gradients reach
+        its own tensors through the ones returned). Default: `prims` itself, at no cost."""
+        return prims
 
     def twin_view(self, prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tensor, tuple]:
         """The torch twin's per-view preparation: (pixel bounds (P, 4) int64 x0 y0 x1 y1 inside the

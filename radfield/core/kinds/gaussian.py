@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from radfield.core import backends
-from radfield.core.backends import fused
+from radfield.core.backends import fused, gpu
 from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.kinds.base import INITIAL_ALPHA, PrimitiveKind, ViewFrame, _Primitives, clip_bounds, register
 from radfield.core.render.kernels import gaussian_alpha
@@ -153,3 +153,4 @@ class GaussianKind(PrimitiveKind):
 
 GAUSSIAN = register(GaussianKind())
 backends.implement("view.gaussian", backends.FUSED_CPU, _fused_cpu_view)
+backends.implement("view.gaussian", backends.TRITON, gpu.gaussian_view)

@@ -19,7 +19,7 @@ from functools import partial
 import torch
 
 from radfield.core import backends
-from radfield.core.backends import fused
+from radfield.core.backends import fused, gpu
 from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.kinds.base import (INITIAL_ALPHA, PrimitiveKind, ViewFrame, _Primitives, camera_directions, first_bad_row,
                                       ellipsoid_bounds, float_metadata, register)
@@ -398,3 +398,4 @@ class NeuralKind(PrimitiveKind):
 
 NEURAL = register(NeuralKind())
 backends.implement("view.neural", backends.FUSED_CPU, _fused_cpu_view)
+backends.implement("view.neural", backends.TRITON, gpu.neural_view)

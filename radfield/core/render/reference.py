@@ -115,6 +115,7 @@ def gaussian_pixel_alpha(prims: Gaussians, i: int, camera: Camera, u: float, v: 
 def reference_render(prims: kinds.Primitives, camera: Camera, background=(1.0, 1.0, 1.0),
                      near: float = 0.01) -> torch.Tensor:
     """(H, W, 3) float64 image by a loop over pixels and, inside, over primitives in depth order."""
+    prims = kinds.of(prims).at_view(prims, camera)   # as render() draws it (kinds/base.py: at_view)
     kind = kinds.of(prims)
     prims = prims.to(dtype=torch.float64)
     c2w = camera.c2w

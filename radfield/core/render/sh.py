@@ -54,7 +54,8 @@ def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
     return (basis[..., None] * coeffs[:, : basis.shape[-1]]).sum(-2)
 
 
-def _fibonacci_sphere(n: int) -> torch.Tensor:
+def fibonacci_sphere(n: int) -> torch.Tensor:
+    """n near-uniform unit directions (n, 3), float64 (the Fibonacci sphere)."""
     i = torch.arange(n, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * i / n
     phi = i * math.pi * (3.0 - math.sqrt(5.0))
@@ -75,7 +76,7 @@ def rotate_sh(coeffs: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
         return coeffs.clone()
     dtype = coeffs.dtype
     rot = torch.as_tensor(rot, dtype=torch.float64, device=coeffs.device).expand(coeffs.shape[0], 3, 3)
-    dirs = _fibonacci_sphere(32).to(coeffs.device)                     # 32 >= 2l+1 for every band
+    dirs = fibonacci_sphere(32).to(coeffs.device)                     # 32 >= 2l+1 for every band
     rest = dirs @ rot                                                  # rows Rᵀ p  (P, 32, 3)
     y_fixed, y_rot = sh_basis(dirs, degree), sh_basis(rest, degree)    # (32, K), (P, 32, K)
     out = coeffs.to(torch.float64).clone()

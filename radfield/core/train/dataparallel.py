@@ -10,12 +10,12 @@ never write a file: rank 0 alone logs, checkpoints and writes the outputs.
 
 from __future__ import annotations
 
-from dataclasses import fields
+from dataclasses import asdict, fields
 
 import torch
 
 from radfield.core.train import distributed
-from radfield.core.geometry.cameras import Camera
+from radfield.core.geometry.cameras import Camera, Light
 from radfield.core import kinds
 from radfield.core.train.trainer import TrainState, state_from_tensors, state_tensors, train
 
@@ -38,7 +38,7 @@ def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, exten
             tensors.update({f"start.{n}": t for n, t in state_tensors(start_state).items()})
         meta = {"cfg": cfg, "kwargs": kwargs, "device": dev.type, "kind": prims.kind,
                 "attrs": kinds.of(prims).attrs(prims), "timeout": world.timeout, "check_every": world.check_every,
-                "cameras": [{f.name: getattr(c, f.name) for f in fields(c) if f.name != "c2w"} for c in train_cameras],
+                "cameras": [camera_meta(c) for c in train_cameras],
                 "start": None if start_state is None else
                 {"step": start_state.step, "kind": start_state.kind, **start_state.attrs}}
         distributed.send("train", meta, tensors)
@@ -46,6 +46,28 @@ def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, exten
         device = dev
     return train(prims, train_cameras, train_images, cfg, device=device, start_state=start_state, masks=masks,
                  alphas=alphas, on_step=on_step, held_out=held_out, checkpoint=checkpoint, world=world, **kwargs)
+
+
+def camera_meta(camera: Camera) -> dict:
+    """A camera's fields but c2w as JSON values (its light, a Light, as a dict)."""
+    meta = {f.name: getattr(camera, f.name) for f in fields(camera) if f.name != "c2w"}
+    if camera.light is not None:
+        meta["light"] = asdict(camera.light)
+    return meta
+
+
+def camera_from_meta(meta: dict, c2w: torch.Tensor) -> Camera:
+    """The camera `camera_meta` described (JSON turns the light's tuples into lists)."""
+    sent = meta.get("light")
+    light = None
+    if sent is not None:
+        sent = {k: tuple(v) if isinstance(v, list) else v for k, v in sent.items()}
+        light = Light(**sent)
+        # Light normalises a direction again, which can move a unit vector by an ulp: every rank
+        # must draw with rank 0's light bit for bit
+        for name in ("position", "direction"):
+            object.__setattr__(light, name, sent[name])
+    return Camera(**{**meta, "light": light}, c2w=c2w)
 
 
 def follow() -> bool:
@@ -58,7 +80,7 @@ def follow() -> bool:
             return kind == "done"
         world.timeout, world.check_every = meta["timeout"], meta["check_every"]
         device = world.device(meta["device"])
-        cameras = [Camera(**c, c2w=tensors[f"camera{k}.c2w"]) for k, c in enumerate(meta["cameras"])]
+        cameras = [camera_from_meta(c, tensors[f"camera{k}.c2w"]) for k, c in enumerate(meta["cameras"])]
         prim_tensors = {n.removeprefix("prims."): t for n, t in tensors.items() if n.startswith("prims.")}
         prims = kinds.get(meta["kind"]).assemble(prim_tensors, meta["attrs"])
         start = meta["start"]

@@ -254,6 +254,15 @@ class GaussianStrategy(_Strategy):
     def _radius(self, params: Params) -> torch.Tensor:
         return GAUSSIAN_RADIUS_SIGMAS * self._max_scale(params)
 
+    def opacity_logits(self, params: Params) -> torch.Tensor:
+        """The opacity logits (P,) that pruning compares with min_opacity (a time-conditioned kind:
+        their bound over time, core/kinds/dynamic.py)."""
+        return params["opacities"].detach()
+
+    def reset_opacities(self, params: Params, ceiling: float) -> None:
+        """3DGS's opacity reset: every opacity_logits at most `ceiling`, in place."""
+        params["opacities"].clamp_(max=ceiling)
+
     def _accumulate_op(self, op, state: dict, params: Params, grads: Params, camera: Camera) -> None:
         means = params["means"]
         op(state["grad"], state["count"], means, params["log_scales"], grads["means"],
@@ -274,13 +283,13 @@ class GaussianStrategy(_Strategy):
             return {}
         report = {}
         if self.schedule.refining(step):
-            prune = torch.sigmoid(params["opacities"].detach()) < self.min_opacity
+            prune = torch.sigmoid(self.opacity_logits(params)) < self.min_opacity
             if step > self.opacity_reset_every:
                 prune |= self._max_scale(params) > self.prune_scale * self.extent
             report = self._grow_and_prune(state, params, optimizer, prune, generator)
         if step % self.opacity_reset_every == 0:
             ceiling = math.log(RESET_OPACITY / (1 - RESET_OPACITY))
-            params["opacities"].clamp_(max=ceiling)
+            self.reset_opacities(params, ceiling)
             reset_moments(optimizer, "opacities")
             report["opacity_reset"] = 1
         return report

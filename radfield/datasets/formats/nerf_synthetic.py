@@ -1,6 +1,10 @@
 """NeRF-synthetic (Blender) datasets: `transforms_train.json`, `transforms_val.json`,
 `transforms_test.json` beside the image folders they name; one file per split, so the dataset's
 splits are the files present. The file syntax is shared with nerfstudio (datasets/transforms.py).
+
+D-NeRF datasets are this layout with a `time` in [0, 1] on every frame (of every split file: the
+files are checked together, so a scene is dynamic in all its splits or in none); one-light-at-a-time
+captures (and `radfield demo-scene olat`) with a light on every frame, checked the same way.
 """
 
 from __future__ import annotations
@@ -8,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from radfield.datasets.formats.base import DatasetFormat, Reading
-from radfield.datasets.transforms import frame_views, read_json
+from radfield.datasets.transforms import check_frames, check_light_bounds, placed_views, read_json
 from radfield.datasets.views import View
 
 _SPLITS = ("train", "val", "test")
@@ -20,14 +24,15 @@ def split_file(root: Path, split: str) -> Path:
 
 def read_nerf_synthetic(root: Path, split: str) -> list[View]:
     """Views of `root/transforms_{split}.json` ('all': every split file present)."""
-    views = []
-    for name in _SPLITS if split == "all" else (split,):
-        path = split_file(root, name)
-        if split == "all" and not path.is_file():
-            continue
-        meta = read_json(path)
-        views += frame_views(meta, list(enumerate(meta["frames"])), path)
-    return views
+    present = [split_file(root, name) for name in _SPLITS if split_file(root, name).is_file()]
+    wanted = present if split == "all" else [split_file(root, split)]
+    metas = {path: read_json(path) for path in dict.fromkeys((*present, *wanted))}
+    check_frames(list(metas.items()))  # the split files together: times (lights) on every frame or none
+    placed = []
+    for path in wanted:
+        placed += placed_views(metas[path], list(enumerate(metas[path]["frames"])), path)
+    check_light_bounds(placed, root)
+    return [view for *_, view in placed]
 
 
 class NerfSynthetic(DatasetFormat):

@@ -1,7 +1,7 @@
 """nerfstudio / instant-ngp datasets: one `transforms.json` (the folder holding it, or the file
 itself). Its splits come from `{train,val,test}_filenames` lists when the file has them, else every
 8th frame by file name is 'test'. The file syntax is shared with NeRF-synthetic
-(datasets/transforms.py).
+(datasets/transforms.py), frames' times and lights included.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 from radfield.errors import RadfieldError
 from radfield.datasets.formats.base import DatasetFormat, Reading, llff_split
-from radfield.datasets.transforms import file_path, frame_views, read_json
+from radfield.datasets.transforms import check_light_bounds, file_path, placed_views, read_json
 from radfield.datasets.views import View
 
 _SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
@@ -29,13 +29,20 @@ def read_nerfstudio(path: Path, split: str) -> list[View]:
     meta = read_json(path)
     frames = sorted(enumerate(meta["frames"]), key=lambda item: file_path(item[1], item[0], path))
     if split == "all" or not any(key in meta for key in _SPLIT_KEYS.values()):
-        return frame_views(meta, llff_split(frames, split, path), path)
+        return _views(meta, llff_split(frames, split, path), path)
     key = _SPLIT_KEYS[split]
     names = meta.get(key, [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise RadfieldError(f"{path}: '{key}' must be a list of file names")
     wanted = {os.path.normpath(n) for n in names}
-    return frame_views(meta, [(i, f) for i, f in frames if os.path.normpath(file_path(f, i, path)) in wanted], path)
+    return _views(meta, [(i, f) for i, f in frames if os.path.normpath(file_path(f, i, path)) in wanted], path)
+
+
+def _views(meta: dict, frames: list[tuple[int, dict]], path: Path) -> list[View]:
+    """The frames' views; their point lights checked against the object's bounds."""
+    placed = placed_views(meta, frames, path)
+    check_light_bounds(placed, path.parent)
+    return [view for *_, view in placed]
 
 
 class Nerfstudio(DatasetFormat):

@@ -1,0 +1,256 @@
+"""The Triton GPU backend ("triton", issue 27): whole-view tile rasterisers for CUDA tensors.
+
+    runs(device, dtype) -> bool, why_not() -> str | None       the seam's Backend hooks
+    gaussian_view(prims, frame, colors, t_min)                    op "view.gaussian" (kinds/gaussian.py)
+    neural_view(prims, frame, colors, t_min)                      op "view.neural" (kinds/neural.py)
+        -> (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,), visible ids front to back)
+    bin_tiles(bounds, height, width) -> (offsets, entries)        the per-tile depth-ordered lists
+
+Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
+download (the wheel ships its compiler), and `TRITON_INTERPRET=1` runs the very same kernels on
+CPU tensors, so CI (no GPU) tests them against the torch twins on tiny views (tests/test_triton.py).
+
+The design is gsplat's/3DGS's. Per view, in torch (so that autograd carries the gradients on to
+the parameters): the kind's own per-view preparation, `twin_view` (Gaussians: the EWA projection,
+the conic with the 0.3 px² blur, the 3σ boxes; neural primitives: the dual-conic boxes, the
+ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k, (W2, b2), 1/max s: exactly the twin's),
+the depth order (a stable sort, as the twin), and the tile binning: every visible primitive × the
+16×16 tiles its box touches, keys (tile, depth rank) sorted by torch.sort, per-tile [start, end)
+ranges. Then two Triton launches (gaussian_kernels.py, neural_kernels.py): the forward, one program
+per tile compositing front to back with early termination, and the backward, walking each pixel's
+list back to front from its final T with atomic adds of the per-primitive gradients. Nothing is
+stored per pair; the launches per view do not depend on the primitive count. The
+population-control statistics come out of autograd as on every path: the means' gradient
+(Gaussians) and the MLP's gradients (neural) are what the strategies read (core/train/strategy.py).
+
+Where it runs: CUDA tensors (float32, float64) when triton is installed and a GPU is present; CPU
+tensors only with the interpreter on (TRITON_INTERPRET=1 before triton is imported) AND the backend
+chosen explicitly with `backends.using("triton")`, so that the CPU path never changes by itself.
+Triton is imported at the first view drawn here, never at start-up.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import os
+
+import torch
+
+NAME = "triton"
+TILE = 16   # tile side in pixels (gaussian_kernels.SIDE)
+# no FMA contraction (as the fused CPU build, -ffp-contract=off): the backward recomputes each pair's
+# α exactly as the forward did, whatever instructions the compiler picks in either kernel
+_COMPILE = {"enable_fp_fusion": False}
+
+
+@functools.cache
+def _installed() -> bool:
+    return importlib.util.find_spec("triton") is not None
+
+
+def interpreting() -> bool:
+    """TRITON_INTERPRET=1: triton runs its kernels on CPU tensors (numpy), slowly: the tests' mode."""
+    return os.environ.get("TRITON_INTERPRET", "").strip() in ("1", "true", "True")
+
+
+def _chosen() -> bool:
+    from radfield.core import backends
+
+    return backends.chosen() == NAME
+
+
+def runs(device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> bool:
+    """Whether the backend runs tensors of (device, dtype) here (cheap: triton is not imported)."""
+    if dtype is not None and dtype not in (torch.float32, torch.float64):
+        return False
+    if not _installed():
+        return False
+    kind = None if device is None else torch.device(device).type
+    on_cpu = interpreting() and _chosen()
+    if kind == "cuda":
+        return torch.cuda.is_available()
+    if kind == "cpu":
+        return on_cpu
+    return kind is None and (on_cpu or torch.cuda.is_available())
+
+
+def why_not() -> str | None:
+    """Why the backend cannot run at all here, or None."""
+    if not _installed():
+        return "triton is not installed"
+    if not torch.cuda.is_available() and not interpreting():
+        return "no CUDA GPU (and TRITON_INTERPRET is not set)"
+    return None
+
+
+# --- tile binning (torch) ------------------------------------------------------------------------
+
+def bin_tiles(bounds: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tile lists of V boxes in depth order (bounds (V, 4) inclusive pixel boxes inside the
+    image): (offsets (tiles + 1,) int32, entries int32), tile t's depth ranks, front to back, at
+    entries[offsets[t]:offsets[t + 1]]. Every (box, tile it touches) pair is one key
+    tile · V + rank, sorted."""
+    device = bounds.device
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    count = max(bounds.shape[0], 1)
+    tx0, ty0, tx1, ty1 = (bounds // TILE).long().unbind(-1)
+    across = tx1 - tx0 + 1
+    touched = across * (ty1 - ty0 + 1)
+    rank = torch.repeat_interleave(torch.arange(bounds.shape[0], device=device), touched)
+    k = torch.arange(rank.numel(), device=device) - (torch.cumsum(touched, 0) - touched)[rank]
+    tile = (ty0[rank] + k // across[rank]) * tiles_x + tx0[rank] + k % across[rank]
+    keys, _ = torch.sort(tile * count + rank)
+    per_tile = torch.bincount(keys // count, minlength=tiles_x * tiles_y)
+    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int32, device=device)
+    offsets[1:] = torch.cumsum(per_tile, 0)
+    return offsets, (keys % count).to(torch.int32)
+
+
+# --- the views: one autograd op per kind, two launches each ------------------------------------------
+
+def _sizes(height: int, width: int) -> tuple[int, int]:
+    return -(-width // TILE), -(-width // TILE) * -(-height // TILE)
+
+
+def _outputs(like: torch.Tensor, height: int, width: int, tiles: int):
+    """Σ w c, Σ w z, T, last (the list position after each pixel's last composited pair) and the
+    per-tile counts (evaluated, composited, terminated)."""
+    return (like.new_zeros(height, width, 3), like.new_zeros(height, width), like.new_ones(height, width),
+            torch.zeros(height, width, dtype=torch.int32, device=like.device),
+            torch.zeros(tiles, 3, dtype=torch.int32, device=like.device))
+
+
+def _counters(counts: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+    """(evaluated, composited, terminated, candidate pairs): the candidates are the boxes' pixels."""
+    x0, y0, x1, y1 = bounds.long().unbind(-1)
+    return torch.cat([counts.long().sum(0), ((x1 - x0 + 1) * (y1 - y0 + 1)).sum().reshape(1)])
+
+
+def _upstream(like: torch.Tensor, height: int, width: int, g_color, g_depth, g_trans):
+    return [like.new_zeros(shape) if g is None else g.contiguous()
+            for g, shape in ((g_color, (height, width, 3)), (g_depth, (height, width)), (g_trans, (height, width)))]
+
+
+def _constants(like: torch.Tensor, t_min: float) -> torch.Tensor:
+    """(t_min, α_min, α_max, 1) in the inputs' dtype (the kernels' thresholds are the twin's)."""
+    from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
+
+    return torch.tensor([t_min, ALPHA_MIN, ALPHA_MAX, 1.0], dtype=like.dtype, device=like.device)
+
+
+class _GaussianView(torch.autograd.Function):
+    """(Σ w c, Σ w z, T, counters) of splats in depth order, differentiable w.r.t. mean2d, conic,
+    opacity, colors and depth (all (V, ...), in depth order)."""
+
+    @staticmethod
+    def forward(ctx, bounds, height, width, t_min, mean2d, conic, opacity, colors, depth):
+        from radfield.core.backends.gpu import gaussian_kernels as K
+
+        inputs = [t.contiguous() for t in (mean2d, conic, opacity, colors, depth)]
+        bounds = bounds.to(torch.int32).contiguous()
+        offsets, entries = bin_tiles(bounds, height, width)
+        consts = _constants(inputs[0], t_min)
+        tiles_x, tiles = _sizes(height, width)
+        acc_color, acc_depth, trans, last, counts = _outputs(inputs[0], height, width, tiles)
+        K.gaussian_forward[(tiles,)](offsets, entries, bounds, *inputs, consts, acc_color, acc_depth, trans, last,
+                                     counts, height, width, tiles_x, SIDE=TILE, **_COMPILE)
+        ctx.sizes = (height, width, tiles_x, tiles)
+        ctx.save_for_backward(offsets, entries, bounds, *inputs, consts, trans, last)
+        counters = _counters(counts, bounds)
+        ctx.mark_non_differentiable(counters)
+        return acc_color, acc_depth, trans, counters
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_color, g_depth, g_trans, _):
+        from radfield.core.backends.gpu import gaussian_kernels as K
+
+        offsets, entries, bounds, *inputs, consts, trans, last = ctx.saved_tensors
+        height, width, tiles_x, tiles = ctx.sizes
+        upstream = _upstream(inputs[0], height, width, g_color, g_depth, g_trans)
+        grads = [torch.zeros_like(t) for t in inputs]   # mean2d, conic, opacity, colors, depth
+        K.gaussian_backward[(tiles,)](offsets, entries, bounds, *inputs, consts, trans, last, *upstream, *grads,
+                                      height, width, tiles_x, SIDE=TILE, **_COMPILE)
+        return None, None, None, None, *grads
+
+
+class _NeuralView(torch.autograd.Function):
+    """As _GaussianView for neural primitives: differentiable w.r.t. m_cam, o_ell, w_cam, c, w2, b2,
+    inv_smax, colors and depth (all (V, ...), in depth order); `window`: the windowed density."""
+
+    @staticmethod
+    def forward(ctx, bounds, intrinsics, height, width, t_min, window, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors,
+                depth):
+        from radfield.core.backends.gpu import neural_kernels as K
+
+        inputs = [t.contiguous() for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth)]
+        bounds = bounds.to(torch.int32).contiguous()
+        intrinsics = intrinsics.detach().contiguous()
+        offsets, entries = bin_tiles(bounds, height, width)
+        consts = _constants(inputs[0], t_min)
+        tiles_x, tiles = _sizes(height, width)
+        units = c.shape[1]
+        acc_color, acc_depth, trans, last, counts = _outputs(inputs[0], height, width, tiles)
+        K.neural_forward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, acc_color, acc_depth, trans,
+                                   last, counts, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
+                                   WINDOW=bool(window), **_COMPILE)
+        ctx.sizes = (height, width, tiles_x, tiles, units, bool(window))
+        ctx.save_for_backward(offsets, entries, bounds, intrinsics, *inputs, consts, trans, last)
+        counters = _counters(counts, bounds)
+        ctx.mark_non_differentiable(counters)
+        return acc_color, acc_depth, trans, counters
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_color, g_depth, g_trans, _):
+        from radfield.core.backends.gpu import neural_kernels as K
+
+        offsets, entries, bounds, intrinsics, *inputs, consts, trans, last = ctx.saved_tensors
+        height, width, tiles_x, tiles, units, window = ctx.sizes
+        upstream = _upstream(inputs[0], height, width, g_color, g_depth, g_trans)
+        grads = [torch.zeros_like(t) for t in inputs]   # m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth
+        K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
+                                    *grads, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
+                                    WINDOW=window, **_COMPILE)
+        return None, None, None, None, None, None, *grads
+
+
+def _padded(units: int) -> int:
+    """The hidden units' axis in the kernels: a power of two (the padding is masked)."""
+    return max(1 << (units - 1).bit_length(), 1)
+
+
+def _front_to_back(frame, visible: torch.Tensor) -> torch.Tensor:
+    """The visible primitives' indices by camera-space depth, stable, as the twin orders them."""
+    ids = torch.nonzero(visible).squeeze(1)
+    return ids[torch.argsort(frame.depth[ids].detach(), stable=True)]
+
+
+def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
+    """Op "view.gaussian" on Triton: the twin's per-view preparation (kinds/gaussian.py: twin_view)
+    and depth order, then the tile kernels; returns (Σ w c, Σ w z, T, counters (evaluated,
+    composited, terminated, candidate pairs), the visible primitives front to back)."""
+    from radfield.core import kinds
+
+    bounds, visible, (mean2d, conic, opacity) = kinds.of(prims).twin_view(prims, frame)
+    ids = _front_to_back(frame, visible)
+    camera = frame.camera
+    out = _GaussianView.apply(bounds[ids], camera.height, camera.width, float(t_min), mean2d[ids], conic[ids],
+                              opacity[ids], colors[ids], frame.depth[ids])
+    return (*out, ids)
+
+
+def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
+    """Op "view.neural" on Triton: the twin's bounds and per-view tensors (kinds/neural.py:
+    twin_view: the ellipsoid frame, the MLP phases, (W2, b2)), then the tile kernels; returns as
+    gaussian_view."""
+    from radfield.core import kinds
+
+    bounds, visible, view = kinds.of(prims).twin_view(prims, frame)
+    ids = _front_to_back(frame, visible)
+    m_cam, o_ell, w_cam, c, w2, b2, inv_smax = (t[ids] for t in view)
+    camera = frame.camera
+    out = _NeuralView.apply(bounds[ids], frame.intrinsics, camera.height, camera.width, float(t_min), prims.window,
+                            m_cam.reshape(-1, 9), o_ell, w_cam, c, w2, b2, inv_smax, colors[ids], frame.depth[ids])
+    return (*out, ids)

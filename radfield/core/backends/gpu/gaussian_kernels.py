@@ -1,0 +1,176 @@
+"""The Triton kernels of the Gaussian view (core/backends/gpu/__init__.py joins them into one
+autograd op): per-tile front-to-back compositing and its backward, as 3DGS rasterises on a GPU.
+
+Imported only when a view is drawn on the "triton" backend (it imports triton; with
+TRITON_INTERPRET=1 set before that import the same kernels run on CPU tensors, which is how the
+tests check them against the torch twin without a GPU).
+
+One program per 16×16 tile, one lane per pixel (BLOCK = 256). The inputs are the visible splats in
+depth order (rank r = position in that order): bounds (V, 4) int32 inclusive pixel boxes, mean2d
+(V, 2), conic (V, 3), opacity (V,), colour (V, 3), depth (V,); a tile reads the ranks
+entries[offsets[t]:offsets[t + 1]] (front to back). consts = (t_min, α_min, α_max) in the inputs'
+dtype, so a float64 view compares at float64 with the twin's thresholds.
+
+Forward (paper eq. 4; the twin's rules, core/render/composite.py): a pixel evaluates a splat only
+inside its box; α = min(α_max, o·exp(power)), a miss when α < α_min or power > 0; the first pair
+that would take T below t_min is not composited and ends the pixel. Each pixel keeps Σ w c, Σ w z,
+its final T and `last`, the list position after its last composited pair; each tile its counts of
+(evaluated, composited, terminated) pairs.
+
+Backward (3DGS): each pixel walks its list back to front from `last`, recovering T_i = T_{i+1}/(1 − α_i)
+and the suffix S_i = Σ_{j>i} (g_C·c_j + g_D z_j) α_j T_j + g_T T_final, so that
+∂L/∂α_i = (g_C·c_i + g_D z_i) T_i − S_i/(1 − α_i); the splat's gradients are summed over the
+tile's pixels and added to the primitive's with one atomic add per quantity and (tile, entry).
+"""
+
+from __future__ import annotations
+
+import triton
+import triton.language as tl
+
+SIDE = 16   # tile side in pixels (one program per tile, one lane per pixel)
+
+
+@triton.jit
+def _tile_pixels(tile, tiles_x, height, width, SIDE: tl.constexpr):
+    """The tile's pixel coordinates (x, y), their flat index and whether they are in the image."""
+    k = tl.arange(0, SIDE * SIDE)
+    px = (tile % tiles_x) * SIDE + k % SIDE
+    py = (tile // tiles_x) * SIDE + k // SIDE
+    inside = (px < width) & (py < height)
+    return px, py, py * width + px, inside
+
+
+@triton.jit
+def _splat(r, px, py, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr, alpha_min, alpha_max):
+    """Splat r at the pixels: (in its box, the conic's terms dx, dy, power, the unclamped
+    o·exp(power), α, hit = composited unless the pixel terminates)."""
+    x0 = tl.load(bounds_ptr + 4 * r)
+    y0 = tl.load(bounds_ptr + 4 * r + 1)
+    x1 = tl.load(bounds_ptr + 4 * r + 2)
+    y1 = tl.load(bounds_ptr + 4 * r + 3)
+    in_box = (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)
+    mx = tl.load(mean_ptr + 2 * r)
+    my = tl.load(mean_ptr + 2 * r + 1)
+    ca = tl.load(conic_ptr + 3 * r)
+    cb = tl.load(conic_ptr + 3 * r + 1)
+    cc = tl.load(conic_ptr + 3 * r + 2)
+    o = tl.load(opacity_ptr + r)
+    dx = (px.to(mx.dtype) + 0.5) - mx          # pixel centres, as the twin's u = x + 0.5
+    dy = (py.to(mx.dtype) + 0.5) - my
+    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+    raw = o * tl.exp(tl.minimum(power, 0.0))
+    alpha = tl.minimum(raw, alpha_max)
+    hit = in_box & (alpha >= alpha_min) & (power <= 0.0)
+    return in_box, dx, dy, power, raw, alpha, hit
+
+
+@triton.jit
+def gaussian_forward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr, color_ptr, depth_ptr,
+                     consts_ptr, out_color_ptr, out_depth_ptr, out_trans_ptr, last_ptr, counts_ptr,
+                     height, width, tiles_x, SIDE: tl.constexpr):
+    tile = tl.program_id(0)
+    px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
+    t_min = tl.load(consts_ptr)
+    alpha_min = tl.load(consts_ptr + 1)
+    alpha_max = tl.load(consts_ptr + 2)
+    dtype = consts_ptr.dtype.element_ty
+    trans = tl.full([SIDE * SIDE], 1.0, dtype)
+    acc_r = tl.zeros([SIDE * SIDE], dtype)
+    acc_g = tl.zeros([SIDE * SIDE], dtype)
+    acc_b = tl.zeros([SIDE * SIDE], dtype)
+    acc_z = tl.zeros([SIDE * SIDE], dtype)
+    last = tl.zeros([SIDE * SIDE], tl.int32)
+    done = inside == 0                            # pixels outside the image never composite
+    n_pairs = tl.zeros([SIDE * SIDE], tl.int32)
+    n_composited = tl.zeros([SIDE * SIDE], tl.int32)
+    n_terminated = tl.zeros([SIDE * SIDE], tl.int32)
+    start = tl.load(offsets_ptr + tile)
+    end = tl.load(offsets_ptr + tile + 1)
+    j = start
+    alive = tl.sum(inside.to(tl.int32))
+    while (j < end) & (alive > 0):               # front to back, until every pixel terminated
+        r = tl.load(entries_ptr + j)
+        in_box, dx, dy, power, raw, alpha, hit = _splat(r, px, py, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr,
+                                                        alpha_min, alpha_max)
+        live = in_box & (done == 0)
+        hit = hit & live
+        after = trans * (1.0 - alpha)
+        stop = hit & (after < t_min)              # early termination: this pair is not composited
+        take = hit & (stop == 0)
+        w = tl.where(take, alpha * trans, 0.0)
+        acc_r += w * tl.load(color_ptr + 3 * r)
+        acc_g += w * tl.load(color_ptr + 3 * r + 1)
+        acc_b += w * tl.load(color_ptr + 3 * r + 2)
+        acc_z += w * tl.load(depth_ptr + r)
+        trans = tl.where(take, after, trans)
+        last = tl.where(take, (j - start + 1).to(tl.int32), last)
+        done = done | stop
+        n_pairs += live.to(tl.int32)
+        n_composited += take.to(tl.int32)
+        n_terminated += stop.to(tl.int32)
+        alive -= tl.sum(stop.to(tl.int32))
+        j += 1
+    tl.store(out_color_ptr + 3 * pix, acc_r, mask=inside)
+    tl.store(out_color_ptr + 3 * pix + 1, acc_g, mask=inside)
+    tl.store(out_color_ptr + 3 * pix + 2, acc_b, mask=inside)
+    tl.store(out_depth_ptr + pix, acc_z, mask=inside)
+    tl.store(out_trans_ptr + pix, trans, mask=inside)
+    tl.store(last_ptr + pix, last, mask=inside)
+    tl.store(counts_ptr + 3 * tile, tl.sum(n_pairs))
+    tl.store(counts_ptr + 3 * tile + 1, tl.sum(n_composited))
+    tl.store(counts_ptr + 3 * tile + 2, tl.sum(n_terminated))
+
+
+@triton.jit
+def gaussian_backward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr, color_ptr, depth_ptr,
+                      consts_ptr, trans_ptr, last_ptr, g_color_ptr, g_depth_ptr, g_trans_ptr,
+                      d_mean_ptr, d_conic_ptr, d_opacity_ptr, d_color_ptr, d_depth_ptr,
+                      height, width, tiles_x, SIDE: tl.constexpr):
+    tile = tl.program_id(0)
+    px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
+    alpha_min = tl.load(consts_ptr + 1)
+    alpha_max = tl.load(consts_ptr + 2)
+    trans = tl.load(trans_ptr + pix, mask=inside, other=1.0)
+    last = tl.load(last_ptr + pix, mask=inside, other=0)
+    g_r = tl.load(g_color_ptr + 3 * pix, mask=inside, other=0.0)
+    g_g = tl.load(g_color_ptr + 3 * pix + 1, mask=inside, other=0.0)
+    g_b = tl.load(g_color_ptr + 3 * pix + 2, mask=inside, other=0.0)
+    g_z = tl.load(g_depth_ptr + pix, mask=inside, other=0.0)
+    suffix = tl.load(g_trans_ptr + pix, mask=inside, other=0.0) * trans   # S = g_T T_final, then the later pairs
+    start = tl.load(offsets_ptr + tile)
+    steps = tl.max(last)                          # the longest walk of the tile's pixels
+    for step in range(0, steps):
+        local = steps - 1 - step                  # back to front
+        r = tl.load(entries_ptr + start + local)
+        in_box, dx, dy, power, raw, alpha, hit = _splat(r, px, py, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr,
+                                                        alpha_min, alpha_max)
+        hit = hit & (local < last)                # before `last` every hit was composited
+        if tl.sum(hit.to(tl.int32)) > 0:
+            one_minus = 1.0 - alpha
+            trans = tl.where(hit, trans / one_minus, trans)     # T_i, before this pair
+            w = tl.where(hit, alpha * trans, 0.0)
+            cr = tl.load(color_ptr + 3 * r)
+            cg = tl.load(color_ptr + 3 * r + 1)
+            cb_ = tl.load(color_ptr + 3 * r + 2)
+            z = tl.load(depth_ptr + r)
+            shade = g_r * cr + g_g * cg + g_b * cb_ + g_z * z
+            g_alpha = tl.where(hit, shade * trans - suffix / one_minus, 0.0)
+            suffix += w * shade
+            # α = min(α_max, o e^power): no gradient through the clamp
+            g_raw = tl.where(raw <= alpha_max, g_alpha, 0.0)
+            g_power = g_raw * raw
+            ca = tl.load(conic_ptr + 3 * r)
+            cb = tl.load(conic_ptr + 3 * r + 1)
+            cc = tl.load(conic_ptr + 3 * r + 2)
+            tl.atomic_add(d_color_ptr + 3 * r, tl.sum(g_r * w))
+            tl.atomic_add(d_color_ptr + 3 * r + 1, tl.sum(g_g * w))
+            tl.atomic_add(d_color_ptr + 3 * r + 2, tl.sum(g_b * w))
+            tl.atomic_add(d_depth_ptr + r, tl.sum(g_z * w))
+            tl.atomic_add(d_opacity_ptr + r, tl.sum(g_raw * tl.exp(tl.minimum(power, 0.0))))
+            tl.atomic_add(d_conic_ptr + 3 * r, tl.sum(g_power * (-0.5 * dx * dx)))
+            tl.atomic_add(d_conic_ptr + 3 * r + 1, tl.sum(g_power * (-dx * dy)))
+            tl.atomic_add(d_conic_ptr + 3 * r + 2, tl.sum(g_power * (-0.5 * dy * dy)))
+            # power's derivative by the 2D mean (dx = u − μx)
+            tl.atomic_add(d_mean_ptr + 2 * r, tl.sum(g_power * (ca * dx + cb * dy)))
+            tl.atomic_add(d_mean_ptr + 2 * r + 1, tl.sum(g_power * (cc * dy + cb * dx)))

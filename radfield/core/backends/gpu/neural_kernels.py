@@ -1,0 +1,341 @@
+"""The Triton kernels of the neural view (core/backends/gpu/__init__.py joins them into one autograd
+op): the closed-form line integral of a neural primitive per (pixel, primitive) pair, hard-edged
+or windowed (core/render/kernels.py: neural_optical_depth, windowed_optical_depth), composited per
+16×16 tile front to back, and its backward walking each pixel's list back to front.
+
+The same tile walk as gaussian_kernels.py (its docstring says the compositing rules and the
+backward's suffix); what differs is the pair: one lane per pixel, and the hidden units as a second
+axis (NP = N padded to a power of two, the padding masked). The maths and its backward are those
+of the fused CPU kernels (core/backends/csrc/pair_kernels.h: ChordTile), which follow the torch
+twin's autograd (clamps pass the gradient at equality, torch.maximum splits it at a tie).
+Inputs (V, ...) in depth order: m_cam (V, 9) = S⁻¹Rᵀ R_cam, o_ell (V, 3), w_cam (V, N, 3) = ω0 W1 R_cam,
+c (V, N), w2 (V, N), b2 (V,), inv_smax (V,); intrinsics (fx, fy, cx, cy, near); consts (t_min, α_min, α_max, 1)
+in the inputs' dtype (the 1 makes the series' rational coefficients in that dtype, not float32).
+"""
+
+from __future__ import annotations
+
+import triton
+import triton.language as tl
+
+from radfield.core.backends.gpu.gaussian_kernels import _tile_pixels
+
+
+@triton.jit
+def _directions(px, py, intrinsics_ptr):
+    """Unit camera-space directions through the pixel centres and the near plane's ray distance
+    (kinds/base.py: camera_directions)."""
+    fx = tl.load(intrinsics_ptr)
+    fy = tl.load(intrinsics_ptr + 1)
+    cx = tl.load(intrinsics_ptr + 2)
+    cy = tl.load(intrinsics_ptr + 3)
+    near = tl.load(intrinsics_ptr + 4)
+    xn = ((px.to(fx.dtype) + 0.5) - cx) / fx
+    yn = ((py.to(fx.dtype) + 0.5) - cy) / fy
+    norm = tl.sqrt(xn * xn + yn * yn + 1.0)
+    return xn / norm, yn / norm, 1.0 / norm, near * norm
+
+
+@triton.jit
+def _box(r, px, py, bounds_ptr):
+    x0 = tl.load(bounds_ptr + 4 * r)
+    y0 = tl.load(bounds_ptr + 4 * r + 1)
+    x1 = tl.load(bounds_ptr + 4 * r + 2)
+    y1 = tl.load(bounds_ptr + 4 * r + 3)
+    return (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)
+
+
+@triton.jit
+def _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr):
+    """Step 1 (kernels.py: ray_ellipsoid in the closest-approach form): d' = M d̂, A, ℓ*, p, the
+    chord's ends, the near-plane clip, Δ, τ_m, e and κ per pixel."""
+    e0 = tl.load(m_ptr + 9 * r) * d0 + tl.load(m_ptr + 9 * r + 1) * d1 + tl.load(m_ptr + 9 * r + 2) * d2
+    e1 = tl.load(m_ptr + 9 * r + 3) * d0 + tl.load(m_ptr + 9 * r + 4) * d1 + tl.load(m_ptr + 9 * r + 5) * d2
+    e2 = tl.load(m_ptr + 9 * r + 6) * d0 + tl.load(m_ptr + 9 * r + 7) * d1 + tl.load(m_ptr + 9 * r + 8) * d2
+    o0 = tl.load(o_ptr + 3 * r)
+    o1 = tl.load(o_ptr + 3 * r + 1)
+    o2 = tl.load(o_ptr + 3 * r + 2)
+    inv_smax = tl.load(inv_smax_ptr + r)
+    big_a = e0 * e0 + e1 * e1 + e2 * e2
+    l_mid = -(o0 * e0 + o1 * e1 + o2 * e2) / big_a
+    p0 = o0 + l_mid * e0
+    p1 = o1 + l_mid * e1
+    p2 = o2 + l_mid * e2
+    h = p0 * p0 + p1 * p1 + p2 * p2
+    hit = h < 1.0
+    half = tl.sqrt(tl.where(hit, (1.0 - h) / big_a, 1.0))
+    l_in_raw = l_mid - half
+    l_out = l_mid + half
+    l_in = tl.maximum(l_in_raw, l_near)          # camera inside: start at the near plane
+    delta = tl.where(hit, tl.maximum(l_out - l_in, 0.0) * inv_smax, 0.0)
+    tau_m = 0.5 * (l_in + l_out) * inv_smax
+    clip = (l_in - l_in_raw) * inv_smax
+    kappa = big_a / (inv_smax * inv_smax)
+    return e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m, clip, kappa
+
+
+@triton.jit
+def _sinc(x, sin_x):
+    return tl.where(x == 0.0, 1.0, sin_x / tl.where(x == 0.0, 1.0, x))
+
+
+@triton.jit
+def _window_integral(x, sin_x, cos_x, one):
+    """W(x) = 2 (sin x − x cos x)/x³, by its series below |x| = 1 (kernels.py: window_integral)."""
+    x2 = x * x
+    series = 2.0 * one / 3.0 - x2 * (one / 15.0 - x2 * (one / 420.0 - x2 * (one / 22680.0 - x2 * (
+        one / 1995840.0 - x2 / 259459200.0))))
+    safe = tl.where(tl.abs(x) < 1.0, 1.0, x)
+    return tl.where(tl.abs(x) < 1.0, series, 2.0 * (sin_x - safe * cos_x) / (safe * safe * safe))
+
+
+@triton.jit
+def _units(r, k, N, w_ptr, c_ptr, w2_ptr):
+    """The primitive's per-unit rows (masked beyond N: zero weights contribute nothing)."""
+    live = k < N
+    wx = tl.load(w_ptr + (r * N + k) * 3, mask=live, other=0.0)
+    wy = tl.load(w_ptr + (r * N + k) * 3 + 1, mask=live, other=0.0)
+    wz = tl.load(w_ptr + (r * N + k) * 3 + 2, mask=live, other=0.0)
+    c = tl.load(c_ptr + r * N + k, mask=live, other=0.0)
+    w2 = tl.load(w2_ptr + r * N + k, mask=live, other=0.0)
+    return live, wx, wy, wz, c, w2
+
+
+@triton.jit
+def _optical_depth(d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW: tl.constexpr):
+    """Step 2: I per pixel (paper eq. 7–8, stable sinc form; or the window's, 1.5 κ [...]), and
+    the (pixel, unit) terms the backward reuses: a, phase, x, cos φ, sin φ, sin x, cos x, sinc x."""
+    a = wx[None, :] * d0[:, None] + wy[None, :] * d1[:, None] + wz[None, :] * d2[:, None]
+    phase = a * tau_m[:, None] + c[None, :]
+    x = 0.5 * a * delta[:, None]
+    cos_p = tl.cos(phase)
+    sin_p = tl.sin(phase)
+    sin_x = tl.sin(x)
+    cos_x = tl.cos(x)
+    sinc_x = _sinc(x, sin_x)
+    if WINDOW:
+        w = _window_integral(x, sin_x, cos_x, one)
+        d3 = (0.25 * delta * delta * delta)[:, None]
+        d2h = (0.5 * delta * delta)[:, None]
+        terms = cos_p * d3 * w + clip[:, None] * d2h * (cos_p * sinc_x + sin_p * (0.5 * x * w))
+        inner = tl.sum(w2[None, :] * terms, axis=1) + b2 * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta))
+        integral = 1.5 * kappa * inner
+    else:
+        w = sinc_x
+        inner = tl.sum(w2[None, :] * delta[:, None] * cos_p * sinc_x, axis=1)
+        integral = inner + b2 * delta
+    return integral, inner, a, phase, x, cos_p, sin_p, sin_x, cos_x, sinc_x, w
+
+
+@triton.jit
+def _expm1_neg(depth):
+    """expm1(−max(I, 0)) accurately for small I (Kahan: (u − 1)·y/log u, u = e^y; no libdevice)."""
+    y = -tl.maximum(depth, 0.0)
+    u = tl.exp(y)
+    um1 = u - 1.0
+    safe = tl.where((u == 1.0) | (um1 == -1.0), 0.5, u)
+    return tl.where(u == 1.0, y, tl.where(um1 == -1.0, -1.0, um1 * y / tl.log(safe)))
+
+
+@triton.jit
+def neural_forward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, o_ptr, w_ptr, c_ptr, w2_ptr, b2_ptr,
+                   inv_smax_ptr, color_ptr, depth_ptr, consts_ptr, out_color_ptr, out_depth_ptr, out_trans_ptr,
+                   last_ptr, counts_ptr, height, width, tiles_x, N,
+                   SIDE: tl.constexpr, NP: tl.constexpr, WINDOW: tl.constexpr):
+    tile = tl.program_id(0)
+    px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
+    d0, d1, d2, l_near = _directions(px, py, intrinsics_ptr)
+    k = tl.arange(0, NP)
+    t_min = tl.load(consts_ptr)
+    alpha_min = tl.load(consts_ptr + 1)
+    alpha_max = tl.load(consts_ptr + 2)
+    one = tl.load(consts_ptr + 3)
+    dtype = consts_ptr.dtype.element_ty
+    trans = tl.full([SIDE * SIDE], 1.0, dtype)
+    acc_r = tl.zeros([SIDE * SIDE], dtype)
+    acc_g = tl.zeros([SIDE * SIDE], dtype)
+    acc_b = tl.zeros([SIDE * SIDE], dtype)
+    acc_z = tl.zeros([SIDE * SIDE], dtype)
+    last = tl.zeros([SIDE * SIDE], tl.int32)
+    done = inside == 0
+    n_pairs = tl.zeros([SIDE * SIDE], tl.int32)
+    n_composited = tl.zeros([SIDE * SIDE], tl.int32)
+    n_terminated = tl.zeros([SIDE * SIDE], tl.int32)
+    start = tl.load(offsets_ptr + tile)
+    end = tl.load(offsets_ptr + tile + 1)
+    j = start
+    alive = tl.sum(inside.to(tl.int32))
+    while (j < end) & (alive > 0):
+        r = tl.load(entries_ptr + j)
+        live = _box(r, px, py, bounds_ptr) & (done == 0)
+        (e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m, clip,
+         kappa) = _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr)
+        live_k, wx, wy, wz, c, w2 = _units(r, k, N, w_ptr, c_ptr, w2_ptr)
+        b2 = tl.load(b2_ptr + r)
+        integral, inner, a, phase, x, cos_p, sin_p, sin_x, cos_x, sinc_x, win = _optical_depth(
+            d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW)
+        alpha = tl.minimum(-_expm1_neg(integral), alpha_max)          # eq. 9 with the 3DGS clamp
+        hit = live & (alpha >= alpha_min) & (delta > 0.0)
+        after = trans * (1.0 - alpha)
+        stop = hit & (after < t_min)
+        take = hit & (stop == 0)
+        w = tl.where(take, alpha * trans, 0.0)
+        acc_r += w * tl.load(color_ptr + 3 * r)
+        acc_g += w * tl.load(color_ptr + 3 * r + 1)
+        acc_b += w * tl.load(color_ptr + 3 * r + 2)
+        acc_z += w * tl.load(depth_ptr + r)
+        trans = tl.where(take, after, trans)
+        last = tl.where(take, (j - start + 1).to(tl.int32), last)
+        done = done | stop
+        n_pairs += live.to(tl.int32)
+        n_composited += take.to(tl.int32)
+        n_terminated += stop.to(tl.int32)
+        alive -= tl.sum(stop.to(tl.int32))
+        j += 1
+    tl.store(out_color_ptr + 3 * pix, acc_r, mask=inside)
+    tl.store(out_color_ptr + 3 * pix + 1, acc_g, mask=inside)
+    tl.store(out_color_ptr + 3 * pix + 2, acc_b, mask=inside)
+    tl.store(out_depth_ptr + pix, acc_z, mask=inside)
+    tl.store(out_trans_ptr + pix, trans, mask=inside)
+    tl.store(last_ptr + pix, last, mask=inside)
+    tl.store(counts_ptr + 3 * tile, tl.sum(n_pairs))
+    tl.store(counts_ptr + 3 * tile + 1, tl.sum(n_composited))
+    tl.store(counts_ptr + 3 * tile + 2, tl.sum(n_terminated))
+
+
+@triton.jit
+def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, o_ptr, w_ptr, c_ptr, w2_ptr, b2_ptr,
+                    inv_smax_ptr, color_ptr, depth_ptr, consts_ptr, trans_ptr, last_ptr, g_color_ptr, g_depth_ptr,
+                    g_trans_ptr, d_m_ptr, d_o_ptr, d_w_ptr, d_c_ptr, d_w2_ptr, d_b2_ptr, d_inv_smax_ptr, d_color_ptr,
+                    d_depth_ptr, height, width, tiles_x, N,
+                    SIDE: tl.constexpr, NP: tl.constexpr, WINDOW: tl.constexpr):
+    tile = tl.program_id(0)
+    px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
+    d0, d1, d2, l_near = _directions(px, py, intrinsics_ptr)
+    k = tl.arange(0, NP)
+    alpha_min = tl.load(consts_ptr + 1)
+    alpha_max = tl.load(consts_ptr + 2)
+    one = tl.load(consts_ptr + 3)
+    trans = tl.load(trans_ptr + pix, mask=inside, other=1.0)
+    last = tl.load(last_ptr + pix, mask=inside, other=0)
+    g_r = tl.load(g_color_ptr + 3 * pix, mask=inside, other=0.0)
+    g_g = tl.load(g_color_ptr + 3 * pix + 1, mask=inside, other=0.0)
+    g_b = tl.load(g_color_ptr + 3 * pix + 2, mask=inside, other=0.0)
+    g_z = tl.load(g_depth_ptr + pix, mask=inside, other=0.0)
+    suffix = tl.load(g_trans_ptr + pix, mask=inside, other=0.0) * trans
+    start = tl.load(offsets_ptr + tile)
+    steps = tl.max(last)
+    for step in range(0, steps):
+        local = steps - 1 - step
+        r = tl.load(entries_ptr + start + local)
+        (e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m, clip,
+         kappa) = _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr)
+        live_k, wx, wy, wz, c, w2 = _units(r, k, N, w_ptr, c_ptr, w2_ptr)
+        b2 = tl.load(b2_ptr + r)
+        integral, inner, a, phase, x, cos_p, sin_p, sin_x, cos_x, sinc_x, win = _optical_depth(
+            d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW)
+        em1 = _expm1_neg(integral)
+        alpha = tl.minimum(-em1, alpha_max)
+        hit = _box(r, px, py, bounds_ptr) & (alpha >= alpha_min) & (delta > 0.0) & (local < last) & inside
+        if tl.sum(hit.to(tl.int32)) > 0:
+            # compositing (gaussian_kernels.py): T_i by division, ∂L/∂α_i, the suffix S
+            one_minus = 1.0 - alpha
+            trans = tl.where(hit, trans / one_minus, trans)
+            w = tl.where(hit, alpha * trans, 0.0)
+            cr = tl.load(color_ptr + 3 * r)
+            cg = tl.load(color_ptr + 3 * r + 1)
+            cb = tl.load(color_ptr + 3 * r + 2)
+            z = tl.load(depth_ptr + r)
+            shade = g_r * cr + g_g * cg + g_b * cb + g_z * z
+            g_alpha = tl.where(hit, shade * trans - suffix / one_minus, 0.0)
+            suffix += w * shade
+            tl.atomic_add(d_color_ptr + 3 * r, tl.sum(g_r * w))
+            tl.atomic_add(d_color_ptr + 3 * r + 1, tl.sum(g_g * w))
+            tl.atomic_add(d_color_ptr + 3 * r + 2, tl.sum(g_b * w))
+            tl.atomic_add(d_depth_ptr + r, tl.sum(g_z * w))
+            # eq. 9: ∂α/∂I = e^(−I) = 1 + expm1(−I), unless the 0.99 clamp is active
+            g_i = tl.where(hit & (-em1 <= alpha_max), g_alpha * (em1 + 1.0), 0.0)
+            # step 2 backward (pair_kernels.h: optical_depth_backward / windowed_pixel_backward)
+            if WINDOW:
+                gk = g_i * 1.5 * kappa
+                d3 = (0.25 * delta * delta * delta)[:, None]
+                d2h = (0.5 * delta * delta)[:, None]
+                d3_dl = (0.75 * delta * delta)[:, None]
+                x2 = x * x
+                small = tl.abs(x) < 1.0
+                safe = tl.where(small, 1.0, x)
+                series = -x * (2.0 * one / 15.0 - x2 * (one / 105.0 - x2 * (one / 3780.0 - x2 * (
+                    one / 249480.0 - x2 / 25945920.0))))
+                win_slope = tl.where(small, series, 2.0 * sin_x / (safe * safe) - 3.0 * win / safe)
+                gw = gk[:, None] * w2[None, :]
+                cut = clip[:, None]
+                j1 = 0.5 * x * win
+                f2 = 0.5 * (win + x * win_slope)
+                cut_term = cos_p * sinc_x + sin_p * j1
+                f = cos_p * d3 * win + cut * d2h * cut_term
+                f_phase = -sin_p * d3 * win + cut * d2h * (cos_p * j1 - sin_p * sinc_x)
+                f_x = cos_p * d3 * win_slope + cut * d2h * (sin_p * f2 - cos_p * j1)
+                f_dl = cos_p * d3_dl * win + cut * delta[:, None] * cut_term
+                g_phase = gw * f_phase
+                g_x = gw * f_x
+                g_tau = tl.sum(g_phase * a, axis=1)
+                g_delta = gk * b2 * (0.5 * delta * delta + clip * delta) + tl.sum(gw * f_dl + 0.5 * g_x * a, axis=1)
+                g_clip = tl.where(clip == 0.0, 0.0, gk * b2 * (0.5 * delta * delta) + tl.sum(gw * d2h * cut_term, axis=1))
+                g_kappa = g_i * 1.5 * inner
+                g_w2 = tl.sum(gk[:, None] * f, axis=0)
+                g_b2 = tl.sum(gk * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta)))
+            else:
+                small = tl.abs(x) < 1e-2
+                safe = tl.where(small, 1.0, x)
+                slope = tl.where(small, x * (x * x / 30.0 - one / 3.0), (cos_x - sinc_x) / safe)
+                gwd = g_i[:, None] * w2[None, :] * delta[:, None]
+                g_phase = -gwd * sin_p * sinc_x
+                g_x = gwd * cos_p * slope
+                g_tau = tl.sum(g_phase * a, axis=1)
+                g_delta = g_i * b2 + tl.sum(g_i[:, None] * w2[None, :] * cos_p * sinc_x + 0.5 * g_x * a, axis=1)
+                g_clip = tl.zeros_like(g_tau)
+                g_kappa = tl.zeros_like(g_tau)
+                g_w2 = tl.sum(g_i[:, None] * delta[:, None] * cos_p * sinc_x, axis=0)
+                g_b2 = tl.sum(g_i * delta)
+            g_a = g_phase * tau_m[:, None] + 0.5 * g_x * delta[:, None]
+            tl.atomic_add(d_c_ptr + r * N + k, tl.sum(g_phase, axis=0), mask=live_k)
+            tl.atomic_add(d_w2_ptr + r * N + k, g_w2, mask=live_k)
+            tl.atomic_add(d_w_ptr + (r * N + k) * 3, tl.sum(g_a * d0[:, None], axis=0), mask=live_k)
+            tl.atomic_add(d_w_ptr + (r * N + k) * 3 + 1, tl.sum(g_a * d1[:, None], axis=0), mask=live_k)
+            tl.atomic_add(d_w_ptr + (r * N + k) * 3 + 2, tl.sum(g_a * d2[:, None], axis=0), mask=live_k)
+            tl.atomic_add(d_b2_ptr + r, g_b2)
+            # step 1 backward (pair_kernels.h: chords_backward)
+            inv2 = inv_smax * inv_smax
+            g_inv = g_delta * (l_out - l_in) + g_tau * 0.5 * (l_in + l_out)
+            if WINDOW:
+                g_inv += g_clip * (l_in - l_in_raw) - 2.0 * g_kappa * big_a / (inv2 * inv_smax)
+            g_length = g_delta * inv_smax
+            g_l_in = -g_length + 0.5 * inv_smax * g_tau + g_clip * inv_smax
+            g_l_out = g_length + 0.5 * inv_smax * g_tau
+            tie = tl.where(l_in_raw == l_near, 0.5 * g_l_in, 0.0)
+            g_l_in_raw = tl.where(l_in_raw > l_near, g_l_in, tie) - g_clip * inv_smax
+            g_half = g_l_out - g_l_in_raw
+            g_s = g_half / (2.0 * half)
+            g_h = -g_s / big_a
+            g_p0 = 2.0 * g_h * p0
+            g_p1 = 2.0 * g_h * p1
+            g_p2 = 2.0 * g_h * p2
+            g_lmid = g_l_in_raw + g_l_out + g_p0 * e0 + g_p1 * e1 + g_p2 * e2
+            g_mid = g_lmid / big_a
+            g_big_a = -g_s * (half * half) / big_a - g_mid * l_mid + g_kappa / inv2
+            g_e0 = tl.where(hit, l_mid * g_p0 - g_mid * o0 + 2.0 * g_big_a * e0, 0.0)
+            g_e1 = tl.where(hit, l_mid * g_p1 - g_mid * o1 + 2.0 * g_big_a * e1, 0.0)
+            g_e2 = tl.where(hit, l_mid * g_p2 - g_mid * o2 + 2.0 * g_big_a * e2, 0.0)
+            tl.atomic_add(d_inv_smax_ptr + r, tl.sum(tl.where(hit, g_inv, 0.0)))
+            tl.atomic_add(d_m_ptr + 9 * r, tl.sum(g_e0 * d0))
+            tl.atomic_add(d_m_ptr + 9 * r + 1, tl.sum(g_e0 * d1))
+            tl.atomic_add(d_m_ptr + 9 * r + 2, tl.sum(g_e0 * d2))
+            tl.atomic_add(d_m_ptr + 9 * r + 3, tl.sum(g_e1 * d0))
+            tl.atomic_add(d_m_ptr + 9 * r + 4, tl.sum(g_e1 * d1))
+            tl.atomic_add(d_m_ptr + 9 * r + 5, tl.sum(g_e1 * d2))
+            tl.atomic_add(d_m_ptr + 9 * r + 6, tl.sum(g_e2 * d0))
+            tl.atomic_add(d_m_ptr + 9 * r + 7, tl.sum(g_e2 * d1))
+            tl.atomic_add(d_m_ptr + 9 * r + 8, tl.sum(g_e2 * d2))
+            tl.atomic_add(d_o_ptr + 3 * r, tl.sum(tl.where(hit, g_p0 - g_mid * e0, 0.0)))
+            tl.atomic_add(d_o_ptr + 3 * r + 1, tl.sum(tl.where(hit, g_p1 - g_mid * e1, 0.0)))
+            tl.atomic_add(d_o_ptr + 3 * r + 2, tl.sum(tl.where(hit, g_p2 - g_mid * e2, 0.0)))

@@ -1,0 +1,165 @@
+"""`radfield demo-scene olat`: the `studio` objects lit by one point light at a time, a new light
+position in every frame (shadows and highlights that move with the light), ray traced exactly
+(synthetic.render_view with a synthetic.PointLight), written as a one-light-at-a-time dataset: the
+NeRF-synthetic layout whose frames carry `light_position` and `light_intensity`
+(datasets/transforms.py):
+
+    transforms_train.json, transforms_test.json   camera_angle_x; per frame file_path, transform_matrix,
+                                                  light_position, light_intensity
+    train/r_CCC_lLL.png, test/r_CCC_lLL.png       camera CCC under its LL-th light: RGBA, transparent background
+    mesh.ply                                      the objects triangulated (the object's bounds, and init)
+    scene.json                                    name, seed, the light rig, the shading and the shapes
+
+Cameras: synthetic.orbit_cameras' spiral (40 train + 8 test by default); each photographs the
+object under `lights` (5) point lights, as OLAT captures repeat a camera under many lights, so
+200 train and 40 test frames. Lights: one golden-angle spiral of (train + test cameras) × lights
+points on a sphere of radius LIGHT_RADIUS (2.5× the objects' bounding radius of 1.1) about the
+origin, from just below the plinth's top (sin elevation −0.1) to near the zenith (0.95): mostly
+the upper hemisphere. The test lights are interleaved in the spiral, so every frame has its own
+light and no test light is a training one; camera c of a split takes that split's lights c,
+c + cameras, c + 2·cameras, …, so each camera sees lights from low and high.
+
+Shading (synthetic.shade): Lambert + Blinn-Phong highlights of the studio materials, under the
+point light's irradiance intensity / r² with hard shadows (a shadow ray to the point), plus the
+studio's sky-dome ambient term at AMBIENT = 0.2 (the studio's 0.5 would leave shadows half lit:
+0.2 keeps 80% of a lit surface's diffuse light with the point light, so shadows are deep, while
+faces turned away from it stay visible). intensity = LIGHT_RADIUS², so a surface facing the light
+at the origin gets the irradiance of the other demo scenes' distant light. 4×4 jittered rays per
+pixel, one pattern per camera (drawn from (seed, split, camera)), the same under each of its lights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from radfield.core.geometry.cameras import Camera, opencv_to_opengl
+from radfield.datasets.images import write_image
+from radfield.datasets.synthetic import (CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, get_scene,
+                                         orbit_cameras, render_view, write_mesh)
+from radfield.errors import RadfieldError
+
+TRAIN_VIEWS, TEST_VIEWS, LIGHTS = 40, 8, 5   # cameras per split, lights per camera
+LIGHT_RADIUS = 2.75
+AMBIENT = 0.2
+SAMPLES = 4
+_LIGHT_ELEVATION_SIN = (-0.1, 0.95)
+
+
+def olat_scene() -> Scene:
+    """The studio objects, shaded for point lights (see the module docstring)."""
+    studio = get_scene("studio")
+    return dataclasses.replace(
+        studio, name="olat", samples=SAMPLES,
+        description="the studio objects lit by one point light at a time, a new light in every frame",
+        lighting=Lighting(ambient=AMBIENT, shadows=True, sky=studio.lighting.sky))
+
+
+def light_spiral(count: int, seed: int = 0) -> np.ndarray:
+    """`count` points (count, 3) on a golden-angle spiral over the light sphere (radius LIGHT_RADIUS,
+    sin elevation from −0.1 to 0.95, low to high); the seed turns the spiral."""
+    k = np.arange(count)
+    z = _LIGHT_ELEVATION_SIN[0] + (_LIGHT_ELEVATION_SIN[1] - _LIGHT_ELEVATION_SIN[0]) * (k + 0.5) / count
+    # another turn than the cameras' spiral, so lights do not line up with cameras
+    azimuth = np.random.default_rng([seed, 1]).uniform(0, 2 * math.pi) + k * math.pi * (3 - math.sqrt(5))
+    ring = np.sqrt(1 - z**2)
+    return LIGHT_RADIUS * np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], -1)
+
+
+def split_lights(n_train: int, n_test: int, lights: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The train (n_train·lights, 3) and test (n_test·lights, 3) light positions: one spiral, the
+    test ones spread evenly through it (so over all heights), never on a train light."""
+    points = light_spiral((n_train + n_test) * lights, seed)
+    n_test_lights = n_test * lights
+    is_test = np.zeros(len(points), dtype=bool)
+    is_test[np.round(np.linspace(0, len(points) - 1, n_test_lights)).astype(int)] = True
+    return points[~is_test], points[is_test]
+
+
+def generate_olat(out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None,
+                  lights: int | None = None, size: int = 64, seed: int = 0, mesh: bool = True,
+                  progress: Callable[[int], None] | None = None) -> Path:
+    """Write the olat scene into a new folder `out_dir` (see the module docstring): n_train and
+    n_test cameras, each under `lights` point lights; `progress(1)` after each image. mesh=False
+    leaves out mesh.ply (its writer needs pyvista). Written to a temporary sibling folder and
+    renamed, so `out_dir` is complete or absent; an existing non-empty `out_dir` is refused."""
+    n_train = TRAIN_VIEWS if n_train is None else n_train
+    n_test = TEST_VIEWS if n_test is None else n_test
+    lights = LIGHTS if lights is None else lights
+    if n_train < 1 or n_test < 1 or lights < 1 or size < 8:
+        raise RadfieldError(f"demo-scene olat: need at least 1 train and 1 test camera, 1 light per camera and "
+                            f"size >= 8 (got {n_train}, {n_test}, {lights}, {size})")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise RadfieldError(f"{out_dir}: already exists and is not an empty folder; refusing to overwrite it")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    scene = olat_scene()
+    try:
+        cameras = orbit_cameras(n_train, n_test, size, seed)
+        for split, split_cameras, positions in zip(("train", "test"), cameras, split_lights(n_train, n_test, lights, seed)):
+            _write_split(scene, tmp, split, split_cameras, positions, seed, progress)
+        if mesh:
+            write_mesh(scene, tmp / "mesh.ply")
+        (tmp / "scene.json").write_text(json.dumps(_describe(scene, seed, lights), indent=2))
+        tmp.chmod(0o755)  # mkdtemp makes it private
+        if out_dir.exists():
+            out_dir.rmdir()
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def _write_split(scene: Scene, root: Path, split: str, cameras: list[Camera], positions: np.ndarray, seed: int,
+                 progress: Callable[[int], None] | None) -> None:
+    (root / split).mkdir()
+    frames = []
+    intensity = LIGHT_RADIUS**2
+    for c, camera in enumerate(cameras):
+        for j in range(len(positions) // len(cameras)):
+            position = positions[c + j * len(cameras)]   # lights from low and high for every camera
+            name = f"r_{c:03d}_l{j:02d}"
+            # the camera's own sample pattern under every light: its pixels see the same points
+            # (the same silhouette), only the light changes, as in a capture
+            rng = np.random.default_rng([seed, ("train", "test").index(split), c])
+            rgba, _ = render_view(scene, camera, rng=rng, point_light=PointLight(tuple(position), intensity))
+            write_image(root / split / f"{name}.png", rgba)
+            frames.append({"file_path": f"./{split}/{name}",
+                           "transform_matrix": opencv_to_opengl(camera.c2w).tolist(),
+                           "light_position": [float(x) for x in position],
+                           "light_intensity": intensity})
+            if progress is not None:
+                progress(1)
+    meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
+    (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+
+
+def _describe(scene: Scene, seed: int, lights: int) -> dict:
+    """scene.json: the light rig, the shading and the exact shapes."""
+    return {
+        "name": "olat",
+        "description": scene.description,
+        "seed": seed,
+        "lights_per_camera": lights,
+        "light_radius": LIGHT_RADIUS,
+        "light_intensity": LIGHT_RADIUS**2,
+        "light_elevation_sin": list(_LIGHT_ELEVATION_SIN),
+        "shading": "albedo (ambient(n) + (1 - ambient) max(0, n.l) V I/r^2) + k_s max(0, n.h)^p [n.l > 0] V I/r^2, "
+                   "ambient(n) = ambient (1 + sky n_z)/(1 + sky), V a hard shadow ray to the light",
+        "lighting": {k: v for k, v in dataclasses.asdict(scene.lighting).items() if k not in ("direction", "radius")},
+        "samples_per_pixel": scene.samples**2,
+        "jittered": scene.jitter,
+        "camera_radius": CAMERA_RADIUS,
+        "camera_angle_x": CAMERA_ANGLE_X,
+        "primitives": [{"type": type(p).__name__.lower(), **dataclasses.asdict(p)} for p in scene.primitives],
+    }

@@ -1,0 +1,108 @@
+"""The dynamic demo scenes (`radfield demo-scene smoke|moving`): every camera photographs the scene
+at every time, written as a D-NeRF dataset (the NeRF-synthetic layout whose frames carry a `time`):
+
+    transforms_train.json, transforms_test.json   camera_angle_x; per frame file_path, time, transform_matrix
+    train/r_CCC_tTTT.png, test/r_CCC_tTTT.png     camera CCC at time index TTT: RGBA, transparent background
+    scene.json                                    name, seed, times, the rig and the scene's own description
+
+Cameras are synthetic.orbit_cameras' spiral over the upper hemisphere (36 train + 4 test by
+default: the paper's 40-camera setup); times are k / (N − 1), k = 0 … N − 1 (N = 24 by default).
+With `held_out_times` the test cameras photograph the N − 1 midpoints (k + ½) / (N − 1) instead,
+so no test time is a training time: interpolation in time is measured, not only new views.
+Each scene is a module with a `render(camera, ξ)` giving premultiplied RGBA and a `describe()`:
+smoke.py (a heterogeneous volume) and moving.py (opaque objects that move and turn).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from radfield.errors import RadfieldError
+
+if TYPE_CHECKING:  # light to import: `radfield demo-scene --help` names SCENES without torch
+    from radfield.core.geometry.cameras import Camera
+
+TRAIN_VIEWS, TEST_VIEWS, TIMES = 36, 4, 24
+# name -> the module that renders it (imported when used: torch for smoke)
+SCENES = {"smoke": "radfield.datasets.smoke", "moving": "radfield.datasets.moving"}
+
+
+def moments(count: int) -> list[float]:
+    """The times photographed: k / (count − 1), k = 0 … count − 1 (0 alone for one)."""
+    return [0.0] if count == 1 else [k / (count - 1) for k in range(count)]
+
+
+def midpoints(count: int) -> list[float]:
+    """The held-out times between `count` moments: (k + ½) / (count − 1), k = 0 … count − 2."""
+    return [(k + 0.5) / (count - 1) for k in range(count - 1)]
+
+
+def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None,
+                     times: int | None = None, size: int = 64, seed: int = 0,
+                     progress: Callable[[int], None] | None = None, held_out_times: bool = False) -> Path:
+    """Write the dynamic scene `name` into a new D-NeRF folder `out_dir` (see the module
+    docstring); `progress(1)` after each image; `held_out_times`: test frames at the midpoints.
+    Written to a temporary sibling folder and renamed, so `out_dir` is complete or absent; an existing non-empty `out_dir` is refused."""
+    from radfield.datasets.synthetic import CAMERA_ANGLE_X, CAMERA_RADIUS, orbit_cameras
+
+    if name not in SCENES:
+        raise RadfieldError(f"unknown dynamic scene {name!r} (available: {', '.join(SCENES)})")
+    scene = importlib.import_module(SCENES[name])
+    n_train = TRAIN_VIEWS if n_train is None else n_train
+    n_test = TEST_VIEWS if n_test is None else n_test
+    times = TIMES if times is None else times
+    if n_train < 1 or n_test < 1 or times < 1 or size < 8:
+        raise RadfieldError(f"demo-scene {name}: need at least 1 train and 1 test camera, 1 time and size >= 8 "
+                            f"(got {n_train}, {n_test}, {times}, {size})")
+    if held_out_times and times < 2:
+        raise RadfieldError(f"demo-scene {name}: --held-out-times needs at least 2 times (got {times})")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise RadfieldError(f"{out_dir}: already exists and is not an empty folder; refusing to overwrite it")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        train, test = orbit_cameras(n_train, n_test, size, seed)
+        ts = moments(times)
+        test_ts = midpoints(times) if held_out_times else ts
+        for split, cameras, split_ts in (("train", train, ts), ("test", test, test_ts)):
+            _write_split(scene.render, tmp, split, cameras, split_ts, progress)
+        held_out = {"test_times": test_ts} if held_out_times else {}
+        description = {"name": name, "seed": seed, "times": ts, **held_out, "camera_radius": CAMERA_RADIUS,
+                       "camera_angle_x": CAMERA_ANGLE_X, **scene.describe()}
+        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
+        tmp.chmod(0o755)  # mkdtemp makes it private
+        if out_dir.exists():
+            out_dir.rmdir()
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def _write_split(render: Callable, root: Path, split: str, cameras: list[Camera], ts: list[float],
+                 progress: Callable[[int], None] | None) -> None:
+    from radfield.core.geometry.cameras import opencv_to_opengl
+    from radfield.datasets.images import write_image
+    from radfield.datasets.synthetic import CAMERA_ANGLE_X
+
+    (root / split).mkdir()
+    frames = []
+    for m, camera in enumerate(cameras):
+        for k, xi in enumerate(ts):
+            name = f"r_{m:03d}_t{k:03d}"
+            write_image(root / split / f"{name}.png", render(camera, xi))
+            frames.append({"file_path": f"./{split}/{name}", "time": xi,
+                           "transform_matrix": opencv_to_opengl(camera.c2w).tolist()})
+            if progress is not None:
+                progress(1)
+    meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
+    (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))

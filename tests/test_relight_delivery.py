@@ -1,0 +1,351 @@
+"""A relightable model delivered (issue 30, "Commands"): `radfield render --light / --light-dir /
+--light-orbit`, light-orbit videos, `radfield export --light`, and the viewer's light sliders.
+
+A relightable model drawn under a light is render() of the model with Camera.light set (its kind's
+at_view), and exported under a light it is its kind's at_light (the static model of that lighting),
+so every check compares with those.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import replace
+
+import imageio
+import numpy as np
+import pytest
+import torch
+
+from radfield.core import kinds
+from radfield.core.geometry.cameras import Camera, Light, look_at
+from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives, random_gaussians, random_neural
+from radfield.core.kinds.relight import DEFAULT_COLOR_HIDDEN, init_network
+from radfield.core.render.antialias import render_model
+from radfield.datasets.images import read_image
+from radfield.datasets.scene import load_split
+from radfield.delivery.export import as_gaussians, read_gaussian_ply
+from radfield.delivery.io import load_model, save_model
+from radfield.delivery.lights import light_angles, light_at, orbit_lights
+from radfield.errors import RadfieldError
+from radfield.pipeline.config import load_config
+
+
+SIZE = 16
+LIGHT_A, LIGHT_B = (3.0, 0.0, 1.0), (-1.0, 3.0, 2.0)
+
+
+def with_network(prims, seed=0, amplitude=0.4):
+    """A relightable model of static `prims` with a random colour network (output clearly non-zero)."""
+    network = init_network(len(prims), DEFAULT_COLOR_HIDDEN, seed)
+    g = torch.Generator().manual_seed(seed + 7)
+    network["color_w2"] = torch.randn(len(prims), 3, DEFAULT_COLOR_HIDDEN, generator=g) * amplitude
+    network["color_b2"] = torch.randn(len(prims), 3, generator=g) * 0.1
+    if isinstance(prims, NeuralPrimitives):
+        return RelightNeuralPrimitives(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1",
+                                                                         "b1", "w2", "b2")},
+                                       omega0=prims.omega0, window=prims.window, **network)
+    return RelightGaussians(means=prims.means, log_scales=prims.log_scales, quats=prims.quats, sh=prims.sh,
+                            opacities=prims.opacities, **network)
+
+
+@pytest.fixture(scope="module")
+def olat(tmp_path_factory):
+    """A tiny relighting dataset (2 test cameras × 2 lights, 16 px) and relightable model files."""
+    from radfield.cli.main import main
+
+    root = tmp_path_factory.mktemp("relight")
+    argv = sys.argv
+    sys.argv = ["radfield", "demo-scene", "olat", "-o", str(root / "olat"), "--size", str(SIZE), "--train-views", "3",
+                "--test-views", "2", "--lights", "2", "-q"]
+    try:
+        main()
+    except SystemExit as exit_:
+        assert not exit_.code
+    finally:
+        sys.argv = argv
+    save_model(root / "relight.safetensors",
+               with_network(random_neural(40, scale=0.35, extent=0.6, b2=1.5, w2_amplitude=0.4, seed=0), amplitude=0.6))
+    save_model(root / "gaussian-relight.safetensors", with_network(random_gaussians(30, extent=0.6, scale=0.2, seed=3)))
+    save_model(root / "static.safetensors", random_neural(20, extent=0.5, seed=4))
+    return root
+
+
+def drawn(model, camera) -> np.ndarray:
+    """What `radfield render` writes for `camera` (a model file: the default background and near)."""
+    config = load_config(None)
+    with torch.no_grad():
+        color = render_model(model, camera, background=tuple(config["data"]["background"]),
+                             near=config["render"]["near"]).color
+    return color.clamp(0, 1).numpy()
+
+
+def split_cameras(olat) -> list[Camera]:
+    """The olat dataset's test cameras, each with its light."""
+    return load_split(olat / "olat", "test", load_config(None)["data"]).cameras
+
+
+def close(png, expected) -> bool:
+    """A written PNG (8 bits) is the float image rounded."""
+    return np.abs(read_image(png)[..., :3] - expected).max() <= 0.5 / 255 + 1e-6
+
+
+def test_render_light_draws_the_model_under_that_light(cli, olat, tmp_path):
+    model = load_model(olat / "relight.safetensors")
+    camera = split_cameras(olat)[0]
+    images = {}
+    for light in (LIGHT_A, LIGHT_B):
+        out = tmp_path / f"{light}"
+        code, stdout, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", out,
+                                "--light", ",".join(map(str, light)), "--light-intensity", "9", "-q")
+        assert code == 0, err
+        assert "4 views under 1 light" in stdout
+        images[light] = read_image(out / f"{camera.name}.png")[..., :3]
+        assert close(out / f"{camera.name}.png", drawn(model, replace(camera, light=Light(position=light, intensity=9.0))))
+    assert np.abs(images[LIGHT_A] - images[LIGHT_B]).max() > 0.1   # the lights differ
+    # a directional light
+    code, _, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "sun",
+                       "--light-dir", "0,0,-1", "--camera", camera.name, "-q")
+    assert code == 0, err
+    assert close(tmp_path / "sun" / f"{camera.name}.png", drawn(model, replace(camera, light=Light(direction=(0, 0, -1)))))
+
+
+def test_dataset_views_render_under_their_own_lights(cli, olat, tmp_path):
+    model = load_model(olat / "relight.safetensors")
+    cameras = split_cameras(olat)
+    assert len({c.light for c in cameras}) == 4 and all(c.light.position is not None for c in cameras)
+    code, stdout, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "own", "-q")
+    assert code == 0, err
+    assert "4 views under 4 lights" in stdout
+    for camera in cameras:
+        assert close(tmp_path / "own" / f"{camera.name}.png", drawn(model, camera))
+    # the two lights of one camera give two images
+    first, second = (read_image(tmp_path / "own" / f"{c.name}.png") for c in cameras[:2])
+    assert cameras[0].c2w.equal(cameras[1].c2w) and np.abs(first - second).max() > 0.05
+
+
+def test_light_orbit_circles_the_object_at_the_dataset_lights_distance(cli, olat, tmp_path):
+    model = load_model(olat / "relight.safetensors")
+    camera = split_cameras(olat)[0]
+    code, stdout, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "orbit",
+                            "--camera", camera.name, "--light-orbit", "5", "--video", tmp_path / "orbit.mp4", "-q")
+    assert code == 0, err
+    assert "5 views under 5 lights" in stdout
+    pngs = sorted((tmp_path / "orbit").glob("*.png"))
+    assert [p.name for p in pngs] == [f"{camera.name}_l{k:04d}.png" for k in range(5)]
+    reader = imageio.get_reader(tmp_path / "orbit.mp4", "ffmpeg")
+    frames = [frame for frame in reader]
+    reader.close()
+    assert len(frames) == 5 and frames[0].shape == (SIZE, SIZE, 3)
+    images = [read_image(p)[..., :3] for p in pngs]
+    assert max(np.abs(images[0] - image).max() for image in images[1:]) > 0.1   # the light moves
+    # the lights: the demo scene's lie on a sphere of radius 2.75 about the origin, its mesh's box
+    # centre is near it; the orbit keeps the dataset lights' mean distance about that centre
+    from radfield.datasets.bounds import MESH, object_bounds
+
+    train = load_split(olat / "olat", "test", load_config(None)["data"]).cameras
+    bounds = object_bounds(train, olat / "olat" / MESH)
+    centre = (bounds.low + bounds.high) / 2
+    mean_distance = np.mean([np.linalg.norm(np.subtract(c.light.position, centre)) for c in train])
+    up = np.array([0.0, 0.0, 1.0])
+    lights = orbit_lights([c.light for c in train], centre, up, 5)
+    for k, light in enumerate(lights):
+        assert np.linalg.norm(np.subtract(light.position, centre)) == pytest.approx(mean_distance)
+    # the first image is the model under the orbit's first light (its up is the cameras' mean up)
+    from radfield.core.geometry.camera_path import orbit_from_cameras
+
+    first = orbit_lights([c.light for c in train], centre, orbit_from_cameras(train)["up"], 5)[0]
+    assert close(pngs[0], drawn(model, replace(camera, light=first)))
+    # both move: an orbit of the camera paired one to one with the light's
+    code, _, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "both",
+                       "--orbit", "3", "--light-orbit", "3", "-q")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "both").iterdir()) == [f"orbit_{k:04d}_l{k:04d}.png" for k in range(3)]
+
+
+@pytest.fixture(scope="module")
+def relight_run(olat, tmp_path_factory):
+    """A relightable run of the olat scene (5 steps: only its files matter here)."""
+    from radfield.cli.main import main
+
+    run = tmp_path_factory.mktemp("relight-run") / "run"
+    argv = sys.argv
+    sys.argv = ["radfield", "reconstruct", str(olat / "olat"), "-o", str(run), "--set", "train.primitive=neural-relight",
+                "--set", "train.iterations=5", "--no-cage", "-q"]
+    try:
+        main()
+    except SystemExit as exit_:
+        assert not exit_.code
+    finally:
+        sys.argv = argv
+    return run
+
+
+def test_a_run_takes_its_dataset_lights_intensity(cli, olat, relight_run, tmp_path):
+    """A light given without --light-intensity is as bright as the dataset's lights (the olat
+    scene's: 2.75² = 7.5625), in render, export and view alike."""
+    cameras = split_cameras(olat)
+    mean = sum(c.light.intensity for c in cameras) / len(cameras)
+    assert mean == pytest.approx(7.5625)
+    for name, args in (("own", []), ("given", ["--light-intensity", mean]), ("one", ["--light-intensity", 1])):
+        code, _, err = cli("render", relight_run, "-o", tmp_path / name, "--light", "3,0,1", "-q", *args)
+        assert code == 0, err
+    default = read_image(tmp_path / "own" / f"{cameras[0].name}.png")
+    assert np.array_equal(default, read_image(tmp_path / "given" / f"{cameras[0].name}.png"))
+    assert np.abs(default - read_image(tmp_path / "one" / f"{cameras[0].name}.png")).max() > 0.05
+    code, stdout, err = cli("export", relight_run, "-f", "ply-3dgs", "-o", tmp_path / "run.ply", "--light", "3,0,1",
+                            "--refine", "0")
+    assert code == 0 and "light 3,0,1, light intensity 7.5625" in stdout, err
+    model = load_model(relight_run / "train" / "model.safetensors")
+    expected = as_gaussians(kinds.of(model).at_light(model, Light(position=(3, 0, 1), intensity=mean)), 1)
+    assert torch.allclose(read_gaussian_ply(tmp_path / "run.ply").sh, expected.sh.float(), atol=1e-5)
+    # the run's dataset says where the object is: a light inside it is refused
+    code, _, err = cli("export", relight_run, "-f", "ply-3dgs", "-o", tmp_path / "in.ply", "--light", "0,0,0")
+    assert code == 1 and "is inside the object's bounds" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "in.ply").exists()
+    from radfield.delivery.viewer import Viewer, viewer_scene
+
+    viewer = Viewer(viewer_scene(relight_run), port=0, log=lambda line: None)
+    try:   # no --light: the dataset lights' mean distance (about the model's centre) and intensity
+        distance = np.mean([math.dist(c.light.position, viewer.centre) for c in
+                            load_split(olat / "olat", "all", load_config(None)["data"]).cameras])
+        assert viewer.light.intensity == pytest.approx(mean)
+        assert math.dist(viewer.light.position, viewer.centre) == pytest.approx(distance)
+    finally:
+        viewer.server.stop()
+
+
+def test_light_angles_round_trip():
+    centre, up = np.array([0.1, -0.2, 0.3]), np.array([0.0, 0.3, 1.0])
+    light = light_at(centre, up, 40.0, 25.0, 2.5, 4.0)
+    assert light_angles(centre, up, light) == pytest.approx((40.0, 25.0, 2.5))
+    sun = light_at(centre, up, -120.0, 60.0, None, 1.0)
+    assert sun.position is None and light_angles(centre, up, sun)[:2] == pytest.approx((-120.0, 60.0))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--light", "1,2"], "--light takes three finite numbers X,Y,Z"),
+    (["--light", "1,2,nan"], "--light takes three finite numbers X,Y,Z"),
+    (["--light-dir", "0,0,0"], "--light-dir must not be 0,0,0"),
+    (["--light", "3,0,0", "--light-dir", "1,0,0"], "--light (a point light) and --light-dir (a directional light) exclude each other"),
+    (["--light", "3,0,0", "--light-intensity", "0"], "--light-intensity must be a positive number"),
+    (["--light-intensity", "2"], "--light-intensity is the intensity of --light, --light-dir or --light-orbit"),
+    (["--light", "3,0,0", "--light-orbit", "3"], "--light and --light-orbit exclude each other"),
+    (["--light-orbit", "-1"], "--light-orbit takes a frame count >= 1"),
+    (["--light", "0,0,0.1"], "--light 0,0,0.1 is inside the object's bounds (the box"),
+    (["--orbit", "3"], "this model is relightable (neural-relight): give a light for the orbit (--light X,Y,Z"),
+    (["--orbit", "3", "--light-orbit", "4"], "--light-orbit gives 4 lights but the orbit has 3 frames"),
+    (["--static", "--light", "3,0,0"], "--light is for a relightable model; this one (neural) is not"),
+    (["--static", "--light-orbit", "3"], "--light-orbit is for a relightable model; this one (neural) is not"),
+    (["--time", "0.5"], "--time is for a dynamic model; this one (neural-relight) is static"),
+])
+def test_bad_light_options_are_one_line(cli, olat, tmp_path, args, message):
+    model = olat / ("static.safetensors" if "--static" in args else "relight.safetensors")
+    args = [a for a in args if a != "--static"]
+    code, _, err = cli("render", model, "-d", olat / "olat", "-o", tmp_path / "out", "--video", tmp_path / "v.mp4", *args)
+    assert code == 1 and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "v.mp4").exists()
+
+
+def test_a_dataset_without_lights_leaves_a_relightable_model_unlit(cli, olat, tmp_path):
+    code, _, err = cli("demo-scene", "blobs", "-o", tmp_path / "blobs", "--size", SIZE, "--train-views", 2,
+                       "--test-views", 2, "-q")
+    assert code == 0, err
+    code, _, err = cli("render", olat / "relight.safetensors", "-d", tmp_path / "blobs", "-o", tmp_path / "out", "-q")
+    assert code == 1 and "this model is relightable (neural-relight): give a light for the test views" in err, err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+    code, _, err = cli("render", olat / "relight.safetensors", "-d", tmp_path / "blobs", "-o", tmp_path / "out",
+                       "--light-orbit", "3", "-q")
+    assert code == 1 and "--light-orbit circles the dataset's lights: the dataset has none" in err, err
+    code, _, err = cli("render", olat / "relight.safetensors", "-d", tmp_path / "blobs", "-o", tmp_path / "out",
+                       "--light", "3,0,1", "-q")   # a light of its own lights every view
+    assert code == 0, err
+
+
+def test_export_light_writes_that_lighting(cli, olat, tmp_path):
+    model = load_model(olat / "relight.safetensors")
+    written = {}
+    for light in (LIGHT_A, LIGHT_B):
+        out = tmp_path / f"{light}.ply"
+        code, stdout, err = cli("export", olat / "relight.safetensors", "-f", "ply-3dgs", "-o", out,
+                                "--light", ",".join(map(str, light)), "--refine", "0")
+        assert code == 0, err
+        assert f"light {','.join(f'{x:g}' for x in light)}, light intensity 1" in stdout
+        written[light] = read_gaussian_ply(out)
+        expected = as_gaussians(kinds.of(model).at_light(model, Light(position=light)), 1)
+        assert len(written[light]) == len(expected)
+        for name in ("means", "log_scales", "opacities", "sh"):   # at_light's SH is of degree 3, the PLY's
+            assert torch.allclose(getattr(written[light], name), getattr(expected, name).float(), atol=1e-5), name
+    assert (written[LIGHT_A].sh - written[LIGHT_B].sh).abs().max() > 0.1   # the colour follows the light
+    # relightable Gaussians under one light are Gaussians: written exactly
+    gaussians = load_model(olat / "gaussian-relight.safetensors")
+    code, stdout, err = cli("export", olat / "gaussian-relight.safetensors", "-f", "ply-3dgs", "-o", tmp_path / "g.ply",
+                            "--light-dir", "0,0,-1", "--light-intensity", "2")
+    assert code == 0 and "from gaussian-relight, light direction 0,0,-1" in stdout, err
+    exact = kinds.of(gaussians).at_light(gaussians, Light(direction=(0, 0, -1), intensity=2.0))
+    back = read_gaussian_ply(tmp_path / "g.ply")
+    assert torch.allclose(back.sh, exact.sh.float(), atol=1e-6) and torch.allclose(back.opacities, exact.opacities)
+
+
+@pytest.mark.parametrize("model, args, message", [
+    ("relight", ["-f", "ply-3dgs"], "the model is relightable (neural-relight) and ply-3dgs holds one lighting: give a light (--light X,Y,Z"),
+    ("relight", ["-f", "splat"], "give a light (--light X,Y,Z"),
+    ("relight", ["-f", "ply-3dgs", "--light", "1,x,2"], "--light takes three finite numbers"),
+    ("relight", ["-f", "ply-3dgs", "--light-intensity", "3"], "--light-intensity is the intensity of --light or --light-dir"),
+    ("static", ["-f", "ply-3dgs", "--light", "3,0,0"], "--light is for a relightable model; this one (neural) is not"),
+])
+def test_export_light_mistakes_are_one_line(cli, olat, tmp_path, model, args, message):
+    out = tmp_path / ("out.splat" if "splat" in args else "out.ply")
+    code, _, err = cli("export", olat / f"{model}.safetensors", "-o", out, *args)
+    assert code == 1 and message in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_viewer_light_sliders(olat, tmp_path):
+    """The viewer of a relightable model has light sliders; its frames are the model under the
+    sliders' light (no browser needed: the server renders what it streams)."""
+    from radfield.delivery.viewer import Viewer, viewer_scene
+
+    model = load_model(olat / "relight.safetensors")
+    start = Light(position=LIGHT_A, intensity=9.0)
+    viewer = Viewer(viewer_scene(olat / "relight.safetensors", light=start), port=0, log=lambda line: None)
+    camera = Camera(20.0, 20.0, 8.0, 8.0, SIZE, SIZE, look_at((2.5, 0.5, 0.8), (0, 0, 0)))
+    at = lambda light: (torch.from_numpy(drawn(model, replace(camera, light=light))) * 255).round().numpy()
+    try:
+        assert viewer.relightable and len(viewer.light_sliders) == 3 and viewer.light == start
+        assert np.array_equal(viewer.render_view(camera), at(start))
+        azimuth, elevation, distance = light_angles(viewer.centre, viewer.up, start)
+        viewer.light_sliders[0].value = azimuth + 180.0 if azimuth < 0 else azimuth - 180.0   # the other side
+        moved = viewer.light
+        assert moved.intensity == 9.0 and math.dist(moved.position, viewer.centre) == pytest.approx(distance)
+        assert light_angles(viewer.centre, viewer.up, moved)[1] == pytest.approx(elevation)
+        assert np.array_equal(viewer.render_view(camera), at(moved))
+        assert np.abs(at(start) - at(moved)).max() > 20
+    finally:
+        viewer.server.stop()
+    # a model file without --light: a light at 45 degrees lighting the centre with irradiance 1
+    viewer = Viewer(viewer_scene(olat / "relight.safetensors"), port=0, log=lambda line: None)
+    try:
+        light = viewer.light
+        distance = math.dist(light.position, viewer.centre)
+        assert light.intensity == pytest.approx(distance**2)
+        assert light_angles(viewer.centre, viewer.up, light)[1] == pytest.approx(45.0)
+    finally:
+        viewer.server.stop()
+    viewer = Viewer(viewer_scene(olat / "static.safetensors"), port=0, log=lambda line: None)
+    try:
+        assert not viewer.relightable and viewer.light is None
+    finally:
+        viewer.server.stop()
+    with pytest.raises(RadfieldError, match="--light is for a relightable model"):
+        viewer_scene(olat / "static.safetensors", light=start)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--light", "1,2"], "--light takes three finite numbers"),
+    (["--light", "1,2,3", "--light-dir", "1,0,0"], "exclude each other"),
+    (["--light-intensity", "2"], "--light-intensity is the intensity of --light or --light-dir"),
+])
+def test_view_rejects_a_bad_light(cli, olat, args, message):
+    code, _, err = cli("view", olat / "relight.safetensors", "--port", "0", *args)
+    assert code == 1 and message in err and err.count("\n") == 1, err
