@@ -169,8 +169,9 @@ def test_the_viewer_draws_n_rays_per_pixel():
     wxyz = rotmat_to_quat(c.c2w[:3, :3][None])[0].numpy()
     client = SimpleNamespace(camera=SimpleNamespace(wxyz=wxyz, position=c.c2w[:3, 3].numpy(),
                                                     fov=2 * math.atan(8 / c.fy), aspect=1.0))
-    viewer = SimpleNamespace(scene=SimpleNamespace(model=prims, background=BG))
-    frame = Viewer.render_frame(viewer, client, 16)  # the method, without a server or a browser
+    viewer = SimpleNamespace(scene=SimpleNamespace(model=prims, background=BG), time=None, light=None)
+    viewer.render_view = lambda camera, moment, light: Viewer.render_view(viewer, camera, moment, light)
+    frame = Viewer.render_frame(viewer, client, 16)  # the methods, without a server or a browser
     same = viser_camera(wxyz, c.c2w[:3, 3].numpy(), 2 * math.atan(8 / c.fy), 1.0, 16)
     with torch.no_grad():
         want = {n: (render_supersampled(prims, same, n, background=BG).color.clamp(0, 1) * 255).round().numpy()

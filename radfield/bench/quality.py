@@ -12,7 +12,9 @@ core/train/strategy.py); an unbudgeted one densifies without a cap. The densific
 (pipeline.yaml) scaled by iterations / train.iterations, so at the default iteration count every
 unbudgeted run is a default run and shorter benchmarks still densify and reset inside their window.
 
-OUT/bench.json   [{"kind", "budget" (int or null), "run", "psnr", "ssim", "lpips", "primitives",
+OUT/bench.json   [{"kind" (the kind that trained: --kinds' neural is neural-relight on a one-light-at-a-time
+                   dataset, neural-dynamic on a dynamic one; stages/init.primitive_kind), "budget" (int or null),
+                   "run", "psnr", "ssim", "lpips", "primitives",
                    "params", "size_bytes", "fps", "train_seconds", "train_psnr", "stage_seconds"
                    ({stage: seconds} of the run's stages), "pipeline_seconds" (their sum), "wall_seconds"
                    (of the reconstruct process this time, start-up included; small for a cached run)}
@@ -111,7 +113,8 @@ def run_one(dataset: Path, out: Path, kind: str, budget: int | None, iterations:
     stages = run_info(run)["stages"]
     train = stages.get("train", {})
     seconds = {name: info["seconds"] for name, info in stages.items() if info.get("seconds") is not None}
-    return {**row, "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
+    # the kind that trained: on a dynamic or relighting dataset the conditioned kind reconstruct chose
+    return {**row, "kind": metrics["kind"], "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
             "primitives": metrics["num_primitives"], "params": metrics["num_params"],
             "size_bytes": metrics["file_size_bytes"], "fps": metrics["fps"], "train_seconds": train.get("seconds"),
             "train_psnr": train.get("train_psnr"), "stage_seconds": seconds,

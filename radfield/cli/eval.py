@@ -59,3 +59,8 @@ def eval_command(
         worst, best = min(moments, key=lambda t: t["psnr"]), max(moments, key=lambda t: t["psnr"])
         typer.echo(f"{len(moments)} moments: PSNR from {worst['psnr']:.2f} dB (time {worst['time']:.4g}) "
                    f"to {best['psnr']:.2f} dB (time {best['time']:.4g})")
+    if metrics.get("per_light"):   # a one-light-at-a-time capture: the spread over its lights (the report's table)
+        lights = metrics["per_light"]
+        worst, best = min(lights, key=lambda t: t["psnr"]), max(lights, key=lambda t: t["psnr"])
+        typer.echo(f"{len(lights)} lights: PSNR from {worst['psnr']:.2f} dB to {best['psnr']:.2f} dB "
+                   f"(report.md 'Per light')")

@@ -39,7 +39,7 @@ def reconstruct(
     from radfield.core.train import distributed, launch
     from radfield.pipeline import registry
     from radfield.pipeline.config import load_config
-    from radfield.pipeline.info import run_info
+    from radfield.pipeline.info import conditioned_scene, run_info
     from radfield.pipeline.runner import run_pipeline
 
     if launch.follower():  # torchrun's ranks >= 1 only train, with what rank 0 sends them
@@ -65,8 +65,8 @@ def reconstruct(
         what = "held-out" if split != "train" else "training-view"
         typer.echo(f"{what} PSNR {evaluation['psnr']:.2f} dB, SSIM {evaluation['ssim']:.4f} "
                    f"({evaluation['views']} {split} views); report {output / 'eval'}")
-    moments = info["stages"].get("data", {}).get("times")
-    if moments and "kind" in info["stages"].get("init", {}):   # docs/usage.md "Dynamic scenes"
-        typer.echo(f"dynamic scene: {moments} moments, {info['stages']['init']['kind']} primitives")
+    if "kind" in info["stages"].get("init", {}):   # docs/usage.md "Dynamic scenes", "Relighting"
+        for scene in conditioned_scene(info):
+            typer.echo(f"{scene}, {info['stages']['init']['kind']} primitives")
     if info["model"]:
         typer.echo(f"model: {info['model']}")

@@ -8,6 +8,7 @@
 Images are (..., H, W, C) float tensors; clamp renders to [0, 1] before measuring them.
 
     per_time(per_view) -> the per-view figures of a dynamic scene's views averaged per moment ξ_t
+    per_light(per_view) -> the per-view figures of a one-light-at-a-time capture's views averaged per light
 
 Both take mask= (..., H, W) bool, the valid pixels of an undistorted photo (radfield.core.train.losses
 explains the rule): PSNR averages the squared error over the valid pixels' channels; SSIM
@@ -15,29 +16,45 @@ replaces the render's invalid pixels by the photo's and averages the SSIM map ov
 windows that lie wholly on valid pixels (an all-valid mask gives the unmasked value).
 """
 
-from collections.abc import Sequence
+import json
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from radfield.core.train.losses import psnr, ssim
 
-__all__ = ["per_time", "psnr", "ssim"]
+__all__ = ["per_light", "per_time", "psnr", "ssim"]
 
-PER_TIME_FIGURES = ("psnr", "ssim", "lpips")
+PER_GROUP_FIGURES = ("psnr", "ssim", "lpips")
 
 
 def per_time(per_view: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """[{"time", "views", "psnr", "ssim", "lpips"}, ...] ascending in time: the means over the views
     (each with a "time") of each moment. Every view counts once, so the overall mean is the
     views-weighted mean of these (a figure a view lacks, e.g. lpips None, is None for its moment)."""
-    moments: dict[float, list[dict[str, Any]]] = {}
+    return [{"time": views[0]["time"], **means(views)}
+            for _, views in sorted(grouped(per_view, lambda v: v["time"]).items())]
+
+
+def per_light(per_view: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """[{"position" | "direction": [x, y, z], "intensity", "views", "psnr", "ssim", "lpips"}, ...]:
+    the means over the views lit by each light (each view with a "light", scene.json's form), in
+    the order the lights first appear; the overall mean is their views-weighted mean, as per_time's."""
+    return [{**views[0]["light"], **means(views)}
+            for views in grouped(per_view, lambda v: json.dumps(v["light"], sort_keys=True)).values()]
+
+
+def grouped(per_view: Sequence[dict[str, Any]], key: Callable[[dict], Any]) -> dict[Any, list[dict[str, Any]]]:
+    """The views by key(view), in the order the keys first appear."""
+    groups: dict[Any, list[dict[str, Any]]] = {}
     for view in per_view:
-        moments.setdefault(view["time"], []).append(view)
-    rows = []
-    for time in sorted(moments):
-        views = moments[time]
-        row: dict[str, Any] = {"time": time, "views": len(views)}
-        for key in PER_TIME_FIGURES:
-            values = [v.get(key) for v in views]
-            row[key] = None if any(x is None for x in values) else sum(values) / len(values)
-        rows.append(row)
-    return rows
+        groups.setdefault(key(view), []).append(view)
+    return groups
+
+
+def means(views: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """{"views": N, figure: the views' mean or None when a view lacks it, ...} (PER_GROUP_FIGURES)."""
+    row: dict[str, Any] = {"views": len(views)}
+    for key in PER_GROUP_FIGURES:
+        values = [v.get(key) for v in views]
+        row[key] = None if any(x is None for x in values) else sum(values) / len(values)
+    return row

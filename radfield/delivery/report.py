@@ -6,6 +6,8 @@
     side_by_side(photo, renders, labels)   ground truth | render A | render B | ..., labelled
     report_markdown(metrics, ...)     the report.md of one evaluation
     time_plot(per_time)               a dynamic scene's PSNR over time, as PNG bytes
+    light_section(per_light)          a one-light-at-a-time capture's per-light table (no plot: a table
+                                      of light positions reads better than a scatter of them)
     compare_markdown(rows)            the table of `radfield eval --compare`
 
 Images are float (H, W, 3) numpy arrays in [0, 1]. No file is written here: that is for the
@@ -119,6 +121,8 @@ def report_markdown(metrics: dict[str, Any], *, model: str, grids_dir: str | Non
               "LPIPS AlexNet v0.1 (lower is better).", ""]
     if m.get("per_time"):
         lines += time_section(m["per_time"])
+    if m.get("per_light"):
+        lines += light_section(m["per_light"])
     if grids_dir is not None:
         lines += ["## Views", "", f"ground truth | render | error |render − photo| (mean over RGB; black 0, "
                   f"yellow ≥ {ERROR_SCALE})", ""]
@@ -136,6 +140,18 @@ def time_section(per_time: Sequence[dict[str, Any]]) -> list[str]:
              "| time | views | PSNR (dB) | SSIM | LPIPS |", "| --- | --- | --- | --- | --- |"]
     lines += [f"| {t['time']:.4g} | {t['views']} | {t['psnr']:.2f} | {t['ssim']:.4f} | {_fmt(t.get('lpips'), 4)} |"
               for t in per_time]
+    return lines + [""]
+
+
+def light_section(per_light: Sequence[dict[str, Any]]) -> list[str]:
+    """The report's "Per light" section: each light's position (or direction), intensity and figures."""
+    lines = ["## Per light", "", "| light | intensity | views | PSNR (dB) | SSIM | LPIPS |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for light in per_light:
+        where = ("at " if "position" in light else "along ") + ", ".join(
+            f"{x:.3g}" for x in light.get("position", light.get("direction")))
+        lines.append(f"| {where} | {light['intensity']:.4g} | {light['views']} | {light['psnr']:.2f} | "
+                     f"{light['ssim']:.4f} | {_fmt(light.get('lpips'), 4)} |")
     return lines + [""]
 
 

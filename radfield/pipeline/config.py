@@ -53,6 +53,7 @@ CHOICES: dict[str, tuple[str, ...] | Callable[[], tuple[str, ...]]] = {
     "init.source": ("auto", "mesh", "points", "random"),
     "eval.split": ("train", "val", "test"),
     "data.time": ("auto", "ignore"),
+    "data.light": ("auto", "ignore"),
 }
 
 _TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}

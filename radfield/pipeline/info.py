@@ -29,8 +29,10 @@ The JSON of `run_info` is a stable interface (scripts and docs/formats.md rely o
           "reason": "...",                        # only when applicable is false
           ...figures                              # the stage's own key figures, e.g.
         }                                         #   sfm: registered_images, total_images, points,
-      }                                           #   reprojection_error; data: images; envelope: faces;
-    }                                             #   tetra: tets, vertices; train: primitives, params,
+      }                                           #   reprojection_error; data: images, times (dynamic),
+    }                                             #   lights (one light at a time); envelope: faces;
+                                                  #   tetra: tets, vertices; init: kind (a conditioned
+                                                  #   kind the views chose); train: primitives, params,
                                                   #   iterations, train_psnr, supersample, window
 
 Keys are only ever added, never renamed or removed. A stage shown as done may be stale if the
@@ -131,10 +133,9 @@ def format_info(info: dict[str, Any]) -> str:
     console.print(table)
     console.print(f"input: {info['input'] or '-'}")
     console.print(f"model: {info['model'] or '- (not trained yet)'}")
-    moments = info["stages"].get("data", {}).get("times")
-    if moments:   # a dynamic scene (the data stage's figure); its kind is the init stage's
+    for scene in conditioned_scene(info):   # the kind the views' conditions chose is the init stage's
         kind = info["stages"].get("init", {}).get("kind", "not initialised yet")
-        console.print(f"dynamic scene: {moments} moments, primitive kind {kind}")
+        console.print(f"{scene}, primitive kind {kind}")
     pending = info.get("pending_checkpoint")
     if pending:
         of = f" of {pending['iterations']}" if pending["iterations"] is not None else ""
@@ -153,6 +154,17 @@ def format_info(info: dict[str, Any]) -> str:
     if info["normalization"]:
         console.print(f"normalization (photos -> run frame): {info['normalization']}")
     return buffer.getvalue()
+
+
+# The data stage's figures of the conditions a scene's views carry (stages/data.py), in words
+CONDITION_FIGURES = (("times", "dynamic scene", "moments"), ("lights", "relightable scene", "lights"))
+
+
+def conditioned_scene(info: dict[str, Any]) -> list[str]:
+    """What the views carry, e.g. ["dynamic scene: 3 moments"] or ["relightable scene: 240 lights"]
+    ([] for a static scene under fixed lighting, or one whose conditions the run ignored)."""
+    data = info["stages"].get("data", {})
+    return [f"{what}: {data[figure]} {unit}" for figure, what, unit in CONDITION_FIGURES if data.get(figure)]
 
 
 def _operation(op: Any) -> str:

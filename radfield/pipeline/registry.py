@@ -38,9 +38,9 @@ def check(config: dict[str, Any], input_path: Path) -> None:
     for module in (sfm, envelope, tetra, bake):
         module.check_config(config)
     init.check_config(config, points, posed=scene["posed"])
-    dynamic = config["data"]["time"] != "ignore" and bool(data.scene_times(scene))
+    conditions = data.view_conditions(data.without_ignored(scene, config["data"])["splits"])
     try:
-        init.primitive_kind(config, dynamic)   # a time-conditioned kind on views without time
+        init.primitive_kind(config, conditions)   # a conditioned kind on views without its condition
     except RadfieldError as e:
         raise RadfieldError(f"{input_path}: {e}") from None
     if config["eval"]["split"] not in scene["splits"]:

@@ -8,9 +8,12 @@ only ever added)::
      "num_primitives": P, "num_params": n, "file_size_bytes": b,
      "fps": f,                              # renders per second (rendering only, after one warm-up)
      "views": N, "width": W, "height": H,
-     "per_view": [{"name", "psnr", "ssim", "seconds", "lpips"(, "time")}, ...],
+     "per_view": [{"name", "psnr", "ssim", "seconds", "lpips"(, "time")(, "light")}, ...],
      "per_time": [{"time", "views", "psnr", "ssim", "lpips"}, ...],   # dynamic scenes only: each
                                             # moment ξ_t's views averaged (delivery/metrics.per_time)
+     "per_light": [{"position" | "direction", "intensity", "views", "psnr", "ssim", "lpips"}, ...],
+                                            # one-light-at-a-time captures only: each light's views
+                                            # averaged (delivery/metrics.per_light), world frame
      "lpips": l | null,                     # AlexNet LPIPS v0.1 (radfield.delivery.lpips), mean over the views;
      "lpips_note": "why lpips is null"}     # null when the weights are not installed or the images are
                                             # smaller than 31×31 (then lpips_note says which)
@@ -26,7 +29,12 @@ psnr_over_time.png; empty otherwise).
 
 A dynamic scene's views each show one moment (Camera.time): the model is drawn at the view's time
 (the kind's at_view), each per-view entry records it, and per_time and the report's "Over time"
-section (table and plot) average the views of each moment.
+section (table and plot) average the views of each moment. Likewise a one-light-at-a-time
+capture's views are each lit by one light (Camera.light): a relightable model is drawn under the
+view's light, each per-view entry records it (scene.json's form, world frame), and per_light and
+the report's "Per light" table average the views of each light. A static model is drawn as it is
+under every light: the light-blind baseline's run (data.light ignore) has no lights in its views,
+but its model file measured on the dataset (`radfield eval MODEL --dataset`) gets the same table.
 """
 
 from __future__ import annotations
@@ -45,14 +53,15 @@ from radfield.util.progress import progress_bar
 from radfield.delivery import lpips as lpips_metric
 from radfield.delivery import report
 from radfield.delivery.io import load_model, read_metadata
-from radfield.delivery.metrics import per_time, psnr, ssim
+from radfield.delivery.metrics import per_light, per_time, psnr, ssim
 from radfield.core.render.antialias import render_model
 from radfield.datasets.images import write_image
 from radfield.pipeline.config import load_config
-from radfield.datasets.scene import SCENE, Scene, load_scene, read_dataset, scene_from_json
+from radfield.datasets.scene import SCENE, Scene, light_json, load_scene, read_dataset, scene_from_json
 from radfield.pipeline.runner import Context, Stage
 from radfield.run import MODEL_STAGE, Run, is_run_dir
-from radfield.stages.data import without_times
+from radfield.stages.data import view_conditions, without_ignored
+from radfield.stages.init import KIND_OF_CONDITION
 from radfield.stages.train import CURVES, LOG, MODEL_FILE
 from radfield import run as layout
 
@@ -119,7 +128,8 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
             write_image(renders / f"{camera.name}.png", color.numpy())
             per_view.append({"name": camera.name, "psnr": float(psnr(color, photo, mask)),
                              "ssim": float(ssim(color, photo, mask=mask)), "seconds": seconds,
-                             **({} if camera.time is None else {"time": camera.time})})
+                             **({} if camera.time is None else {"time": camera.time}),
+                             **({} if camera.light is None else {"light": light_json(camera.light)})})
             # LPIPS sees the photo in the invalid pixels (a render there is never judged)
             judged = color if mask is None else torch.where(mask[..., None].cpu(), color, photo.cpu())
             per_view[-1]["lpips"] = lpips_metric.lpips(judged, photo, lpips_net) if lpips_net is not None else None
@@ -143,6 +153,7 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
         "lpips": None if lpips_net is None else sum(v["lpips"] for v in per_view) / count,
         **({"lpips_note": lpips_note} if lpips_net is None else {}),
         **({"per_time": per_time(per_view)} if any("time" in v for v in per_view) else {}),
+        **({"per_light": per_light(per_view)} if any("light" in v for v in per_view) else {}),
     }
 
 
@@ -203,20 +214,22 @@ def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] |
         if dataset is None:
             raise RadfieldError("--dataset is required to evaluate a model file")
     scene_json = read_dataset(dataset, config["data"])[0]
-    if config["data"]["time"] == "ignore":   # as the run's data stage saw the views (stages/data.py)
-        scene_json = without_times(scene_json)
+    scene_json = without_ignored(scene_json, config["data"])   # as the run's data stage saw the views
     scene = scene_from_json(scene_json, dataset)
-    check_times(model, scene, dataset)
+    check_conditions(model, scene, dataset)
     return model, scene, target if run else None, config
 
 
-def check_times(model_file: Path, scene: Scene, dataset: Path) -> None:
-    """A time-conditioned model (kinds/dynamic.py) is drawn at each view's time: a dataset whose
-    views carry none cannot measure it (one line, before anything is rendered or written). A static
-    model on a dynamic dataset is measured as it is (the data.time=ignore baseline)."""
+def check_conditions(model_file: Path, scene: Scene, dataset: Path) -> None:
+    """A conditioned model (kinds/dynamic.py, kinds/relight.py) is drawn at each view's time or
+    under its light: a dataset whose views carry none cannot measure it (one line, before anything
+    is rendered or written). A static model on such views is measured as it is (the data.time /
+    data.light ignore baselines)."""
     from radfield.core import kinds
 
     kind = read_metadata(model_file).get("kind")
-    if kind in kinds.names() and "time" in kinds.get(kind).conditions and not scene.dynamic:
-        raise RadfieldError(f"{model_file}: a dynamic model ({kind}) is measured on views that show a moment, "
-                            f"but the views of {dataset} carry no time")
+    carried = view_conditions(scene.splits)
+    for condition in kinds.get(kind).conditions if kind in kinds.names() else ():
+        if condition not in carried:
+            raise RadfieldError(f"{model_file}: a {KIND_OF_CONDITION[condition]} model ({kind}) is measured on views that "
+                                f"carry a {condition}, but the views of {dataset} carry no {condition}")

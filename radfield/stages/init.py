@@ -17,7 +17,10 @@ densification must fill (docs/studies/seeds-radius-sh-viewsize.md:
 k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
 The kind is `train.primitive`'s, or for a dynamic scene (views that carry a time) its
 time-conditioned kind (`primitive_kind`: neural -> neural-dynamic, gaussian -> gaussian-dynamic;
-kinds/dynamic.py), which starts as the static kind with zero temporal tensors. D-NeRF datasets and
+kinds/dynamic.py), which starts as the static kind with zero temporal tensors, and for a
+one-light-at-a-time capture (views that carry a light) its relightable kind (neural ->
+neural-relight, gaussian -> gaussian-relight; kinds/relight.py), which starts as the static kind
+with a colour network of zero output and SH degree 0 (the kind's init settings). D-NeRF datasets and
 the dynamic demo scenes have no points: their centres are all sampled uniformly in the envelope,
 the union of the moments' hulls (stages/envelope.py), or in the `random` ball without one.
 SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives:
@@ -56,6 +59,7 @@ from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
 from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
+from radfield.stages.data import view_conditions
 from radfield.stages.envelope import ENVELOPE
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
@@ -79,7 +83,7 @@ def run(ctx: Context) -> dict[str, Any]:
     else:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
-    kind = primitive_kind(cfg, scene.dynamic)
+    kind = primitive_kind(cfg, view_conditions(scene.splits))
     prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
                             kinds.get(kind).init_settings(cfg))
     save_model(ctx.outputs[INIT_MODEL], prims)
@@ -88,7 +92,7 @@ def run(ctx: Context) -> dict[str, Any]:
             + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
             "cage_samples": in_volume, "bound": cage_file is not None,
-            # a time-conditioned kind, chosen for a dynamic scene's views, is recorded (`radfield info`)
+            # a conditioned kind, chosen for views that carry a time or a light, is recorded (`radfield info`)
             **({"kind": prims.kind} if kinds.get(kind).conditions else {})}
 
 
@@ -107,7 +111,7 @@ STAGE = Stage(
 def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: bool = True) -> None:
     """The init settings a user can get wrong, checked before anything runs (`points`: the data
     stage's points.npz arrays; for unposed photos, whose points the sfm stage makes, only a
-    mesh source can be missing). The kind against the views' times: `primitive_kind`."""
+    mesh source can be missing). The kind against the views' conditions: `primitive_kind`."""
     require(config, "render.time_frequency", lambda x: 0 < x <= 100, "in (0, 100] (1: the paper's ω; 2π: one period)")
     for key, value in (("init.num_points", config["init"]["num_points"]),
                        ("train.max_primitives", config["train"]["max_primitives"])):
@@ -125,34 +129,39 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
         choose_source(config["init"]["source"], points)
 
 
-def primitive_kind(config: dict[str, Any], dynamic: bool) -> str:
-    """The kind the run trains (the one place train.primitive is read): train.primitive, or on a
-    dynamic scene (views that carry a time, data.time auto) the time-conditioned kind that extends
-    it (neural -> neural-dynamic, gaussian -> gaussian-dynamic). A time-conditioned kind asked for
-    on views without time is an error: it could not be drawn at any of them."""
+def primitive_kind(config: dict[str, Any], conditions: tuple[str, ...] | list[str]) -> str:
+    """The kind the run trains (the one place train.primitive is read): train.primitive, or, when
+    the views carry conditions (`conditions`: stages/data.view_conditions, after data.time and
+    data.light drop the ignored ones), the registered kind that extends it with exactly those
+    (time: neural -> neural-dynamic, gaussian -> gaussian-dynamic; light: neural -> neural-relight,
+    gaussian -> gaussian-relight). A conditioned kind asked for on views that lack its condition is
+    an error: it could not be drawn at any of them."""
     name = config["train"]["primitive"]
     kind = kinds.get(name)
-    timed = "time" in kind.conditions
-    if dynamic and not timed:
-        return time_conditioned(kind).name
-    if timed and not dynamic:
-        ignored = config.get("data", {}).get("time") == "ignore"   # the init stage sees scene.json only
-        why = "data.time is ignore" if ignored else "the dataset's views carry no time"
-        raise RadfieldError(f"config key train.primitive is {name}, a time-conditioned kind, but {why}: "
-                            f"train a static kind (e.g. {kind_without_time(kind)})")
-    return name
+    wanted = set(conditions)
+    missing = [c for c in kind.conditions if c not in wanted]
+    if missing:
+        ignored = config.get("data", {}).get(missing[0]) == "ignore"   # the init stage sees scene.json only
+        why = f"data.{missing[0]} is ignore" if ignored else f"the dataset's views carry no {missing[0]}"
+        raise RadfieldError(f"config key train.primitive is {name}, a {KIND_OF_CONDITION[missing[0]]} kind, but {why}: "
+                            f"train a static kind (e.g. {static_kind(kind)})")
+    return name if set(kind.conditions) == wanted else conditioned(kind, wanted).name
 
 
-def time_conditioned(kind: kinds.PrimitiveKind) -> kinds.PrimitiveKind:
-    """The registered kind that extends `kind` (a subclass of its class) with the time condition."""
+KIND_OF_CONDITION = {"time": "time-conditioned", "light": "relightable"}   # a kind of each view condition, in words
+
+
+def conditioned(kind: kinds.PrimitiveKind, wanted: set[str]) -> kinds.PrimitiveKind:
+    """The registered kind that extends `kind` (a subclass of its class) with the conditions `wanted`."""
     for other in kinds.registered():
-        if "time" in other.conditions and isinstance(other, type(kind)):
+        if set(other.conditions) == wanted and isinstance(other, type(kind)):
             return other
-    raise RadfieldError(f"primitive kind {kind.name} has no time-conditioned variant for this dynamic dataset; "
-                        f"set data.time=ignore to train it as if every view showed one moment")
+    ignore = " or ".join(f"data.{c}=ignore" for c in sorted(wanted))
+    raise RadfieldError(f"primitive kind {kind.name} has no variant conditioned on {' and '.join(sorted(wanted))} "
+                        f"for this dataset's views; set {ignore} to train it as if every view shared one")
 
 
-def kind_without_time(kind: kinds.PrimitiveKind) -> str:
+def static_kind(kind: kinds.PrimitiveKind) -> str:
     """The registered static kind that `kind` extends (for the error's hint)."""
     return next((other.name for other in kinds.registered()
                  if not other.conditions and isinstance(kind, type(other))), "neural")
@@ -261,13 +270,14 @@ def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_deg
                     seed: int, settings: dict | None = None) -> kinds.Primitives:
     """Isotropic primitives of `kind` at `means` (see the module docstring for every initial value);
     `settings`: the kind's init settings (kinds.get(kind).init_settings(config); None: its defaults,
-    neural: ω0 30, 8 hidden units, hard-edged, W1 bound 1/3, the automatic radius factor)."""
+    neural: ω0 30, 8 hidden units, hard-edged, W1 bound 1/3, the automatic radius factor); their
+    "sh_degree", when the kind sets one, wins over `sh_degree` (the relightable kinds: 0, eq. 14)."""
     spec, settings = kinds.get(kind), settings or {}
     num = len(means)
     radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
     radius = spec.initial_radius(np.maximum(radius, 1e-6 * extent), settings)
     colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
-    sh = torch.zeros(num, num_sh_coeffs(sh_degree), 3)
+    sh = torch.zeros(num, num_sh_coeffs(settings.get("sh_degree", sh_degree)), 3)
     sh[:, 0] = rgb_to_sh_dc(colour)
     geometry = {
         "means": torch.as_tensor(means, dtype=torch.float32),

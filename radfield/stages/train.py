@@ -12,7 +12,9 @@ Training runs in the normalised frame of scene.json, x_norm = (x − center) · 
 and scale, log-scales gain log(scale), camera centres and the near plane move alike; rotations,
 SH, the density MLP (optical depth is measured in units of max(s)) and Gaussian opacities are
 unchanged. The saved model is mapped back, so it renders the dataset's cameras as trained.
-Undistorted photos are trained on their valid pixels only (Scene.valid_masks).
+Undistorted photos are trained on their valid pixels only (Scene.valid_masks). The SH degree
+trained is the init model's: train.sh_degree, unless the kind chooses its own (the relightable
+kinds: degree 0, eq. 14's constant colour; kinds/relight.py).
 
 Every `train.checkpoint_every` steps the full training state goes to RUN/train.work/; a run that
 was killed resumes from there and ends exactly where an uninterrupted run would have. Raising
@@ -55,12 +57,13 @@ CHECKPOINT = layout.CHECKPOINT_FILE  # in RUN/train.work/ (radfield.run.Run.chec
 
 def run(ctx: Context) -> dict[str, Any]:
     supersample = ctx.config["render"]["supersample"]  # rays per pixel side, in training and its measurements
-    cfg = {**ctx.config["train"], "supersample": supersample}
     scene = load_scene(ctx.inputs[SCENE])
     norm = scene.normalization
     cameras = [norm.camera(camera) for camera in scene.train_cameras]  # a RadfieldError for unposed photos
     (images, alphas), masks = scene.load_images("train"), scene.valid_masks("train")
     prims = to_normalized(load_model(ctx.inputs[INIT_MODEL]), norm)
+    # the SH degree the init stage gave the model: train.sh_degree, or the kind's own (kinds/relight.py)
+    cfg = {**ctx.config["train"], "supersample": supersample, "sh_degree": prims.sh_degree}
     near = ctx.config["render"]["near"] * norm.scale
     held_out = None
     if cfg["eval_every"] > 0 and scene.splits.get("test"):

@@ -7,8 +7,14 @@ colour plus a small neural colour field per primitive (eq. 14),
     c = (c_dc + c_θ(d, d_l)) · E,    c_θ(d, d_l) = W2 softplus(W1 [Rᵀd, Rᵀd_l] + b1) + b2,
 
 - c_dc: the SH colour of the model's own `sh` (its DC band is eq. 14's constant colour, taken from
-  the points' colours as the static kinds' DC; a model trained with train.sh_degree > 0 adds the
-  static kind's view-dependent bands to it, the same colour as the static kind's);
+  the points' colours as the static kinds' DC). The init stage gives a new model the DC band only
+  (`init_settings`' sh_degree, whatever train.sh_degree; the train stage trains the init model's
+  SH degree): eq. 14 as
+  written, and the SH warm-up schedule could not reach higher bands anyway (at_view runs before
+  render()'s degree limit). Measured on `demo-scene olat` (64 px, 3000 steps, one seed): held-out
+  PSNR 27.00 dB at degree 0 against 26.90 at degree 3, with 137 parameters a primitive against 182
+  (docs/usage.md "Relighting"). A model file with higher bands (made by hand) adds them, the same
+  colour as the static kind's;
 - d: the unit direction from the camera to μ, d_l the unit direction from μ towards the light
   (normalise(p_light − μ), or −direction for a directional light), both turned into the
   primitive's own frame by Rᵀ (R from its quaternion): a cage edit or a similarity that turns the
@@ -53,6 +59,7 @@ from radfield.core.render.sh import C0, fibonacci_sphere, sh_basis
 from radfield.errors import RadfieldError
 
 DEFAULT_COLOR_HIDDEN = 8        # H: hidden units of a primitive's colour network (module docstring)
+SH_DEGREE = 0                   # a new model's SH: c_dc only, eq. 14 as written (module docstring, measured)
 NETWORK_INPUTS = 6              # (Rᵀd, Rᵀd_l)
 # |weight| a model file may hold: trained weights are O(1); 1e4 is far beyond any colour and keeps
 # the network finite in float32
@@ -224,6 +231,9 @@ class RelightNeuralKind(NeuralKind):
     def check_values(self, prims):
         return super().check_values(prims) or check_network(prims)
 
+    def init_settings(self, config):
+        return {**super().init_settings(config), "sh_degree": SH_DEGREE}
+
     def from_points(self, geometry, settings, seed):
         static = super().from_points(geometry, settings, seed)
         # another stream than the density MLP's (seed + 1): the two networks are not correlated
@@ -268,6 +278,9 @@ class RelightGaussianKind(GaussianKind):
 
     def check_values(self, prims):
         return super().check_values(prims) or check_network(prims)
+
+    def init_settings(self, config):
+        return {**super().init_settings(config), "sh_degree": SH_DEGREE}
 
     def from_points(self, geometry, settings, seed):
         static = super().from_points(geometry, settings, seed)

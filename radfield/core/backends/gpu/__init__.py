@@ -31,17 +31,35 @@ Triton is imported at the first view drawn here, never at start-up.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.util
 import os
 
 import torch
 
+from radfield.errors import RadfieldError
+
 NAME = "triton"
 TILE = 16   # tile side in pixels (gaussian_kernels.SIDE)
 # no FMA contraction (as the fused CPU build, -ffp-contract=off): the backward recomputes each pair's
 # α exactly as the forward did, whatever instructions the compiler picks in either kernel
 _COMPILE = {"enable_fp_fusion": False}
+
+
+@contextlib.contextmanager
+def _launching():
+    """A kernel that fails to compile or launch on this GPU (an old Triton, too few registers, a
+    driver the wheel's compiler does not know): one error line with the way out, not a traceback
+    from inside Triton. The interpreter's errors (the tests') pass through as they are."""
+    try:
+        yield
+    except Exception as error:
+        if interpreting():
+            raise
+        first = (str(error).strip().splitlines() or [""])[0][:200]
+        raise RadfieldError(f"the Triton GPU kernels failed on this machine ({type(error).__name__}: {first}); "
+                            "RADFIELD_KERNELS=torch runs the readable torch kernels instead") from None
 
 
 @functools.cache
@@ -153,8 +171,9 @@ class _GaussianView(torch.autograd.Function):
         consts = _constants(inputs[0], t_min)
         tiles_x, tiles = _sizes(height, width)
         acc_color, acc_depth, trans, last, counts = _outputs(inputs[0], height, width, tiles)
-        K.gaussian_forward[(tiles,)](offsets, entries, bounds, *inputs, consts, acc_color, acc_depth, trans, last,
-                                     counts, height, width, tiles_x, SIDE=TILE, **_COMPILE)
+        with _launching():
+            K.gaussian_forward[(tiles,)](offsets, entries, bounds, *inputs, consts, acc_color, acc_depth, trans, last,
+                                         counts, height, width, tiles_x, SIDE=TILE, **_COMPILE)
         ctx.sizes = (height, width, tiles_x, tiles)
         ctx.save_for_backward(offsets, entries, bounds, *inputs, consts, trans, last)
         counters = _counters(counts, bounds)
@@ -170,8 +189,9 @@ class _GaussianView(torch.autograd.Function):
         height, width, tiles_x, tiles = ctx.sizes
         upstream = _upstream(inputs[0], height, width, g_color, g_depth, g_trans)
         grads = [torch.zeros_like(t) for t in inputs]   # mean2d, conic, opacity, colors, depth
-        K.gaussian_backward[(tiles,)](offsets, entries, bounds, *inputs, consts, trans, last, *upstream, *grads,
-                                      height, width, tiles_x, SIDE=TILE, **_COMPILE)
+        with _launching():
+            K.gaussian_backward[(tiles,)](offsets, entries, bounds, *inputs, consts, trans, last, *upstream, *grads,
+                                          height, width, tiles_x, SIDE=TILE, **_COMPILE)
         return None, None, None, None, *grads
 
 
@@ -192,9 +212,10 @@ class _NeuralView(torch.autograd.Function):
         tiles_x, tiles = _sizes(height, width)
         units = c.shape[1]
         acc_color, acc_depth, trans, last, counts = _outputs(inputs[0], height, width, tiles)
-        K.neural_forward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, acc_color, acc_depth, trans,
-                                   last, counts, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
-                                   WINDOW=bool(window), **_COMPILE)
+        with _launching():
+            K.neural_forward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, acc_color, acc_depth, trans,
+                                       last, counts, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
+                                       WINDOW=bool(window), **_COMPILE)
         ctx.sizes = (height, width, tiles_x, tiles, units, bool(window))
         ctx.save_for_backward(offsets, entries, bounds, intrinsics, *inputs, consts, trans, last)
         counters = _counters(counts, bounds)
@@ -210,9 +231,10 @@ class _NeuralView(torch.autograd.Function):
         height, width, tiles_x, tiles, units, window = ctx.sizes
         upstream = _upstream(inputs[0], height, width, g_color, g_depth, g_trans)
         grads = [torch.zeros_like(t) for t in inputs]   # m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth
-        K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
-                                    *grads, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
-                                    WINDOW=window, **_COMPILE)
+        with _launching():
+            K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
+                                        *grads, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
+                                        WINDOW=window, **_COMPILE)
         return None, None, None, None, None, None, *grads
 
 
