@@ -13,6 +13,9 @@ import pytest
 from radfield.datasets.olat import generate_olat
 from radfield.datasets.synthetic import generate_scene
 from radfield.delivery.io import load_model
+from radfield.errors import RadfieldError
+from radfield.pipeline.config import load_defaults
+from radfield.stages.init import primitive_kind
 
 STEPS = "300"   # no densification before step 500: every run keeps its 2000 initial primitives
 
@@ -66,6 +69,8 @@ def test_a_relighting_dataset_trains_the_relightable_kind_and_beats_the_light_bl
     # eq. 14 as written: the relightable kinds train SH degree 0 (the constant c_dc), whatever train.sh_degree
     assert load_model(runs["relit"] / "train" / "model.safetensors").sh_degree == 0
     assert load_model(runs["blind"] / "train" / "model.safetensors").sh_degree == 3
+    # bake keeps the kind (its coverage and PSNR are taken under every view's own light)
+    assert load_model(runs["relit"] / "bake" / "baked.safetensors").kind == "neural-relight"
 
 
 def test_the_run_records_the_lights_and_the_kind(cli, runs):
@@ -144,6 +149,15 @@ def test_a_relightable_kind_with_lights_ignored_is_one_error_line(cli, olat, tmp
     code, _, err = cli("reconstruct", olat, "-o", tmp_path / "run", "--set", "train.primitive=neural-relight",
                        "--set", "data.light=ignore", "-q")
     assert code == 1 and err.count("\n") == 1 and "data.light is ignore" in err and not (tmp_path / "run").exists()
+
+
+def test_views_that_carry_a_time_and_a_light_have_no_kind_for_both():
+    config = load_defaults()
+    for ignored, kind in (("light", "neural-dynamic"), ("time", "neural-relight")):
+        assert primitive_kind(config, [c for c in ("time", "light") if c != ignored]) == kind
+    with pytest.raises(RadfieldError, match="no variant conditioned on light and time.*data.light=ignore or "
+                                            "data.time=ignore"):
+        primitive_kind(config, ("time", "light"))
 
 
 def test_a_bad_light_setting_is_one_error_line(cli, olat, tmp_path):

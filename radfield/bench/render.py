@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from radfield.core import kinds as registry
-from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.geometry.cameras import Camera, Light, look_at
 from radfield.core.render.rasterize import render
 from radfield.core.render.sh import num_sh_coeffs
 from radfield.util.timing import clock
@@ -75,15 +75,17 @@ def bench_scene(num: int, scale: float = 0.04, sh_degree: int = 3, seed: int = 0
 
 
 def bench_cameras(count: int, width: int, height: int) -> list[Camera]:
-    """`count` views on an orbit around the scene; each shows its own moment (i + ½)/count, which a
-    time-conditioned kind draws and every other kind ignores."""
+    """`count` views on an orbit around the scene; each shows its own moment (i + ½)/count and is lit
+    by a point light above the scene, which time-conditioned and relightable kinds draw and every
+    other kind ignores."""
     focal = 0.5 * width / math.tan(math.radians(25))
     cams = []
     for i in range(count):
         a = 2 * math.pi * i / count
         eye = (3.2 * math.cos(a), 3.2 * math.sin(a), 1.0)
         cams.append(Camera(fx=focal, fy=focal, cx=width / 2, cy=height / 2, width=width, height=height,
-                           c2w=look_at(eye, (0, 0, 0)), name=f"orbit{i}", time=(i + 0.5) / count))
+                           c2w=look_at(eye, (0, 0, 0)), name=f"orbit{i}", time=(i + 0.5) / count,
+                           light=Light(position=(0.0, 0.0, 3.0), intensity=9.0)))
     return cams
 
 

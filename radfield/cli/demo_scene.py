@@ -76,7 +76,8 @@ def demo_scene(
         moments = {split: len({frame["time"] for frame in frames[split]}) for split in frames}
         cameras = {split: len(frames[split]) // moments[split] for split in frames}
         between = f" (test at the {moments['test']} times between)" if held_out_times else ""
-        typer.echo(f"wrote {name}: {cameras['train']} train + {cameras['test']} test cameras at {moments['train']} times{between} "
+        typer.echo(f"wrote {name}: {cameras['train']} train + {cameras['test']} test cameras at {moments['train']} "
+                   f"times{between} "
                    f"({len(frames['train'])} + {len(frames['test'])} frames) of {size}x{size} to {output}")
         return
     if name == _OLAT:

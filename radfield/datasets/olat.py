@@ -32,10 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
-import shutil
-import tempfile
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -46,6 +44,7 @@ from radfield.datasets.images import write_image
 from radfield.datasets.synthetic import (CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, get_scene,
                                          orbit_cameras, render_view, write_mesh)
 from radfield.errors import RadfieldError
+from radfield.util.atomic import new_folder
 
 TRAIN_VIEWS, TEST_VIEWS, LIGHTS = 40, 8, 5   # cameras per split, lights per camera
 LIGHT_RADIUS = 2.75
@@ -98,25 +97,14 @@ def generate_olat(out_dir: str | os.PathLike, n_train: int | None = None, n_test
         raise RadfieldError(f"demo-scene olat: need at least 1 train and 1 test camera, 1 light per camera and "
                             f"size >= 8 (got {n_train}, {n_test}, {lights}, {size})")
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise RadfieldError(f"{out_dir}: already exists and is not an empty folder; refusing to overwrite it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
     scene = olat_scene()
-    try:
+    with new_folder(out_dir) as tmp:   # complete or absent (util/atomic.py)
         cameras = orbit_cameras(n_train, n_test, size, seed)
         for split, split_cameras, positions in zip(("train", "test"), cameras, split_lights(n_train, n_test, lights, seed)):
             _write_split(scene, tmp, split, split_cameras, positions, seed, progress)
         if mesh:
             write_mesh(scene, tmp / "mesh.ply")
         (tmp / "scene.json").write_text(json.dumps(_describe(scene, seed, lights), indent=2))
-        tmp.chmod(0o755)  # mkdtemp makes it private
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

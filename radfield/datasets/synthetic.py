@@ -30,10 +30,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
-import shutil
-import tempfile
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +39,7 @@ import numpy as np
 
 from radfield.core.geometry.cameras import Camera, look_at, opencv_to_opengl
 from radfield.errors import RadfieldError
+from radfield.util.atomic import new_folder
 from radfield.datasets.images import write_image
 from radfield.datasets.shapes import Box, Cylinder, Material, Sphere, Torus
 
@@ -647,11 +646,7 @@ def generate_scene(
         raise RadfieldError(
             f"generate_scene: need n_train >= 1, n_test >= 1 and size >= 8 (got {n_train}, {n_test}, {size})"
         )
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise RadfieldError(f"{out_dir}: already exists and is not an empty folder; refusing to overwrite it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
-    try:
+    with new_folder(out_dir) as tmp:   # complete or absent (util/atomic.py)
         train, test = orbit_cameras(n_train, n_test, size, seed)
         for split, cameras in (("train", train), ("test", test)):
             _write_split(scene, tmp, split, cameras, seed, deformation)
@@ -666,13 +661,6 @@ def generate_scene(
                 f"# radfield edit RUN --spec deform.yaml -o EDITED: the map this scene ({name}, {deform}) was rendered with\n"
                 + yaml.safe_dump({"operations": [deformation.spec()]}, sort_keys=False, default_flow_style=None))
         (tmp / "scene.json").write_text(json.dumps(description, indent=2))
-        tmp.chmod(0o755)  # mkdtemp makes it private
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

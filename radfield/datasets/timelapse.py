@@ -18,13 +18,12 @@ from __future__ import annotations
 import importlib
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from radfield.errors import RadfieldError
+from radfield.util.atomic import new_folder
 
 if TYPE_CHECKING:  # light to import: `radfield demo-scene --help` names SCENES without torch
     from radfield.core.geometry.cameras import Camera
@@ -49,7 +48,8 @@ def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None 
                      progress: Callable[[int], None] | None = None, held_out_times: bool = False) -> Path:
     """Write the dynamic scene `name` into a new D-NeRF folder `out_dir` (see the module
     docstring); `progress(1)` after each image; `held_out_times`: test frames at the midpoints.
-    Written to a temporary sibling folder and renamed, so `out_dir` is complete or absent; an existing non-empty `out_dir` is refused."""
+    Written to a temporary sibling folder and renamed, so `out_dir` is complete or absent; an
+    existing non-empty `out_dir` is refused."""
     from radfield.datasets.synthetic import CAMERA_ANGLE_X, CAMERA_RADIUS, orbit_cameras
 
     if name not in SCENES:
@@ -64,11 +64,7 @@ def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None 
     if held_out_times and times < 2:
         raise RadfieldError(f"demo-scene {name}: --held-out-times needs at least 2 times (got {times})")
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise RadfieldError(f"{out_dir}: already exists and is not an empty folder; refusing to overwrite it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
-    try:
+    with new_folder(out_dir) as tmp:   # complete or absent (util/atomic.py)
         train, test = orbit_cameras(n_train, n_test, size, seed)
         ts = moments(times)
         test_ts = midpoints(times) if held_out_times else ts
@@ -78,13 +74,6 @@ def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None 
         description = {"name": name, "seed": seed, "times": ts, **held_out, "camera_radius": CAMERA_RADIUS,
                        "camera_angle_x": CAMERA_ANGLE_X, **scene.describe()}
         (tmp / "scene.json").write_text(json.dumps(description, indent=2))
-        tmp.chmod(0o755)  # mkdtemp makes it private
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

@@ -50,8 +50,9 @@ def run(ctx: Context) -> dict[str, Any]:
 
 
 # What a view may carry besides its camera (a scene.json VIEW key each), and so condition the kind
-# the run trains (stages/init.primitive_kind); data.<condition>: auto | ignore
-CONDITIONS = ("time", "light")
+# the run trains (stages/init.primitive_kind), with that kind in words (for messages). A new one
+# also gets its config key data.<condition>: auto | ignore (pipeline.yaml, pipeline/config.CHOICES)
+CONDITIONS = {"time": "time-conditioned", "light": "relightable"}
 
 
 def view_conditions(splits: dict[str, list[dict[str, Any]]]) -> tuple[str, ...]:

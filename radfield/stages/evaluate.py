@@ -60,8 +60,7 @@ from radfield.pipeline.config import load_config
 from radfield.datasets.scene import SCENE, Scene, light_json, load_scene, read_dataset, scene_from_json
 from radfield.pipeline.runner import Context, Stage
 from radfield.run import MODEL_STAGE, Run, is_run_dir
-from radfield.stages.data import view_conditions, without_ignored
-from radfield.stages.init import KIND_OF_CONDITION
+from radfield.stages.data import CONDITIONS, view_conditions, without_ignored
 from radfield.stages.train import CURVES, LOG, MODEL_FILE
 from radfield import run as layout
 
@@ -231,5 +230,5 @@ def check_conditions(model_file: Path, scene: Scene, dataset: Path) -> None:
     carried = view_conditions(scene.splits)
     for condition in kinds.get(kind).conditions if kind in kinds.names() else ():
         if condition not in carried:
-            raise RadfieldError(f"{model_file}: a {KIND_OF_CONDITION[condition]} model ({kind}) is measured on views that "
+            raise RadfieldError(f"{model_file}: a {CONDITIONS[condition]} model ({kind}) is measured on views that "
                                 f"carry a {condition}, but the views of {dataset} carry no {condition}")

@@ -59,7 +59,7 @@ from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
 from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
-from radfield.stages.data import view_conditions
+from radfield.stages.data import CONDITIONS, view_conditions
 from radfield.stages.envelope import ENVELOPE
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
@@ -143,12 +143,9 @@ def primitive_kind(config: dict[str, Any], conditions: tuple[str, ...] | list[st
     if missing:
         ignored = config.get("data", {}).get(missing[0]) == "ignore"   # the init stage sees scene.json only
         why = f"data.{missing[0]} is ignore" if ignored else f"the dataset's views carry no {missing[0]}"
-        raise RadfieldError(f"config key train.primitive is {name}, a {KIND_OF_CONDITION[missing[0]]} kind, but {why}: "
+        raise RadfieldError(f"config key train.primitive is {name}, a {CONDITIONS[missing[0]]} kind, but {why}: "
                             f"train a static kind (e.g. {static_kind(kind)})")
     return name if set(kind.conditions) == wanted else conditioned(kind, wanted).name
-
-
-KIND_OF_CONDITION = {"time": "time-conditioned", "light": "relightable"}   # a kind of each view condition, in words
 
 
 def conditioned(kind: kinds.PrimitiveKind, wanted: set[str]) -> kinds.PrimitiveKind:

@@ -74,3 +74,16 @@ def atomic_folder(path: str | Path, merge: bool = False) -> Iterator[Path]:
             os.rename(tmp, path)   # fails, rather than merging, if `path` appeared meanwhile
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def new_folder(path: str | Path) -> Iterator[Path]:
+    """`atomic_folder` for a folder that must be new: an existing file or non-empty folder at `path`
+    is refused (one line) before any work, and `path` ends up complete or absent (the demo scenes)."""
+    from radfield.errors import RadfieldError
+
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise RadfieldError(f"{path}: already exists and is not an empty folder; refusing to overwrite it")
+    with atomic_folder(path) as tmp:
+        yield tmp

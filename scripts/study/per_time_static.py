@@ -39,14 +39,15 @@ def static_subset(data: Path, xi: float, out: Path) -> Path:
 
 
 def reconstruct(dataset: Path, run: Path, budget: int, steps: int, primitive: str) -> float:
-    """Wall seconds of `radfield reconstruct` (0 when the run was already complete)."""
+    """Wall seconds of `radfield reconstruct` (those recorded in RUN/wall_s.txt when the run was already complete)."""
     if (run / "eval" / "metrics.json").is_file():
-        return 0.0
+        return float((run / "wall_s.txt").read_text()) if (run / "wall_s.txt").is_file() else 0.0
     start = time.time()
     subprocess.run([str(RADFIELD), "reconstruct", str(dataset), "-o", str(run), "--primitive", primitive,
                     "--max-primitives", str(budget), "--iterations", str(steps), "-q"], check=True,
                    env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")},
                    stdout=subprocess.DEVNULL)
+    (run / "wall_s.txt").write_text(f"{time.time() - start:.1f}")
     return time.time() - start
 
 

@@ -9,12 +9,11 @@ colour plus a small neural colour field per primitive (eq. 14),
 - c_dc: the SH colour of the model's own `sh` (its DC band is eq. 14's constant colour, taken from
   the points' colours as the static kinds' DC). The init stage gives a new model the DC band only
   (`init_settings`' sh_degree, whatever train.sh_degree; the train stage trains the init model's
-  SH degree): eq. 14 as
-  written, and the SH warm-up schedule could not reach higher bands anyway (at_view runs before
-  render()'s degree limit). Measured on `demo-scene olat` (64 px, 3000 steps, one seed): held-out
-  PSNR 27.00 dB at degree 0 against 26.90 at degree 3, with 137 parameters a primitive against 182
-  (docs/usage.md "Relighting"). A model file with higher bands (made by hand) adds them, the same
-  colour as the static kind's;
+  SH degree): eq. 14 as written, and the SH warm-up schedule could not reach higher bands anyway
+  (at_view runs before render()'s degree limit). Measured on `demo-scene olat` (64 px, 3000
+  steps, seeds 0 and 1): held-out PSNR 27.00 / 26.98 dB at degree 0 against 26.90 / 26.94 at
+  degree 3, with 137 parameters a primitive against 182 (docs/usage.md "Relighting"). A model
+  file with higher bands (made by hand) adds them, the same colour as the static kind's;
 - d: the unit direction from the camera to μ, d_l the unit direction from μ towards the light
   (normalise(p_light − μ), or −direction for a directional light), both turned into the
   primitive's own frame by Rᵀ (R from its quaternion): a cage edit or a similarity that turns the
@@ -195,6 +194,56 @@ def network_count(hidden: int = DEFAULT_COLOR_HIDDEN) -> int:
     return hidden * NETWORK_INPUTS + hidden + 3 * hidden + 3
 
 
+# --- the hooks both relightable kinds share ---------------------------------------------------------
+
+class Relightable:
+    """The hooks of a relightable kind, mixed in before its static parent kind (NeuralKind,
+    GaussianKind): `static` is the parent's primitives type, `static_variant` its bench model."""
+
+    static: type
+    static_variant: str
+    conditions = ("light",)
+
+    def at_view(self, prims, camera):
+        """The static primitives of camera.light seen from camera: SH degree 0, the view's colour."""
+        return self.static(**{**static_fields(prims, self.static), "sh": view_sh(prims, camera)})
+
+    def at_light(self, prims, light):
+        """The static primitives of `light` for every view (SH fitted over directions)."""
+        return self.static(**{**static_fields(prims, self.static), "sh": light_sh(prims, light)})
+
+    def check_values(self, prims):
+        return super().check_values(prims) or check_network(prims)
+
+    def init_settings(self, config):
+        return {**super().init_settings(config), "sh_degree": SH_DEGREE}
+
+    def from_points(self, geometry, settings, seed):
+        static = super().from_points(geometry, settings, seed)
+        # another stream than the density MLP's (seed + 1): the two networks are not correlated
+        network = init_network(len(static), settings.get("color_hidden", DEFAULT_COLOR_HIDDEN), seed + 1)
+        return self.primitives(**static_fields(static, self.static), **network)
+
+    def harmonise(self, a, b):
+        return harmonise_networks(*super().harmonise(a, b))
+
+    def to_gaussians(self, prims, components=1):
+        no_export_without_light(self.name)
+
+    def bench_models(self, scene, generator):
+        static = super().bench_models(scene, generator)[self.static_variant]
+        return {self.name: self.primitives(**bench_fields(static, self.static, generator))}
+
+
+def bench_fields(static, static_type: type, generator: torch.Generator) -> dict:
+    """bench-train's relightable model: the static bench model at SH degree 0 (as relight runs train)
+    with a random colour network (a trained one's cost: its last layer is not zero)."""
+    fields_ = {**static_fields(static, static_type), "sh": static.sh[:, :1].clone()}
+    network = init_network(len(static), DEFAULT_COLOR_HIDDEN, int(torch.randint(1 << 30, (), generator=generator)))
+    network["color_w2"] = 0.1 * torch.randn(network["color_w2"].shape, generator=generator)
+    return {**fields_, **network}
+
+
 # --- neural primitives with a colour network ---------------------------------------------------------
 
 @dataclass
@@ -209,42 +258,16 @@ class RelightNeuralPrimitives(NeuralPrimitives):
     kind = "neural-relight"
 
 
-class RelightNeuralKind(NeuralKind):
+class RelightNeuralKind(Relightable, NeuralKind):
     name = "neural-relight"
     primitives = RelightNeuralPrimitives
+    static, static_variant = NeuralPrimitives, "neural"
     own_params = {**NeuralKind.own_params, **NETWORK}
     # the colour network is an MLP like the density's: the density MLP's rate
     lr_keys = {**NeuralKind.lr_keys, **{name: "mlp" for name in NETWORK}}
-    conditions = ("light",)
     # edit/retrain.py's teacher composites the SH colour, which is not this kind's: it refuses it
     has_line_integral_density = False
-    bench_variants = ()
-
-    def at_view(self, prims, camera):
-        """The static neural primitives of camera.light seen from camera: SH degree 0, the view's colour."""
-        return NeuralPrimitives(**{**static_fields(prims, NeuralPrimitives), "sh": view_sh(prims, camera)})
-
-    def at_light(self, prims, light) -> NeuralPrimitives:
-        """The static neural primitives of `light` for every view (SH fitted over directions)."""
-        return NeuralPrimitives(**{**static_fields(prims, NeuralPrimitives), "sh": light_sh(prims, light)})
-
-    def check_values(self, prims):
-        return super().check_values(prims) or check_network(prims)
-
-    def init_settings(self, config):
-        return {**super().init_settings(config), "sh_degree": SH_DEGREE}
-
-    def from_points(self, geometry, settings, seed):
-        static = super().from_points(geometry, settings, seed)
-        # another stream than the density MLP's (seed + 1): the two networks are not correlated
-        network = init_network(len(static), settings.get("color_hidden", DEFAULT_COLOR_HIDDEN), seed + 1)
-        return RelightNeuralPrimitives(**static_fields(static, NeuralPrimitives), **network)
-
-    def harmonise(self, a, b):
-        return harmonise_networks(*super().harmonise(a, b))
-
-    def to_gaussians(self, prims, components=1):
-        no_export_without_light(self.name)
+    bench_variants = ("neural-relight",)
 
 
 # --- Gaussians with a colour network (the baseline) -------------------------------------------------
@@ -261,37 +284,14 @@ class RelightGaussians(Gaussians):
     kind = "gaussian-relight"
 
 
-class RelightGaussianKind(GaussianKind):
+class RelightGaussianKind(Relightable, GaussianKind):
     name = "gaussian-relight"
     primitives = RelightGaussians
+    static, static_variant = Gaussians, "gaussian"
     own_params = {**GaussianKind.own_params, **NETWORK}
     lr_keys = {**GaussianKind.lr_keys, **{name: "mlp" for name in NETWORK}}
-    conditions = ("light",)
     exact_gaussians = False   # only its views under one light are 3D Gaussians with an SH colour
-    bench_variants = ()
-
-    def at_view(self, prims, camera):
-        return Gaussians(**{**static_fields(prims, Gaussians), "sh": view_sh(prims, camera)})
-
-    def at_light(self, prims, light) -> Gaussians:
-        return Gaussians(**{**static_fields(prims, Gaussians), "sh": light_sh(prims, light)})
-
-    def check_values(self, prims):
-        return super().check_values(prims) or check_network(prims)
-
-    def init_settings(self, config):
-        return {**super().init_settings(config), "sh_degree": SH_DEGREE}
-
-    def from_points(self, geometry, settings, seed):
-        static = super().from_points(geometry, settings, seed)
-        network = init_network(len(static), settings.get("color_hidden", DEFAULT_COLOR_HIDDEN), seed + 1)
-        return RelightGaussians(**static_fields(static, Gaussians), **network)
-
-    def harmonise(self, a, b):
-        return harmonise_networks(*super().harmonise(a, b))
-
-    def to_gaussians(self, prims, components=1):
-        no_export_without_light(self.name)
+    bench_variants = ("gaussian-relight",)
 
 
 NEURAL_RELIGHT = register(RelightNeuralKind())
