@@ -75,20 +75,34 @@ def check_frames(files: list[tuple[Path, dict]]) -> None:
 def check_times(files: list[tuple[Path, dict]]) -> None:
     """Every frame's `time` of these transforms files (path, content) together: a number in
     [0, 1] on every frame, or on none. The first offending frame raises, named by file and index."""
-    first = None  # (path, index, has a time) of the first frame: the others must agree with it
+    first = None
+    for path, i, frame in _frames(files):
+        timed = "time" in frame
+        if timed:
+            _check_time(frame, i, path)
+        first = _all_or_none(first, path, i, frame, timed, ("a 'time'", "no 'time'"), "give every frame a time or none")
+
+
+def _frames(files: list[tuple[Path, dict]]):
+    """(path, index in its file, frame) of every frame of these transforms files, in order."""
     for path, meta in files:
         for i, frame in enumerate(meta["frames"]):
-            timed = "time" in frame
-            if timed:
-                _check_time(frame, i, path)
-            if first is None:
-                first = (path, i, timed)
-            elif timed != first[2]:
-                what = "has a 'time'" if timed else "has no 'time'"
-                other = "has none" if timed else "has one"
-                where = "" if first[0] == path else f" of {first[0]}"
-                raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}) {what} but frames[{first[1]}]{where} "
-                                    f"{other}: give every frame a time or none")
+            yield path, i, frame
+
+
+def _all_or_none(first, path: Path, i: int, frame: dict, carried: bool, names: tuple[str, str], hint: str):
+    """A property every frame of the files carries or none does: `first` is (path, index, carried) of
+    the first frame (None before it), returned for the next frame; a frame that disagrees with it
+    raises, naming both frames. names: how the message says the frame has it or not."""
+    if first is None:
+        return path, i, carried
+    if carried != first[2]:
+        what = f"has {names[0]}" if carried else f"has {names[1]}"
+        other = "has none" if carried else "has one"
+        where = "" if first[0] == path else f" of {first[0]}"
+        raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}) {what} but frames[{first[1]}]{where} "
+                            f"{other}: {hint}")
+    return first
 
 
 def _check_time(frame: dict, i: int, json_path: Path) -> None:
@@ -103,19 +117,12 @@ def _check_time(frame: dict, i: int, json_path: Path) -> None:
 def check_lights(files: list[tuple[Path, dict]]) -> None:
     """Every frame's light of these transforms files (path, content) together: a valid light on
     every frame, or none on any. The first offending frame raises, named by file and index."""
-    first = None  # (path, index, has a light) of the first frame: the others must agree with it
-    for path, meta in files:
-        for i, frame in enumerate(meta["frames"]):
-            lit = any(key in frame for key in _LIGHT_KEYS)
-            if first is None:
-                first = (path, i, lit)
-            elif lit != first[2]:
-                what = "has a light" if lit else "has no light"
-                other = "has none" if lit else "has one"
-                where = "" if first[0] == path else f" of {first[0]}"
-                raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}) {what} but frames[{first[1]}]{where} "
-                                    f"{other}: give every frame a 'light_position' or 'light_direction', or none")
-            frame_light(frame, i, path)  # checks the values (None when the frame has no light)
+    first = None
+    for path, i, frame in _frames(files):
+        lit = any(key in frame for key in _LIGHT_KEYS)
+        first = _all_or_none(first, path, i, frame, lit, ("a light", "no light"),
+                             "give every frame a 'light_position' or 'light_direction', or none")
+        frame_light(frame, i, path)  # checks the values (None when the frame has no light)
 
 
 def frame_light(frame: dict, i: int, json_path: Path) -> Light | None:

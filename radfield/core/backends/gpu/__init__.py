@@ -150,6 +150,17 @@ def _upstream(like: torch.Tensor, height: int, width: int, g_color, g_depth, g_t
             for g, shape in ((g_color, (height, width, 3)), (g_depth, (height, width)), (g_trans, (height, width)))]
 
 
+def _prepared(tensors, bounds: torch.Tensor, height: int, width: int, t_min: float):
+    """What both views' forwards set up before their launch: the per-primitive inputs contiguous,
+    int32 bounds, the tile lists, the constants, the tile grid and the zeroed outputs."""
+    inputs = [t.contiguous() for t in tensors]
+    bounds = bounds.to(torch.int32).contiguous()
+    offsets, entries = bin_tiles(bounds, height, width)
+    tiles_x, tiles = _sizes(height, width)
+    return (inputs, bounds, offsets, entries, _constants(inputs[0], t_min), tiles_x, tiles,
+            _outputs(inputs[0], height, width, tiles))
+
+
 def _constants(like: torch.Tensor, t_min: float) -> torch.Tensor:
     """(t_min, α_min, α_max, 1) in the inputs' dtype (the kernels' thresholds are the twin's)."""
     from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
@@ -165,12 +176,9 @@ class _GaussianView(torch.autograd.Function):
     def forward(ctx, bounds, height, width, t_min, mean2d, conic, opacity, colors, depth):
         from radfield.core.backends.gpu import gaussian_kernels as K
 
-        inputs = [t.contiguous() for t in (mean2d, conic, opacity, colors, depth)]
-        bounds = bounds.to(torch.int32).contiguous()
-        offsets, entries = bin_tiles(bounds, height, width)
-        consts = _constants(inputs[0], t_min)
-        tiles_x, tiles = _sizes(height, width)
-        acc_color, acc_depth, trans, last, counts = _outputs(inputs[0], height, width, tiles)
+        inputs, bounds, offsets, entries, consts, tiles_x, tiles, outputs = _prepared(
+            (mean2d, conic, opacity, colors, depth), bounds, height, width, t_min)
+        acc_color, acc_depth, trans, last, counts = outputs
         with _launching():
             K.gaussian_forward[(tiles,)](offsets, entries, bounds, *inputs, consts, acc_color, acc_depth, trans, last,
                                          counts, height, width, tiles_x, SIDE=TILE, **_COMPILE)
@@ -204,14 +212,11 @@ class _NeuralView(torch.autograd.Function):
                 depth):
         from radfield.core.backends.gpu import neural_kernels as K
 
-        inputs = [t.contiguous() for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth)]
-        bounds = bounds.to(torch.int32).contiguous()
+        inputs, bounds, offsets, entries, consts, tiles_x, tiles, outputs = _prepared(
+            (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth), bounds, height, width, t_min)
         intrinsics = intrinsics.detach().contiguous()
-        offsets, entries = bin_tiles(bounds, height, width)
-        consts = _constants(inputs[0], t_min)
-        tiles_x, tiles = _sizes(height, width)
         units = c.shape[1]
-        acc_color, acc_depth, trans, last, counts = _outputs(inputs[0], height, width, tiles)
+        acc_color, acc_depth, trans, last, counts = outputs
         with _launching():
             K.neural_forward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, acc_color, acc_depth, trans,
                                        last, counts, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
