@@ -11,6 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from radfield.errors import RadfieldError
+from radfield.util.numbers import three_numbers
 from radfield.util.progress import progress_bar
 
 __all__ = ["Background", "Dataset", "Device", "Downscale", "Force", "Quiet", "check_output", "data_options",
@@ -35,11 +36,8 @@ def data_options(downscale: int | None, background: str | None) -> dict:
 
 def parse_background(text: str) -> tuple[float, float, float]:
     """'R,G,B' with components in [0, 1] (e.g. 1,1,1 for white)."""
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in values):
+    values = three_numbers(text)
+    if values is None or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in values):
         raise RadfieldError(f"--background must be three numbers in [0, 1] like 1,1,1, got {text!r}")
     return values
 

@@ -11,18 +11,16 @@ import typer
 
 from radfield.cli.common import Force, check_output, resolve_device
 from radfield.errors import RadfieldError
+from radfield.util.numbers import three_numbers
 
 
 def _vector(text: str | None, name: str) -> list[float] | None:
     if text is None:
         return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3:
+    values = three_numbers(text)
+    if values is None:
         raise RadfieldError(f"--{name} takes three comma-separated numbers like 0,0,90, got {text!r}")
-    return values
+    return list(values)
 
 
 def edit(

@@ -28,16 +28,14 @@ import math
 from dataclasses import replace
 
 from radfield.errors import RadfieldError
+from radfield.util.numbers import three_numbers
 
 
 def parse_vector(text: str, option: str) -> tuple[float, float, float]:
     """Three finite numbers X,Y,Z of an option."""
-    try:
-        vector = tuple(float(x) for x in text.split(","))
-        if len(vector) != 3 or not all(math.isfinite(x) for x in vector):
-            raise ValueError
-    except ValueError:
-        raise RadfieldError(f"{option} takes three finite numbers X,Y,Z (the dataset's world frame), got {text!r}") from None
+    vector = three_numbers(text)
+    if vector is None or not all(math.isfinite(x) for x in vector):
+        raise RadfieldError(f"{option} takes three finite numbers X,Y,Z (the dataset's world frame), got {text!r}")
     return vector
 
 
