@@ -65,3 +65,50 @@ def test_cuda_reconstruct_eval_render_match_the_cpu(cli, tmp_path):
 def test_the_same_path_on_the_cpu(cli, tmp_path):
     """The smoke test's own body on the CPU, so CI runs every line of it (CUDA compared with itself there)."""
     reconstruct_eval_render(cli, tmp_path, "cpu")
+
+
+@needs_cuda
+def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch):
+    """torch.cuda.set_sync_debug_mode("error") over every step that does not read the step records
+    (train.log_every 5; no population control, whose refinement steps read anyway; the rules
+    refresh at multiples of 5): loss, D-SSIM, PSNR sums, Adam, the SH schedule, the frequency cap,
+    σ ≥ 0, the footprint floor and random backgrounds run without waiting for the GPU. The renderer
+    runs outside the check (its pair counters are the render backends' business)."""
+    from radfield.core.geometry.cameras import Camera, look_at
+    from radfield.core.kinds import random_neural
+    from radfield.core.train import trainer
+    from radfield.pipeline.config import load_defaults
+
+    cameras = [Camera(fx=20.8, fy=20.8, cx=8, cy=8, width=16, height=16, name=f"v{i}",
+                      c2w=look_at((3 * math.cos(i), 3 * math.sin(i), 0.5), (0, 0, 0))) for i in range(3)]
+    with torch.no_grad():
+        images = torch.stack([render(random_neural(30, seed=1), c, background=(1.0, 1.0, 1.0)).color.clamp(0, 1)
+                              for c in cameras])
+    cfg = load_defaults()["train"]
+    cfg.update(iterations=12, batch_views=2, log_every=5, checkpoint_every=5, eval_every=0, nonnegative_density=180.0,
+               min_footprint=0.5, random_background=True)
+    cfg["densify"].update(start=100, stop=0, every=5)   # gathers nothing, refines nothing
+    reads = {5, 10, 12}   # the steps whose records are read
+    decayed, render_view = trainer.decayed, trainer.render_supersampled
+
+    def step_marker(lr, ratio, step, iterations):   # the first thing each step does
+        torch.cuda.set_sync_debug_mode("default" if step + 1 in reads else "error")
+        return decayed(lr, ratio, step, iterations)
+
+    def unchecked_render(*args, **kwargs):
+        mode = torch.cuda.get_sync_debug_mode()
+        torch.cuda.set_sync_debug_mode("default")
+        try:
+            return render_view(*args, **kwargs)
+        finally:
+            torch.cuda.set_sync_debug_mode(mode)
+
+    monkeypatch.setattr(trainer, "decayed", step_marker)
+    monkeypatch.setattr(trainer, "render_supersampled", unchecked_render)
+    log = []
+    try:
+        trainer.train(random_neural(20, seed=2), cameras, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0,
+                      seed=0, device="cuda", alphas=torch.ones(3, 16, 16), on_step=lambda s, i: log.append((s, i)))
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert [s for s, _ in log] == list(range(1, 13)) and all(math.isfinite(i["loss"]) for _, i in log)

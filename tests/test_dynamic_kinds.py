@@ -106,6 +106,28 @@ def test_at_a_fixed_time_a_dynamic_model_renders_as_its_static_model(render_scen
     assert (images[0] - images[1]).abs().max() > 0.05 and (images[1] - images[2]).abs().max() > 0.05
 
 
+@pytest.mark.parametrize("kind,names", [("neural-dynamic", ("sh", "sh_t", "b1", "w_t")),
+                                        ("gaussian-dynamic", ("sh", "sh_t", "opacities", "opacity_t"))])
+def test_a_moment_and_its_gradients_are_eq_10_13_written_out(render_scene, kind, names):
+    """at_time's one-product forms (kinds/dynamic.py: the cost of time) against static_at, in float32."""
+    prims, _ = scene(render_scene, kind, torch.float32)
+    for xi in (0.0, 0.37, 1.0):
+        results = []
+        for moment in (kinds.get(kind).at_time, static_at):
+            leaves = {n: getattr(prims, n).detach().clone().requires_grad_(True) for n in names}
+            m = moment(replace(prims, **leaves), xi)
+            outputs = [m.sh, m.b1 if kind == "neural-dynamic" else m.opacities]
+            weights = [torch.randn(o.shape, generator=torch.Generator().manual_seed(k)) for k, o in enumerate(outputs)]
+            sum((o * w).sum() for o, w in zip(outputs, weights)).backward()
+            results.append(([o.detach() for o in outputs], {n: t.grad for n, t in leaves.items()}))
+        (fast, fast_grads), (slow, slow_grads) = results
+        for a, b in zip(fast, slow):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+        for n in names:
+            assert slow_grads[n].abs().max() > 0 or (xi == 0.0 and n == "w_t"), n   # ∂b1/∂W_t = ξ
+            torch.testing.assert_close(fast_grads[n], slow_grads[n], rtol=1e-5, atol=1e-5, msg=n)
+
+
 def test_the_slow_reference_draws_a_dynamic_model_at_the_views_time(render_scene):
     prims, cam = scene(render_scene, "gaussian-dynamic")
     small = replace(cam.scaled(0.5), time=0.6)
@@ -180,7 +202,8 @@ def test_population_control_carries_the_temporal_tensors(render_scene, densify_c
     optimizer = make_optimizer(params, {k: 1e-3 for k in ("means", "log_scales", "quats", "sh_dc", "sh_rest", "mlp",
                                                           "opacities")}, 1.0, kind)
     densify = densify_config()
-    strategy = make_strategy(kind, densify, extent=1.0, near=0.05, max_primitives=None, initial_count=len(prims))
+    strategy = make_strategy(kind, densify, extent=1.0, near=0.05, max_primitives=None, initial_count=len(prims),
+                             attrs=kinds.get(kind).attrs(prims))
     acc = strategy.init_state(len(prims), "cpu")
     acc["grad"][:] = torch.linspace(0, 1, len(prims)) + 1.0   # every primitive qualifies
     acc["count"][:] = 1.0
@@ -199,23 +222,62 @@ def test_population_control_carries_the_temporal_tensors(render_scene, densify_c
     assert render(grown_prims, replace(cam, time=0.5)).meta["visible"] > 0
 
 
-def test_the_gaussian_reset_bounds_the_opacity_at_every_time(render_scene, densify_config):
-    prims, _ = scene(render_scene, "gaussian-dynamic", torch.float32)
+def peak_opacity(params, prims, times):
+    """sigmoid of the opacity logit of eq. 10-12 written out, its largest over `times` (P,)."""
+    kind = kinds.get("gaussian-dynamic")
+    moments = [kind.at_time(assemble(params, "gaussian-dynamic", kind.attrs(prims)), xi) for xi in times]
+    return torch.stack([torch.sigmoid(m.opacities.detach()) for m in moments]).amax(0)
+
+
+def gaussian_strategy_state(prims, densify):
     params = {n: t.clone().requires_grad_(True) for n, t in initial_state(prims, 1).params.items()}
     optimizer = make_optimizer(params, {k: 1e-3 for k in ("means", "log_scales", "quats", "sh_dc", "sh_rest",
                                                           "opacities")}, 1.0, "gaussian-dynamic")
+    strategy = make_strategy("gaussian-dynamic", densify, extent=1.0, near=0.05, max_primitives=None,
+                             initial_count=len(prims), attrs=kinds.get("gaussian-dynamic").attrs(prims))
+    return params, optimizer, strategy, strategy.init_state(len(prims), "cpu")
+
+
+def test_the_gaussian_reset_sets_the_opacity_peak_over_time_to_the_reset_value(render_scene, densify_config):
+    prims, _ = scene(render_scene, "gaussian-dynamic", torch.float32)
+    # large temporal swings that cancel in part, as trained models have
+    prims = replace(prims, opacity_t=prims.opacity_t * torch.tensor([20.0] * 4 + [1.0] * (len(prims) - 4))[:, None])
     densify = densify_config()
     densify["gaussian"]["opacity_reset_every"] = 10
-    strategy = make_strategy("gaussian-dynamic", densify, extent=1.0, near=0.05, max_primitives=None,
-                             initial_count=len(prims))
-    acc = strategy.init_state(len(prims), "cpu")
+    params, optimizer, strategy, acc = gaussian_strategy_state(prims, densify)
+    before = peak_opacity(params, prims, [k / 400 for k in range(401)])
     report = strategy.refine(acc, params, optimizer, 10, torch.Generator().manual_seed(0))
     assert report.get("opacity_reset") == 1
-    kind = kinds.get("gaussian-dynamic")
-    moments = [kind.at_time(assemble(params, "gaussian-dynamic", kind.attrs(prims)), k / 50) for k in range(51)]
-    peak = torch.stack([torch.sigmoid(m.opacities.detach()) for m in moments]).amax(0)
+    peak = peak_opacity(params, prims, [k / 50 for k in range(51)])
     assert float(peak.max()) <= 0.01 + 1e-6
+    # not below it: each Gaussian that was above 0.01 peaks at 0.01 (3DGS's reset value), so it can
+    # grow back where a view needs it; between the strategy's 101 moments these ×20 swings (ω = 2π)
+    # overshoot it a little
+    fine = peak_opacity(params, prims, [k / 400 for k in range(401)])
+    above = before > 0.0101
+    assert int(above.sum()) >= 4 and float(fine[above].min()) > 0.0099 and float(fine.max()) < 0.012
     assert not torch.equal(params["opacity_t"].detach(), torch.zeros_like(params["opacity_t"]))   # shape kept
+
+
+def test_the_gaussians_pruned_are_those_transparent_at_every_moment(render_scene, densify_config):
+    prims, _ = scene(render_scene, "gaussian-dynamic", torch.float32)
+    n = len(prims)
+    # Gaussian 0: opaque at ξ = 1 only (its ξ⁴ term), transparent before; Gaussian 1: transparent at
+    # every moment although its coefficients are large (ω = 1: −38 + 30 cos ξ + 15 ξ² − 1.25 ξ⁴ =
+    # −8 + 30 (cos ξ − 1 + ξ²/2 − ξ⁴/24) ≈ −8 on [0, 1], where the closed-form bound
+    # o + Σ max(a_i, 0) + Σ √(b_i² + c_i²) = 7 calls it opaque); the others opaque at every moment
+    opacities, opacity_t = torch.full((n,), 3.0), torch.zeros(n, TEMPORAL_TERMS)
+    opacities[0], opacity_t[0, 3] = -12.0, 15.0
+    opacities[1], opacity_t[1, [4, 1, 3]] = -38.0, torch.tensor([30.0, 15.0, -1.25])
+    prims = replace(prims, opacities=opacities, opacity_t=opacity_t, time_frequency=1.0)
+    densify = densify_config()
+    params, optimizer, strategy, acc = gaussian_strategy_state(prims, densify)
+    times = [k / 400 for k in range(401)]
+    peak = peak_opacity(params, prims, times)
+    assert float(peak[0]) > 0.9 and float(peak[1]) < 0.001
+    report = strategy.refine(acc, params, optimizer, densify["every"], torch.Generator().manual_seed(0))
+    assert report["pruned"] == 1 and len(params["means"]) == n - 1
+    assert torch.equal(params["opacity_t"][0].detach(), prims.opacity_t[0])   # the moment-only Gaussian stays
 
 
 def test_a_tiny_dynamic_reconstruction_beats_the_same_budget_trained_as_static(cfg, tmp_path):

@@ -1,7 +1,8 @@
 """Lights in datasets (issue 30, data side): NeRF-synthetic and nerfstudio frames with a
 `light_position` or `light_direction` (and `light_intensity`), their bad inputs as one-line errors,
 the light kept through scene.json and moved by the normalisation, the point light of the analytic
-ray tracer (1/r², hard shadows) and `radfield demo-scene olat`."""
+ray tracer (1/r², hard shadows) and `radfield demo-scene olat` and `olat-glossy` (its cast shadow
+and its highlight move with the light)."""
 
 import json
 import math
@@ -13,10 +14,11 @@ import pytest
 import torch
 
 from radfield.datasets.images import read_image
-from radfield.datasets.olat import LIGHT_RADIUS, generate_olat, olat_scene
+from radfield.core.geometry.cameras import Camera, look_at
+from radfield.datasets.olat import LIGHT_RADIUS, PILLAR_RADIUS, PILLAR_TOP, generate_olat, olat_scene
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
-from radfield.datasets.synthetic import PointLight, generate_scene, intersect, shade
+from radfield.datasets.synthetic import PointLight, generate_scene, intersect, render_view, shade
 from radfield.pipeline.config import load_defaults
 
 CAMERAS, LIGHTS = 2, 3  # train cameras and lights per camera of the tiny olat scene
@@ -28,6 +30,13 @@ def olat_data(tmp_path_factory) -> Path:
     object's bounds come from the cameras)."""
     return generate_olat(tmp_path_factory.mktemp("olat") / "olat", n_train=CAMERAS, n_test=1, lights=LIGHTS,
                          size=16, mesh=False)
+
+
+@pytest.fixture(scope="module")
+def olat_glossy_data(tmp_path_factory) -> Path:
+    """The olat-glossy scene, written as olat_data is."""
+    return generate_olat(tmp_path_factory.mktemp("olat_glossy") / "olat-glossy", n_train=CAMERAS, n_test=1,
+                         lights=LIGHTS, size=16, mesh=False, name="olat-glossy")
 
 
 @pytest.fixture(scope="module")
@@ -297,7 +306,14 @@ def test_a_shadow_moves_with_the_point_light():
 # --- demo-scene olat ----------------------------------------------------------------------------
 
 
-def test_olat_files_and_lights(olat_data):
+# each OLAT demo scene: its fixture, its name and the synthetic scene it lights
+OLAT_SCENES = {"olat": ("olat_data", "studio"), "olat-glossy": ("olat_glossy_data", "glossy")}
+
+
+@pytest.mark.parametrize("name", OLAT_SCENES)
+def test_olat_files_and_lights(name, request):
+    fixture, base = OLAT_SCENES[name]
+    olat_data = request.getfixturevalue(fixture)
     assert sorted(p.name for p in olat_data.iterdir()) == ["scene.json", "test", "train", "transforms_test.json",
                                                            "transforms_train.json"]
     assert len(list((olat_data / "train").glob("*.png"))) == CAMERAS * LIGHTS
@@ -310,10 +326,15 @@ def test_olat_files_and_lights(olat_data):
     assert max(abs(r - LIGHT_RADIUS) for r in radii) < 1e-9
     assert sum(p[2] > 0 for p in train + test) > 0.8 * len(radii)           # mostly the upper hemisphere
     description = json.loads((olat_data / "scene.json").read_text())
-    assert description["name"] == "olat" and description["lights_per_camera"] == LIGHTS
+    assert description["name"] == name and description["base"] == base and description["lights_per_camera"] == LIGHTS
+    # the dataset reads as a relightable one: every camera carries its frame's light
+    cameras = load_dataset(olat_data, "all").cameras
+    assert [cam.light.position for cam in cameras] == train + test
 
 
-def test_olat_pixels_of_one_camera_change_with_the_light(olat_data):
+@pytest.mark.parametrize("name", OLAT_SCENES)
+def test_olat_pixels_of_one_camera_change_with_the_light(name, request):
+    olat_data = request.getfixturevalue(OLAT_SCENES[name][0])
     images = np.stack([read_image(olat_data / "train" / f"r_001_l{j:02d}.png") for j in range(LIGHTS)])
     assert images.shape == (LIGHTS, 16, 16, 4)
     assert np.array_equal(images[0, ..., 3], images[1, ..., 3])   # same camera, same silhouette
@@ -332,4 +353,92 @@ def test_demo_scene_olat_command(cli, tmp_path):
     assert "1 train + 1 test cameras under 2 point lights each" in stdout
     assert len(frames(out / "transforms_train.json")) == 2 and (out / "mesh.ply").is_file()
     code, _, err = cli("demo-scene", "blobs", "-o", tmp_path / "b", "--lights", 2)
-    assert code == 1 and "--lights is for the olat scene" in err
+    assert code == 1 and "--lights is for the one-light-at-a-time scenes (olat, olat-glossy)" in err
+
+
+def test_demo_scene_olat_glossy_command(cli, tmp_path):
+    out = tmp_path / "glossy"
+    code, stdout, err = cli("demo-scene", "olat-glossy", "-o", out, "--train-views", 1, "--test-views", 1,
+                            "--lights", 2, "--size", 8, "-q")
+    assert code == 0, err
+    assert stdout.startswith("wrote olat-glossy: 1 train + 1 test cameras under 2 point lights each"), stdout
+    assert len(frames(out / "transforms_test.json")) == 2 and (out / "mesh.ply").is_file()
+    description = json.loads((out / "scene.json").read_text())
+    assert description["base"] == "glossy"
+    glossy_spheres = [p for p in description["primitives"] if p["type"] == "sphere"]
+    assert len(glossy_spheres) == 2 and min(p["material"]["specular"] for p in glossy_spheres) >= 0.6
+    assert min(p["material"]["shininess"] for p in glossy_spheres) >= 40
+    code, _, err = cli("demo-scene", "olat-matte", "-o", tmp_path / "x")
+    assert code == 1 and "olat, olat-glossy)" in err and err.count("\n") == 1, err
+
+
+# --- olat-glossy: the cast shadow and the highlight move with the light --------------------------
+
+
+def _camera(eye, target, size: int, half_width: float, up=(0.0, 0.0, 1.0)) -> Camera:
+    """A size × size pinhole at `eye` looking at `target`, whose image spans ±half_width there."""
+    focal = 0.5 * size * math.dist(eye, target) / half_width
+    return Camera(focal, focal, size / 2, size / 2, size, size, look_at(eye, target, up))
+
+
+def _centre_hits(scene, camera: Camera) -> np.ndarray:
+    """The index of the primitive each pixel-centre ray hits (H, W), -1 on a miss."""
+    j, i = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    d = np.stack([(j - camera.cx) / camera.fx, (i - camera.cy) / camera.fy, np.ones_like(i)], -1).reshape(-1, 3)
+    c2w = camera.c2w.numpy()
+    d = d @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return intersect(scene, c2w[:3, 3], d)[2].reshape(camera.height, camera.width)
+
+
+def _lit(scene, camera: Camera, position) -> np.ndarray:
+    """The view's RGB (H, W, 3) under a point light at `position` (the scene's intensity)."""
+    rgba, _ = render_view(scene, camera, rng=np.random.default_rng(0), point_light=PointLight(position, LIGHT_RADIUS**2))
+    return rgba[..., :3]
+
+
+def test_olat_glossy_pillar_casts_a_shadow_on_the_slab_that_moves_with_the_light():
+    """From above, lights west and east of the pillar: each darkens a band of slab pixels on the
+    other side that the pillar's absence would light, and the two bands do not overlap."""
+    import dataclasses
+
+    scene = olat_scene("olat-glossy")
+    pillar = scene.primitives[-1]
+    assert pillar.radius == PILLAR_RADIUS and pillar.end[2] == PILLAR_TOP and pillar.material.specular == 0
+    without_pillar = dataclasses.replace(scene, primitives=scene.primitives[:-1])
+    camera = _camera((0.05, 0.05, 3.0), (0.05, 0.05, -0.39), 24, 1.0, up=(0.0, 1.0, 0.0))
+    slab = _centre_hits(scene, camera) == 0
+    shadows = []
+    for light in ((-2.0, 0.05, 1.2), (2.0, 0.05, 1.2)):
+        brightness = _lit(scene, camera, light).sum(-1)
+        unshadowed = _lit(without_pillar, camera, light).sum(-1)
+        shadow = slab & (brightness < 0.5 * unshadowed)   # the ground the pillar darkens
+        assert shadow.sum() >= 6, shadow.sum()
+        shadows.append(shadow)
+    west_light, east_light = shadows
+    assert not (west_light & east_light).any()
+    # the image's x axis points east here: a west light casts the shadow east, an east light west
+    assert west_light.nonzero()[1].mean() > 12 > east_light.nonzero()[1].mean()
+
+
+def test_olat_glossy_highlight_is_sharp_and_moves_with_the_light():
+    """A close view of the red sphere (specular 0.7, shininess 40), two lights either side of the
+    camera: the highlight (green above what diffuse light gives the red albedo) is a few pixels
+    and it moves."""
+    scene = olat_scene("olat-glossy")
+    red = scene.primitives[1]
+    assert red.material.specular >= 0.6 and red.material.shininess >= 40
+    centre = np.asarray(red.center)
+    out = np.array([-0.4, -0.8, 0.45]) / np.linalg.norm([-0.4, -0.8, 0.45])
+    camera = _camera(tuple(centre + 2.0 * out), tuple(centre), 24, 0.4)
+    on_sphere = _centre_hits(scene, camera) == 1
+    side = np.cross(out, [0.0, 0.0, 1.0])
+    centroids = []
+    for sign in (-1, 1):
+        light = LIGHT_RADIUS * (out + 0.5 * sign * side) / np.linalg.norm(out + 0.5 * sign * side)
+        rgb = _lit(scene, camera, tuple(centre + light))
+        # diffuse light gives at most 0.12 · (0.2 + 0.8 E) ≈ 0.15 in green (E = I/r² ≈ 1.3 here)
+        highlight = on_sphere & (rgb[..., 1] > 0.3)
+        assert 1 <= highlight.sum() <= 0.1 * on_sphere.sum(), (highlight.sum(), on_sphere.sum())
+        centroids.append(np.argwhere(highlight).mean(0))
+    assert math.dist(*centroids) >= 2.0, centroids

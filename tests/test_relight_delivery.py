@@ -1,5 +1,6 @@
 """A relightable model delivered (issue 30, "Commands"): `radfield render --light / --light-dir /
---light-orbit`, light-orbit videos, `radfield export --light`, and the viewer's light sliders.
+--light-orbit`, light-orbit videos, `radfield export --light`, the viewer's light sliders, and
+eval's per-light plot.
 
 A relightable model drawn under a light is render() of the model with Camera.light set (its kind's
 at_view), and exported under a light it is its kind's at_light (the static model of that lighting),
@@ -12,6 +13,7 @@ import math
 import sys
 from dataclasses import replace
 
+import cv2
 import imageio
 import numpy as np
 import pytest
@@ -20,10 +22,11 @@ import torch
 from radfield.core import kinds
 from radfield.core.geometry.cameras import Camera, Light, look_at
 from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives, random_gaussians, random_neural
-from radfield.core.kinds.relight import DEFAULT_COLOR_HIDDEN, init_network
+from radfield.core.kinds.relight import init_network
 from radfield.core.render.antialias import render_model
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
+from radfield.delivery import report
 from radfield.delivery.export import as_gaussians, read_gaussian_ply
 from radfield.delivery.io import load_model, save_model
 from radfield.delivery.lights import light_angles, light_at, orbit_lights
@@ -35,11 +38,12 @@ SIZE = 16
 LIGHT_A, LIGHT_B = (3.0, 0.0, 1.0), (-1.0, 3.0, 2.0)
 
 
-def with_network(prims, seed=0, amplitude=0.4):
-    """A relightable model of static `prims` with a random colour network (output clearly non-zero)."""
-    network = init_network(len(prims), DEFAULT_COLOR_HIDDEN, seed)
+def with_network(prims, seed=0, amplitude=0.4, hidden=8):
+    """A relightable model of static `prims` with a random colour network of `hidden` units (output
+    clearly non-zero)."""
+    network = init_network(len(prims), hidden, seed)
     g = torch.Generator().manual_seed(seed + 7)
-    network["color_w2"] = torch.randn(len(prims), 3, DEFAULT_COLOR_HIDDEN, generator=g) * amplitude
+    network["color_w2"] = torch.randn(len(prims), 3, hidden, generator=g) * amplitude
     network["color_b2"] = torch.randn(len(prims), 3, generator=g) * 0.1
     if isinstance(prims, NeuralPrimitives):
         return RelightNeuralPrimitives(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1",
@@ -223,6 +227,33 @@ def test_light_angles_round_trip():
     assert sun.position is None and light_angles(centre, up, sun)[:2] == pytest.approx((-120.0, 60.0))
 
 
+# --- eval: the per-light plot -----------------------------------------------------------------------
+
+
+def test_eval_plots_the_psnr_of_each_light_and_the_report_links_it(cli, olat, tmp_path):
+    code, _, err = cli("eval", olat / "relight.safetensors", "--dataset", olat / "olat", "-o", tmp_path / "report", "-q")
+    assert code == 0, err
+    text = (tmp_path / "report" / "report.md").read_text()
+    section = text[text.index("## Per light"):]
+    assert section.index("![PSNR per light](figures/psnr_per_light.png)") < section.index("| light |")
+    plot = cv2.imread(str(tmp_path / "report" / "figures" / "psnr_per_light.png"))
+    assert plot is not None and plot.shape[0] > 200 and plot.shape[1] > 400 and plot.std() > 0
+    assert not (tmp_path / "report" / "figures" / "psnr_over_time.png").exists()
+
+
+def test_the_light_plot_places_each_light_about_the_object():
+    per_light = [{"position": [3.0, 0.0, 4.0], "intensity": 9.0, "views": 2, "psnr": 25.0, "ssim": 0.9, "lpips": None},
+                 {"position": [0.0, -2.0, 1.0], "intensity": 9.0, "views": 1, "psnr": 28.0, "ssim": 0.9, "lpips": None},
+                 {"direction": [0.0, 0.0, -1.0], "intensity": 1.0, "views": 1, "psnr": 22.0, "ssim": 0.8, "lpips": None}]
+    # about (0, 0, 1) with +z up: 45° up towards +x, level towards −y, and a sun straight overhead
+    angles = report.light_angles(per_light, (0.0, 0.0, 1.0), (0.0, 0.0, 1.0))
+    assert angles[0] == pytest.approx((0.0, 45.0)) and angles[1] == pytest.approx((-90.0, 0.0))
+    assert angles[2][1] == pytest.approx(90.0)
+    plot = cv2.imdecode(np.frombuffer(report.light_plot(per_light, (0.0, 0.0, 1.0), (0.0, 0.0, 1.0)), np.uint8),
+                        cv2.IMREAD_COLOR)
+    assert plot is not None and plot.std() > 0
+
+
 @pytest.mark.parametrize("args, message", [
     (["--light", "1,2"], "--light takes three finite numbers X,Y,Z"),
     (["--light", "1,2,nan"], "--light takes three finite numbers X,Y,Z"),
@@ -349,3 +380,19 @@ def test_viewer_light_sliders(olat, tmp_path):
 def test_view_rejects_a_bad_light(cli, olat, args, message):
     code, _, err = cli("view", olat / "relight.safetensors", "--port", "0", *args)
     assert code == 1 and message in err and err.count("\n") == 1, err
+
+
+def test_bake_measures_the_colour_each_view_composites(olat):
+    """bake's coverage W_iv (delivery/bake.py) of a relightable model is that of the static model
+    each view draws (its at_view): not scaled by the light's irradiance, and not zero where the
+    network darkens a primitive's colour to the clamp at 0 (which the probe in `sh` alone met)."""
+    from radfield.delivery.bake import coverage
+
+    model = load_model(olat / "relight.safetensors")
+    dark = replace(model, color_b2=model.color_b2 - 3.0)   # every view's colour below 0: clamped to black
+    for prims in (model, dark):
+        for camera in split_cameras(olat):
+            seen = kinds.of(prims).at_view(prims, camera)
+            expected = coverage(seen, [camera])
+            assert float(expected.max()) > 0.05   # the model covers pixels in this view
+            torch.testing.assert_close(coverage(prims, [camera]), expected, rtol=1e-5, atol=1e-7)

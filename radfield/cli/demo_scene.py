@@ -1,6 +1,6 @@
 """`radfield demo-scene`: a tiny synthetic scene with exact ground truth (radfield.datasets.synthetic;
 the dynamic scenes, `smoke` and `moving`: radfield.datasets.timelapse; the one-light-at-a-time
-scene, `olat`: radfield.datasets.olat)."""
+scenes, `olat` and `olat-glossy`: radfield.datasets.olat)."""
 
 from __future__ import annotations
 
@@ -13,19 +13,17 @@ from radfield.cli.common import Force, Quiet, check_output
 from radfield.datasets.timelapse import SCENES as _DYNAMIC  # D-NeRF layout: every camera at every time
 from radfield.errors import RadfieldError
 
-_OLAT = "olat"  # one light at a time: datasets/olat.py
-
 
 def demo_scene(
-    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture), objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull), glossy (glossy and matte objects with moving specular highlights; 100 + 20 views), studio (glossy's objects rendered like a path tracer: 8x8 jittered rays per pixel, soft shadows, moderate highlights; 100 + 20 views) and the dynamic scenes (36 + 4 cameras, each at --times moments, a D-NeRF dataset): smoke (a volume of coloured puffs that move, grow and turn) or moving (the objects scene's shapes moving and turning); olat (studio's objects lit by one point light at a time, a new light in every frame: 40 + 8 cameras, each under --lights lights, written with light_position per frame).")],
+    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture), objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull), glossy (glossy and matte objects with moving specular highlights; 100 + 20 views), studio (glossy's objects rendered like a path tracer: 8x8 jittered rays per pixel, soft shadows, moderate highlights; 100 + 20 views) and the dynamic scenes (36 + 4 cameras, each at --times moments, a D-NeRF dataset): smoke (a volume of coloured puffs that move, grow and turn) or moving (the objects scene's shapes moving and turning); olat (studio's objects lit by one point light at a time, a new light in every frame: 40 + 8 cameras, each under --lights lights, written with light_position per frame) and olat-glossy (the same with glossy's objects: sharp highlights that move with the light and a tall pillar whose shadow sweeps the matte slab).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create (an existing non-empty one needs --force).")],
-    train_views: Annotated[Optional[int], typer.Option(help="Training views (default: the scene's own, 40; glossy and studio 100; smoke and moving 36 cameras; olat 40 cameras).")] = None,
-    test_views: Annotated[Optional[int], typer.Option(help="Held-out test views (default: the scene's own, 8; glossy and studio 20; smoke and moving 4 cameras; olat 8 cameras).")] = None,
+    train_views: Annotated[Optional[int], typer.Option(help="Training views (default: the scene's own, 40; glossy and studio 100; smoke and moving 36 cameras; olat and olat-glossy 40 cameras).")] = None,
+    test_views: Annotated[Optional[int], typer.Option(help="Held-out test views (default: the scene's own, 8; glossy and studio 20; smoke and moving 4 cameras; olat and olat-glossy 8 cameras).")] = None,
     size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
     seed: Annotated[int, typer.Option(help="Turns the camera spiral.")] = 0,
     times: Annotated[Optional[int], typer.Option(help="smoke and moving only: the moments each camera photographs, k/(N-1) for k = 0..N-1 (default 24).")] = None,
     held_out_times: Annotated[bool, typer.Option("--held-out-times", help="smoke and moving only: the test cameras photograph the moments between the training times, (k+1/2)/(N-1), so no test time is a training time.")] = False,
-    lights: Annotated[Optional[int], typer.Option(help="olat only: the point lights each camera photographs the object under, every one at a new position (default 5).")] = None,
+    lights: Annotated[Optional[int], typer.Option(help="olat and olat-glossy only: the point lights each camera photographs the object under, every one at a new position (default 5).")] = None,
     exist_ok: Annotated[bool, typer.Option("--exist-ok", help="Do nothing if OUTPUT already holds this scene (same name, seed and deformation).")] = False,
     deform: Annotated[Optional[str], typer.Option(help="Render the scene's shapes deformed by a smooth map, through the same cameras as the undeformed scene: twist (45 degrees per unit about z), bend (30 degrees per unit about y, along z) or squash (the affine map x' = A x, scales 1.2/0.9/0.8 with shears). Writes the map as an edit spec, OUTPUT/deform.yaml: the ground truth of `radfield edit RUN --spec OUTPUT/deform.yaml`.")] = None,
     force: Force = False,
@@ -34,19 +32,21 @@ def demo_scene(
     """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply, except for objects, smoke and moving)."""
     import json
 
-    if (name in _DYNAMIC or name == _OLAT) and deform is not None:
+    from radfield.datasets.olat import SCENES as _OLAT  # one light at a time (imports numpy: not at start-up)
+
+    if (name in _DYNAMIC or name in _OLAT) and deform is not None:
         raise RadfieldError(f"demo-scene {name}: --deform is for the static scenes")
     if name not in _DYNAMIC and times is not None:
         raise RadfieldError(f"demo-scene {name}: --times is for the dynamic scenes ({', '.join(_DYNAMIC)})")
     if name not in _DYNAMIC and held_out_times:
         raise RadfieldError(f"demo-scene {name}: --held-out-times is for the dynamic scenes ({', '.join(_DYNAMIC)})")
-    if name != _OLAT and lights is not None:
-        raise RadfieldError(f"demo-scene {name}: --lights is for the {_OLAT} scene")
-    if name not in _DYNAMIC and name != _OLAT:
+    if name not in _OLAT and lights is not None:
+        raise RadfieldError(f"demo-scene {name}: --lights is for the one-light-at-a-time scenes ({', '.join(_OLAT)})")
+    if name not in _DYNAMIC and name not in _OLAT:
         from radfield.datasets.synthetic import SCENES
 
         if name not in SCENES:
-            raise RadfieldError(f"unknown demo scene {name!r} (available: {', '.join([*SCENES, *_DYNAMIC, _OLAT])})")
+            raise RadfieldError(f"unknown demo scene {name!r} (available: {', '.join([*SCENES, *_DYNAMIC, *_OLAT])})")
     if exist_ok and (output / "scene.json").is_file():
         existing = json.loads((output / "scene.json").read_text())
         if existing.get("name") == name and existing.get("seed") == seed and existing.get("deform", {}).get("name") == deform:
@@ -57,8 +57,8 @@ def demo_scene(
     def generate(folder: Path) -> None:
         if name in _DYNAMIC:
             _generate_dynamic(name, folder, train_views, test_views, times, size, seed, quiet, held_out_times)
-        elif name == _OLAT:
-            _generate_olat(folder, train_views, test_views, lights, size, seed, quiet)
+        elif name in _OLAT:
+            _generate_olat(name, folder, train_views, test_views, lights, size, seed, quiet)
         else:
             from radfield.datasets.synthetic import generate_scene
 
@@ -80,7 +80,7 @@ def demo_scene(
                    f"times{between} "
                    f"({len(frames['train'])} + {len(frames['test'])} frames) of {size}x{size} to {output}")
         return
-    if name == _OLAT:
+    if name in _OLAT:
         per_camera = len({f["file_path"].rsplit("_l", 1)[1] for f in frames["train"]})
         typer.echo(f"wrote {name}: {len(frames['train']) // per_camera} train + {len(frames['test']) // per_camera} test "
                    f"cameras under {per_camera} point lights each, every frame its own light "
@@ -105,7 +105,7 @@ def _generate_dynamic(name: str, folder: Path, train_views, test_views, times, s
                                    progress=lambda done: progress.advance(task, done), held_out_times=held_out_times)
 
 
-def _generate_olat(folder: Path, train_views, test_views, lights, size: int, seed: int, quiet: bool) -> None:
+def _generate_olat(name: str, folder: Path, train_views, test_views, lights, size: int, seed: int, quiet: bool) -> None:
     from radfield.datasets import olat
     from radfield.util.progress import progress_bar
 
@@ -113,6 +113,6 @@ def _generate_olat(folder: Path, train_views, test_views, lights, size: int, see
     n_test = olat.TEST_VIEWS if test_views is None else test_views
     lights = olat.LIGHTS if lights is None else lights
     with progress_bar(quiet) as progress:
-        task = progress.add_task("rendering olat", total=max(0, (n_train + n_test) * lights))
+        task = progress.add_task(f"rendering {name}", total=max(0, (n_train + n_test) * lights))
         olat.generate_olat(folder, n_train, n_test, lights, size, seed,
-                           progress=lambda done: progress.advance(task, done))
+                           progress=lambda done: progress.advance(task, done), name=name)

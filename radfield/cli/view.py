@@ -27,7 +27,7 @@ def view(
 ):
     """Open an interactive viewer in the browser (http://HOST:PORT), rendered on this machine with
     radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums,
-    for a dynamic model a Time slider, and for a relightable model light sliders (azimuth,
+    for a dynamic model a Time slider and a Play button, and for a relightable model light sliders (azimuth,
     elevation, distance). Stop it with Ctrl-C (or SIGTERM: one line, exit 0)."""
     from radfield.delivery.lights import light_from_options
     from radfield.delivery.times import check_time
@@ -51,7 +51,7 @@ def view(
     except OSError as error:
         raise RadfieldError(f"cannot listen on {host}:{port} ({error.strerror or error})") from None
     typer.echo(f"viewer: http://{host}:{viewer.server.get_port()} ({len(scene.model)} {scene.model.kind} primitives, "
-               f"{len(scene.cameras)} cameras{', a time slider' if viewer.dynamic else ''}"
+               f"{len(scene.cameras)} cameras{', a time slider and Play' if viewer.dynamic else ''}"
                f"{', light sliders' if viewer.relightable else ''}); Ctrl-C stops it",
                err=True)
     # SIGTERM (systemd, docker stop, kill) stops the viewer like Ctrl-C, with one line and exit 0:

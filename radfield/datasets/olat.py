@@ -1,31 +1,43 @@
-"""`radfield demo-scene olat`: the `studio` objects lit by one point light at a time, a new light
-position in every frame (shadows and highlights that move with the light), ray traced exactly
-(synthetic.render_view with a synthetic.PointLight), written as a one-light-at-a-time dataset: the
-NeRF-synthetic layout whose frames carry `light_position` and `light_intensity`
-(datasets/transforms.py):
+"""`radfield demo-scene olat` and `olat-glossy`: the objects of a synthetic scene lit by one point
+light at a time, a new light position in every frame (shadows and highlights that move with the
+light), ray traced exactly (synthetic.render_view with a synthetic.PointLight), written as a
+one-light-at-a-time dataset: the NeRF-synthetic layout whose frames carry `light_position` and
+`light_intensity` (datasets/transforms.py). SCENES names them, each with the synthetic scene it
+lights (its `base`, recorded in scene.json):
+
+    olat          the `studio` objects on their round plinth (moderate highlights, shininess 12-30)
+    olat-glossy   the `glossy` objects on their matte slab with sharper, stronger highlights (the
+                  spheres at specular 0.7 and 0.6, shininess 40 and 80: a lobe of 13-18 degrees
+                  that moves with the light) and the thin rod made a tall matte pillar (radius
+                  0.12, 0.99 high: 5 px wide at 64 px) whose shadow sweeps over the slab as the
+                  light circles
+
+Both are written the same way:
 
     transforms_train.json, transforms_test.json   camera_angle_x; per frame file_path, transform_matrix,
                                                   light_position, light_intensity
     train/r_CCC_lLL.png, test/r_CCC_lLL.png       camera CCC under its LL-th light: RGBA, transparent background
     mesh.ply                                      the objects triangulated (the object's bounds, and init)
-    scene.json                                    name, seed, the light rig, the shading and the shapes
+    scene.json                                    name, base, seed, the light rig, the shading and the shapes
 
 Cameras: synthetic.orbit_cameras' spiral (40 train + 8 test by default); each photographs the
 object under `lights` (5) point lights, as OLAT captures repeat a camera under many lights, so
 200 train and 40 test frames. Lights: one golden-angle spiral of (train + test cameras) × lights
-points on a sphere of radius LIGHT_RADIUS (2.5× the objects' bounding radius of 1.1) about the
-origin, from just below the plinth's top (sin elevation −0.1) to near the zenith (0.95): mostly
-the upper hemisphere. The test lights are interleaved in the spiral, so every frame has its own
-light and no test light is a training one; camera c of a split takes that split's lights c,
-c + cameras, c + 2·cameras, …, so each camera sees lights from low and high.
+points on a sphere of radius LIGHT_RADIUS (2.5× studio's bounding radius of 1.1, 2.1× glossy's
+1.3: one rig for both) about the origin, from just below the plinth's or slab's top (sin
+elevation −0.1) to near the zenith (0.95): mostly the upper hemisphere. The test lights are
+interleaved in the spiral, so every frame has its own light and no test light is a training one;
+camera c of a split takes that split's lights c, c + cameras, c + 2·cameras, …, so each camera
+sees lights from low and high.
 
-Shading (synthetic.shade): Lambert + Blinn-Phong highlights of the studio materials, under the
+Shading (synthetic.shade): Lambert + Blinn-Phong highlights of the scene's materials, under the
 point light's irradiance intensity / r² with hard shadows (a shadow ray to the point), plus the
-studio's sky-dome ambient term at AMBIENT = 0.2 (the studio's 0.5 would leave shadows half lit:
-0.2 keeps 80% of a lit surface's diffuse light with the point light, so shadows are deep, while
-faces turned away from it stay visible). intensity = LIGHT_RADIUS², so a surface facing the light
-at the origin gets the irradiance of the other demo scenes' distant light. 4×4 jittered rays per
-pixel, one pattern per camera (drawn from (seed, split, camera)), the same under each of its lights.
+base scene's ambient term (studio's sky dome; glossy's is constant) at AMBIENT = 0.2 (the studio's
+0.5 would leave shadows half lit: 0.2 keeps 80% of a lit surface's diffuse light with the point
+light, so shadows are deep, while faces turned away from it stay visible). intensity =
+LIGHT_RADIUS², so a surface facing the light at the origin gets the irradiance of the other demo
+scenes' distant light. 4×4 jittered rays per pixel, one pattern per camera (drawn from (seed,
+split, camera)), the same under each of its lights.
 """
 
 from __future__ import annotations
@@ -41,6 +53,7 @@ import numpy as np
 
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.datasets.images import write_image
+from radfield.datasets.shapes import Cylinder, Material
 from radfield.datasets.synthetic import (CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, get_scene,
                                          orbit_cameras, render_view, write_mesh)
 from radfield.errors import RadfieldError
@@ -51,15 +64,52 @@ LIGHT_RADIUS = 2.75
 AMBIENT = 0.2
 SAMPLES = 4
 _LIGHT_ELEVATION_SIN = (-0.1, 0.95)
+PILLAR_RADIUS, PILLAR_TOP = 0.12, 0.6   # olat-glossy's pillar (see _glossy_with_pillar)
 
 
-def olat_scene() -> Scene:
-    """The studio objects, shaded for point lights (see the module docstring)."""
-    studio = get_scene("studio")
+def _glossy_with_pillar(glossy: tuple) -> tuple:
+    """olat-glossy's objects: glossy's, with both spheres' highlights strong (specular 0.7 and 0.6,
+    their shininess 40 and 80 kept: sharp) and the thin rod (3 px, mildly glossy) made a tall matte
+    pillar, so that its cast shadow on the matte slab is wide enough to see and to learn."""
+    slab, red, blue, box, torus, rod = glossy
+    return (slab,
+            dataclasses.replace(red, material=dataclasses.replace(red.material, specular=0.7)),
+            dataclasses.replace(blue, material=dataclasses.replace(blue.material, specular=0.6)),
+            box, torus,
+            Cylinder(rod.start, (rod.start[0], rod.start[1], PILLAR_TOP), PILLAR_RADIUS, Material((0.85, 0.85, 0.85))))
+
+
+@dataclasses.dataclass(frozen=True)
+class OlatRecipe:
+    """An OLAT demo scene: the synthetic scene whose objects it lights (`base`), what it shows,
+    and how its objects derive from the base's (None: the base's own)."""
+
+    base: str
+    description: str
+    objects: Callable[[tuple], tuple] | None = None
+
+
+# the one place that names the OLAT demo scenes (`radfield demo-scene NAME`)
+SCENES: dict[str, OlatRecipe] = {
+    "olat": OlatRecipe("studio", "the studio objects lit by one point light at a time, a new light in every frame"),
+    "olat-glossy": OlatRecipe(
+        "glossy", "glossy objects with sharp highlights and a tall pillar casting its shadow on a matte slab, "
+                  "lit by one point light at a time, a new light in every frame", _glossy_with_pillar),
+}
+
+
+def olat_scene(name: str = "olat") -> Scene:
+    """The OLAT scene `name`: its base scene's objects (as its recipe derives them), shaded for
+    point lights (see the module docstring)."""
+    if name not in SCENES:
+        raise RadfieldError(f"unknown olat scene {name!r} (available: {', '.join(SCENES)})")
+    recipe = SCENES[name]
+    base = get_scene(recipe.base)
+    primitives = base.primitives if recipe.objects is None else recipe.objects(base.primitives)
+    # jittered samples: one pattern per camera, the same under each of its lights (_write_split)
     return dataclasses.replace(
-        studio, name="olat", samples=SAMPLES,
-        description="the studio objects lit by one point light at a time, a new light in every frame",
-        lighting=Lighting(ambient=AMBIENT, shadows=True, sky=studio.lighting.sky))
+        base, name=name, samples=SAMPLES, jitter=True, description=recipe.description, primitives=primitives,
+        lighting=Lighting(ambient=AMBIENT, shadows=True, sky=base.lighting.sky))
 
 
 def light_spiral(count: int, seed: int = 0) -> np.ndarray:
@@ -85,19 +135,19 @@ def split_lights(n_train: int, n_test: int, lights: int, seed: int = 0) -> tuple
 
 def generate_olat(out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None,
                   lights: int | None = None, size: int = 64, seed: int = 0, mesh: bool = True,
-                  progress: Callable[[int], None] | None = None) -> Path:
-    """Write the olat scene into a new folder `out_dir` (see the module docstring): n_train and
-    n_test cameras, each under `lights` point lights; `progress(1)` after each image. mesh=False
+                  progress: Callable[[int], None] | None = None, name: str = "olat") -> Path:
+    """Write the OLAT scene `name` into a new folder `out_dir` (see the module docstring): n_train
+    and n_test cameras, each under `lights` point lights; `progress(1)` after each image. mesh=False
     leaves out mesh.ply (its writer needs pyvista). Written to a temporary sibling folder and
     renamed, so `out_dir` is complete or absent; an existing non-empty `out_dir` is refused."""
     n_train = TRAIN_VIEWS if n_train is None else n_train
     n_test = TEST_VIEWS if n_test is None else n_test
     lights = LIGHTS if lights is None else lights
     if n_train < 1 or n_test < 1 or lights < 1 or size < 8:
-        raise RadfieldError(f"demo-scene olat: need at least 1 train and 1 test camera, 1 light per camera and "
+        raise RadfieldError(f"demo-scene {name}: need at least 1 train and 1 test camera, 1 light per camera and "
                             f"size >= 8 (got {n_train}, {n_test}, {lights}, {size})")
+    scene = olat_scene(name)
     out_dir = Path(out_dir)
-    scene = olat_scene()
     with new_folder(out_dir) as tmp:   # complete or absent (util/atomic.py)
         cameras = orbit_cameras(n_train, n_test, size, seed)
         for split, split_cameras, positions in zip(("train", "test"), cameras, split_lights(n_train, n_test, lights, seed)):
@@ -133,9 +183,10 @@ def _write_split(scene: Scene, root: Path, split: str, cameras: list[Camera], po
 
 
 def _describe(scene: Scene, seed: int, lights: int) -> dict:
-    """scene.json: the light rig, the shading and the exact shapes."""
+    """scene.json: the base scene, the light rig, the shading and the exact shapes."""
     return {
-        "name": "olat",
+        "name": scene.name,
+        "base": SCENES[scene.name].base,
         "description": scene.description,
         "seed": seed,
         "lights_per_camera": lights,

@@ -25,6 +25,7 @@ import torch
 
 from radfield.core.render.antialias import render_model
 from radfield.core.geometry.cameras import Camera
+from radfield.core import kinds
 from radfield.core.kinds import Primitives
 from radfield.core.render.sh import C0
 
@@ -37,9 +38,14 @@ def coverage(prims: Primitives, cameras: Sequence[Camera], *, background=(1.0, 1
     best = torch.zeros(len(prims), device=prims.means.device, dtype=prims.means.dtype)
     frozen = prims.map(lambda t: t.detach())
     for camera in cameras:
+        # the primitives as this view sees them (a time-conditioned or relightable kind's at_view): the
+        # probe stands in for the colour the view composites, which such a kind computes from more
+        # than `sh` (a probe in `sh` alone would reach the view's colour scaled by the light, or not
+        # at all where the view's colour is clamped at 0)
+        seen = kinds.of(frozen).at_view(frozen, camera)
         probe = torch.zeros(len(prims), 1, 3, device=best.device, dtype=best.dtype, requires_grad=True)
         # with the model's own n × n rays a pixel: W_iv sums each pixel's mean T α of its rays (still ≤ 1 a pixel)
-        out = render_model(replace(frozen, sh=probe), camera, background=background, near=near)
+        out = render_model(replace(seen, sh=probe), camera, background=background, near=near)
         (grad,) = torch.autograd.grad(out.color[..., 0].sum(), probe, allow_unused=True)
         if grad is not None:  # None: no primitive reached a pixel
             best = torch.maximum(best, grad[:, 0, 0] / C0)

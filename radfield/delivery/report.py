@@ -6,15 +6,17 @@
     side_by_side(photo, renders, labels)   ground truth | render A | render B | ..., labelled
     report_markdown(metrics, ...)     the report.md of one evaluation
     time_plot(per_time)               a dynamic scene's PSNR over time, as PNG bytes
-    light_section(per_light)          a one-light-at-a-time capture's per-light table (no plot: a table
-                                      of light positions reads better than a scatter of them)
+    light_section(per_light)          a one-light-at-a-time capture's "Per light" section: the plot and
+                                      the table of each light's position (or direction) and figures
+    light_plot(per_light, centre, up) its PSNR per light, where each light stands about the object, as PNG bytes
     compare_markdown(rows)            the table of `radfield eval --compare`
 
 Images are float (H, W, 3) numpy arrays in [0, 1]. No file is written here: that is for the
 callers, through radfield.util.atomic.
 
 TIME_PLOT (figures/psnr_over_time.png, beside report.md) is where a caller puts `time_plot`'s
-picture; report_markdown links it when metrics has "per_time".
+picture; report_markdown links it when metrics has "per_time". Likewise LIGHT_PLOT
+(figures/psnr_per_light.png) for `light_plot`'s, linked when metrics has "per_light".
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ GAP = 2             # white pixels between the panels of a grid
 LABEL_HEIGHT = 14   # pixels of the caption row of side-by-side grids
 FIGURES = "figures"                         # the report's plots, beside report.md
 TIME_PLOT = f"{FIGURES}/psnr_over_time.png"   # a dynamic scene's per-time PSNR (time_plot)
+LIGHT_PLOT = f"{FIGURES}/psnr_per_light.png"  # a one-light-at-a-time capture's per-light PSNR (light_plot)
 
 
 def error_map(render: np.ndarray, photo: np.ndarray) -> np.ndarray:
@@ -144,8 +147,10 @@ def time_section(per_time: Sequence[dict[str, Any]]) -> list[str]:
 
 
 def light_section(per_light: Sequence[dict[str, Any]]) -> list[str]:
-    """The report's "Per light" section: each light's position (or direction), intensity and figures."""
-    lines = ["## Per light", "", "| light | intensity | views | PSNR (dB) | SSIM | LPIPS |",
+    """The report's "Per light" section: the plot, then each light's position (or direction),
+    intensity and figures."""
+    lines = ["## Per light", "", f"![PSNR per light]({LIGHT_PLOT})", "",
+             "| light | intensity | views | PSNR (dB) | SSIM | LPIPS |",
              "| --- | --- | --- | --- | --- | --- |"]
     for light in per_light:
         where = ("at " if "position" in light else "along ") + ", ".join(
@@ -174,6 +179,60 @@ def time_plot(per_time: Sequence[dict[str, Any]], title: str = "held-out views o
                  label="mean over all views")
     axes.set(title=title, xlabel="time ξ", ylabel="PSNR (dB)", xlim=(-0.02, 1.02))
     axes.legend(loc="lower right", fontsize="small")
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=100)
+    return buffer.getvalue()
+
+
+def light_angles(per_light: Sequence[dict[str, Any]], centre, up) -> list[tuple[float, float]]:
+    """(azimuth, elevation) in degrees of each light about `centre` (its direction from there, a
+    directional light's the reverse of its "direction"), elevation above the plane normal to `up`:
+    delivery/lights.light_angles, the angles of `--light-orbit` and the viewer's sliders."""
+    from radfield.core.geometry.cameras import Light
+    from radfield.delivery.lights import light_angles as angles
+
+    return [angles(centre, up, Light(light.get("position"), light.get("direction")))[:2] for light in per_light]
+
+
+def light_plot(per_light: Sequence[dict[str, Any]], centre=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
+               title: str = "held-out views per light") -> bytes:
+    """PNG bytes (matplotlib, Agg backend): each light's PSNR (the mean over its views) as a dot
+    coloured by PSNR where the light stands about the object (left: a sky map, azimuth round the
+    `up` axis, the zenith in the middle, the horizon on the ring marked 0° and lights below it
+    outside that ring), and PSNR against the light's elevation (right), the overall mean dashed.
+    Point lights are dots, directional ones triangles."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display; must precede pyplot
+    from matplotlib.figure import Figure
+
+    angles = np.array(light_angles(per_light, centre, up), dtype=np.float64).reshape(-1, 2)
+    values = np.array([light["psnr"] for light in per_light])
+    weights = np.array([light["views"] for light in per_light])
+    point = np.array(["position" in light for light in per_light])
+    low, high = float(values.min()), float(max(values.max(), values.min() + 1e-3))
+    figure = Figure(figsize=(8, 3.6), layout="constrained")
+    sky = figure.add_subplot(1, 2, 1, projection="polar")
+    versus = figure.add_subplot(1, 2, 2)
+    for mask, marker in ((point, "o"), (~point, "^")):
+        if mask.any():
+            dots = sky.scatter(np.radians(angles[mask, 0]), 90.0 - angles[mask, 1], c=values[mask], cmap="viridis",
+                               vmin=low, vmax=high, marker=marker, s=28, edgecolors="k", linewidths=0.4)
+            versus.scatter(angles[mask, 1], values[mask], c=values[mask], cmap="viridis", vmin=low, vmax=high,
+                           marker=marker, s=22, edgecolors="k", linewidths=0.4)
+    sky.set_rlim(0, max(90.0, float((90.0 - angles[:, 1]).max()) + 5))   # below the horizon: outside the ring
+    sky.set_rticks([30, 60, 90])
+    sky.set_yticklabels(["60°", "30°", "0°"], fontsize="x-small")   # the elevation of each ring
+    sky.set_rlabel_position(157.5)   # between the 135° and 180° spokes, clear of the azimuth labels
+    sky.tick_params(axis="x", labelsize="x-small")
+    sky.set_title("where each light stands (azimuth; elevation 90° at the centre)", fontsize="small")
+    figure.colorbar(dots, ax=sky, label="PSNR (dB)", shrink=0.8)
+    versus.axhline(float((values * weights).sum() / weights.sum()), ls="--", lw=0.8, color="grey",
+                   label="mean over all views")
+    versus.set(title=title, xlabel="light elevation (degrees)", ylabel="PSNR (dB)")
+    versus.legend(loc="lower right", fontsize="small")
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=100)
     return buffer.getvalue()

@@ -10,6 +10,15 @@ viser camera (wxyz, position, vertical fov, aspect) is a radfield Camera without
 A dynamic model (a time-conditioned kind, core/kinds/dynamic.py) gets a "Time" slider in [0, 1]:
 every frame is drawn at its moment (Camera.time), and moving it redraws every browser's view. A
 dynamic dataset photographs each camera at many moments: its frustums are drawn once a pose.
+Its "Play" button (then "Pause") runs the Time slider: one pass over [0, 1] in `PLAY_SECONDS`,
+then from 0 again, and every browser's slider and view follow; dragging the slider while it plays
+continues from there. The server advances the slider by the wall time the last round of frames
+took, once per round (serve_forever): a pass takes `PLAY_SECONDS` however fast frames are drawn,
+slower drawing shows fewer moments instead of a slower clip, and the slider never moves more often
+than frames are drawn. (A fixed step per drawn frame would tie the clip's speed to the model's
+size, the resolution, the device and the number of browsers.) While it plays the frames are drawn
+at the moving resolution, as while the camera moves, so that more moments are shown; paused, the
+view is drawn at full resolution.
 
 A relightable model (core/kinds/relight.py) gets a light control: "Light azimuth" and "Light
 elevation" sliders (degrees about the model's centre and the dataset's up) and, for a point light,
@@ -45,6 +54,7 @@ MAX_FRUSTUMS = 300      # dataset cameras drawn (evenly subsampled beyond this)
 MAX_CAGE_EDGES = 60_000
 LIGHT_DISTANCES = (0.25, 4.0)   # the distance slider's range, times the starting light's distance
 TIME_STEP = 0.01        # the time slider's resolution: the model is continuous in time, the data's moments need not be k/100
+PLAY_SECONDS = 4.0      # one pass of Play over [0, 1]: a few seconds, slow enough to follow a change
 
 
 @dataclass
@@ -155,7 +165,11 @@ class Viewer:
         self.scene, self.resolution, self.moving_downscale, self.log = scene, resolution, moving_downscale, log
         self.dynamic = is_dynamic(scene.model)
         self.relightable = is_relightable(scene.model)
-        self.time_slider = None
+        self.time_slider = self.play_button = None
+        self.playing = False
+        self.play_phase = 0.0        # Play's position in [0, 1), finer than the slider's step
+        self.play_clock = 0.0        # time.monotonic() of Play's last advance
+        self.play_shown = 0.0        # the slider value Play last set (another one: the user moved it)
         self.centre = scene.model.means.detach().median(0).values.cpu().double().numpy()
         self.up = dataset_up(scene.cameras)
         self.start_light = (scene.light or self.default_light()) if self.relightable else None
@@ -202,6 +216,11 @@ class Viewer:
             # no redraw callback: step() compares each client's last moment with the slider's
             self.time_slider = gui.add_slider("Time", min=0.0, max=1.0, step=TIME_STEP, initial_value=self.scene.time,
                                               hint="the moment shown, in [0, 1]")
+            # gray, not viser's default blue: the panel stays colourless, so a saturated colour on
+            # the page is the model's (the browser tests read a screenshot's colours)
+            self.play_button = gui.add_button("Play", icon="player-play", color="gray",
+                                              hint=f"runs the Time slider: one pass over [0, 1] in {PLAY_SECONDS:g} s, looping")
+            self.play_button.on_click(lambda _: self.set_playing(not self.playing))
         if self.relightable:
             self._add_light_control(gui)
         gui.add_markdown(f"{len(self.scene.model)} {self.scene.model.kind} primitives")
@@ -229,6 +248,29 @@ class Viewer:
             self.light_sliders.append(gui.add_slider("Light distance", min=low, max=high, step=(high - low) / 200,
                                                      initial_value=distance, hint="from the model's centre"))
         self.light_start_values = [slider.value for slider in self.light_sliders]
+
+    def set_playing(self, playing: bool) -> None:
+        """Start or pause Play (module docstring); the button then offers the other."""
+        if playing and not self.playing:
+            self.play_phase = self.play_shown = float(self.time_slider.value)
+            self.play_clock = time.monotonic()
+        self.playing = playing
+        self.play_button.label = "Pause" if playing else "Play"
+        self.play_button.icon = "player-pause" if playing else "player-play"
+
+    def advance_play(self, now: float | None = None) -> None:
+        """While Play is on, move the Time slider on by the wall time since its last advance (one
+        pass in PLAY_SECONDS, from 1 back to 0); the slider shows the moment rounded to its step."""
+        if not self.playing:
+            return
+        now = time.monotonic() if now is None else now
+        if self.time_slider.value != self.play_shown:
+            self.play_phase = float(self.time_slider.value)   # the user moved the slider: play on from there
+        self.play_phase = (self.play_phase + (now - self.play_clock) / PLAY_SECONDS) % 1.0
+        self.play_clock = now
+        shown = round(round(self.play_phase / TIME_STEP) * TIME_STEP, 6)
+        if shown != self.time_slider.value:
+            self.time_slider.value = self.play_shown = shown
 
     def _connect(self, client) -> None:
         if self.scene.cameras:
@@ -292,7 +334,8 @@ class Viewer:
             stamp = client.camera.update_timestamp
             moment, light = self.time, self.light   # read once: a slider may move while this frame renders
             moved = stamp != state.stamp or moment != state.moment or light != state.light
-            settled = time.time() - stamp > SETTLE_SECONDS
+            # a playing clip is motion too: its frames are drawn small (module docstring)
+            settled = time.time() - stamp > SETTLE_SECONDS and not self.playing
             if not moved and (state.full or not settled):
                 continue
             full = settled
@@ -315,6 +358,7 @@ class Viewer:
     def serve_forever(self) -> None:
         try:
             while True:
+                self.advance_play()   # once per round of frames: never faster than they are drawn
                 if not self.step():
                     time.sleep(POLL_SECONDS)
         finally:

@@ -28,7 +28,7 @@ from radfield.errors import RadfieldError
 DEFAULTS_NAME = "pipeline.yaml"
 
 # Keys whose default is null, with the type a non-null value must have.
-NULLABLE: dict[str, type] = {"train.max_primitives": int}
+NULLABLE: dict[str, type] = {"train.max_primitives": int, "train.log_every": int}
 # List keys whose value is any selection of the default's items, in any order (the stage list);
 # other lists keep the length of their default.
 SELECTIONS: frozenset[str] = frozenset({"stages"})

@@ -44,7 +44,7 @@ def run(ctx: Context) -> dict[str, Any]:
 
 
 STAGE = Stage("bake", run, config_keys=("bake", "eval.split", "render.near"), inputs=(SCENE, MODEL_FILE),
-              outputs=(BAKED,))
+              outputs=(BAKED,), version=2)   # 2: conditioned kinds measured as each view draws them
 
 
 def check_config(config: dict[str, Any]) -> None:

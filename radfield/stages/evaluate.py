@@ -25,14 +25,14 @@ PSNR over the valid pixels, SSIM over the 11×11 windows lying wholly on valid p
 Besides metrics.json and renders/, it writes (radfield.delivery.report) `report.md` (the tables),
 `grids/<view name>.png` (ground truth | render | error map), `training/` (a copy of the run's
 train/curves.png and train/log.jsonl, when the run has them) and `figures/` (for a dynamic scene,
-psnr_over_time.png; empty otherwise).
+psnr_over_time.png; for a one-light-at-a-time capture, psnr_per_light.png; empty otherwise).
 
 A dynamic scene's views each show one moment (Camera.time): the model is drawn at the view's time
 (the kind's at_view), each per-view entry records it, and per_time and the report's "Over time"
 section (table and plot) average the views of each moment. Likewise a one-light-at-a-time
 capture's views are each lit by one light (Camera.light): a relightable model is drawn under the
 view's light, each per-view entry records it (scene.json's form, world frame), and per_light and
-the report's "Per light" table average the views of each light. A static model is drawn as it is
+the report's "Per light" section (plot and table) average the views of each light. A static model is drawn as it is
 under every light: the light-blind baseline's run (data.light ignore) has no lights in its views,
 but its model file measured on the dataset (`radfield eval MODEL --dataset`) gets the same table.
 """
@@ -54,6 +54,7 @@ from radfield.delivery import lpips as lpips_metric
 from radfield.delivery import report
 from radfield.delivery.io import load_model, read_metadata
 from radfield.delivery.metrics import per_light, per_time, psnr, ssim
+from radfield.core.geometry.camera_path import orbit_from_cameras
 from radfield.core.render.antialias import render_model
 from radfield.datasets.images import write_image
 from radfield.pipeline.config import load_config
@@ -81,12 +82,12 @@ def run(ctx: Context) -> dict[str, Any]:
     ctx.outputs[METRICS].write_text(json.dumps(metrics, indent=1) + "\n")
     inside = Run(ctx.run_dir).trained_model.relative_to(ctx.run_dir)
     model = "/".join((ctx.run_dir.name, *inside.parts))  # the report names it RUN/train/model.safetensors
-    write_report(ctx.tmp, metrics, model=model, run_dir=ctx.run_dir)
+    write_report(ctx.tmp, metrics, model=model, run_dir=ctx.run_dir, cameras=scene.cameras(ctx.config["eval"]["split"]))
     return {key: metrics[key] for key in ("psnr", "ssim", "lpips", "fps", "views")}
 
 
 STAGE = Stage("eval", run, config_keys=("eval", "render.near", "render.supersample"), inputs=(SCENE, MODEL_FILE),
-              outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING, FIGURES), version=3)
+              outputs=(METRICS, RENDERS, REPORT, GRIDS, TRAINING, FIGURES), version=4)
 
 
 def check_supersample(model_file: Path, trained_with: int) -> None:
@@ -166,11 +167,18 @@ def _lpips_network(device: str, camera) -> tuple[lpips_metric.AlexLPIPS | None, 
         return None, str(e)
 
 
-def write_report(out_dir: Path, metrics: dict[str, Any], *, model: str, run_dir: Path | None) -> None:
-    """report.md, training/ and figures/ in `out_dir` (beside metrics.json and grids/)."""
+def write_report(out_dir: Path, metrics: dict[str, Any], *, model: str, run_dir: Path | None,
+                 cameras: list | None = None) -> None:
+    """report.md, training/ and figures/ in `out_dir` (beside metrics.json and grids/); `cameras`,
+    the measured views, place the lights of the per-light plot about the object (their focus and
+    mean up, as a light orbit does)."""
     (out_dir / FIGURES).mkdir(parents=True, exist_ok=True)
     if metrics.get("per_time"):
         atomic_write_bytes(out_dir / report.TIME_PLOT, report.time_plot(metrics["per_time"]))
+    if metrics.get("per_light"):
+        frame = orbit_from_cameras(cameras) if cameras else {"target": (0.0, 0.0, 0.0), "up": (0.0, 0.0, 1.0)}
+        atomic_write_bytes(out_dir / report.LIGHT_PLOT, report.light_plot(metrics["per_light"], frame["target"],
+                                                                           frame["up"]))
     curves = []
     (out_dir / TRAINING).mkdir(parents=True, exist_ok=True)
     for name in TRAIN_CURVES:
@@ -195,7 +203,7 @@ def eval_report(target: Path, dataset: Path | None, split: str, out_dir: Path, *
         metrics = evaluate(model, scene, split, tmp / RENDERS, near=config["render"]["near"], device=device,
                            quiet=quiet, grids=tmp / GRIDS)
         atomic_write_text(tmp / METRICS, json.dumps(metrics, indent=1) + "\n")
-        write_report(tmp, metrics, model=str(model), run_dir=run_dir)
+        write_report(tmp, metrics, model=str(model), run_dir=run_dir, cameras=scene.cameras(split))
     return metrics
 
 

@@ -125,6 +125,7 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
     require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
     require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
+    require(config, "train.log_every", lambda n: n is None or n >= 1, "at least 1 (null: 1 on the CPU, 50 on a GPU)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
 

@@ -6,7 +6,11 @@ with render.supersample > 1 its metadata records n, so every later render of the
 log.jsonl, one JSON record per step (radfield.core.train.trainlog: step, loss,
 train PSNR, primitives, seconds, population control, and test_psnr, the held-out views' PSNR
 every `train.eval_every` steps and at the last, for information only); curves.png, the log
-drawn; final_state.safetensors, the full training state at the last step (a checkpoint).
+drawn; final_state.safetensors, the full training state at the last step (a checkpoint). The log
+and the progress bar get the steps' records when the trainer reads them off the device, every
+`train.log_every` steps (by default every step on the CPU, every 50 on a GPU) and at refinement,
+held-out, checkpoint and last steps: the same records whatever `log_every` is, but for "seconds",
+the time the record was read.
 
 Training runs in the normalised frame of scene.json, x_norm = (x − center) · scale: means shift
 and scale, log-scales gain log(scale), camera centres and the near plane move alike; rotations,
@@ -136,9 +140,11 @@ def _starting_point(ctx: Context, key: dict):
 
 def _continue_key(ctx: Context) -> dict:
     """What a saved state is valid for: everything the stage depends on except train.iterations
-    (its config sections and the content of its inputs)."""
+    and train.log_every (which changes no value; without it the key is that of the runs made
+    before the key existed) (its config sections and the content of its inputs)."""
     config = json.loads(json.dumps(ctx.config))
     del config["train"]["iterations"]
+    config["train"].pop("log_every", None)
     inputs = {name: None if path is None else hashlib.sha256(Path(path).read_bytes()).hexdigest()
               for name, path in sorted(ctx.inputs.items())}
     return {"config": hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest(), "inputs": inputs}

@@ -22,9 +22,10 @@ before=...)`) and its ops with `implement(op, name, fn)`; a kind registers its w
 backend as op "view.<kind>" (kinds/neural.py, kinds/gaussian.py). No call site changes.
 
 The ops and their signatures are those of the fused-cpu functions registered at the bottom (the
-call sites document their twins): sh_color, sh_color_parts (core/render/rasterize.py), ssim_map,
-photometric, anisotropy (core/train/losses.py), neural_accumulate, gaussian_accumulate
-(core/train/strategy.py), project_nonnegative_ (core/train/positivity.py), and view.<kind>:
+call sites document their twins): sh_color, sh_color_parts (core/render/rasterize.py), relight_view_dc
+(core/kinds/relight.py: view_sh), ssim_map, photometric, anisotropy (core/train/losses.py),
+neural_accumulate, gaussian_accumulate (core/train/strategy.py), project_nonnegative_
+(core/train/positivity.py), and view.<kind>:
 (prims, frame, colors, t_min) -> (Σ w c, Σ w z, T, counters, visible ids front to back).
 
 One switch forces the twins everywhere: `RADFIELD_KERNELS=torch` (read at every call). `using(name)`
@@ -164,8 +165,8 @@ def using(name: str):
 from radfield.core.backends import fused  # noqa: E402  (fused reads forced_torch from here)
 
 register(Backend(FUSED_CPU, fused.available, fused.build_error))
-for _op in ("sh_color", "sh_color_parts", "ssim_map", "photometric", "anisotropy", "neural_accumulate",
-            "gaussian_accumulate", "project_nonnegative_"):
+for _op in ("sh_color", "sh_color_parts", "relight_view_dc", "ssim_map", "photometric", "anisotropy",
+            "neural_accumulate", "gaussian_accumulate", "project_nonnegative_"):
     implement(_op, FUSED_CPU, getattr(fused, _op))
 del _op
 

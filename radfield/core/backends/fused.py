@@ -6,6 +6,7 @@
     gaussian_prep(means_cam, log_scales, quats, ...) -> mean2d, conic, cov   EWA projection
     sh_color(sh, v, degree), neural_prep(prims, campos, cam_rot)   per-view preparation
     sh_color_parts(sh_dc, sh_rest, means, campos, degree)          the colour from the trainer's SH tensors
+    relight_view_dc(means, quats, sh, w1, b1, w2, b2, campos, light) a relightable kind's degree-0 SH in a view
     gaussian_accumulate(...), neural_accumulate(...)               the densification statistics of a view
     ssim_map(x, y, taps, pad, c1, c2), anisotropy(log_scales)      the loss (core/train/losses.py)
     photometric(x, y, taps, lambda_dssim, c1, c2)                  L1 + D-SSIM of a step in one op
@@ -37,7 +38,8 @@ from radfield.core.render.kernels import WINDOW_GAIN
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
-            _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp", _CSRC / "positivity_kernels.cpp"]
+            _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp", _CSRC / "positivity_kernels.cpp",
+            _CSRC / "relight_kernels.cpp"]
 _NAME = "radfield_kernels"
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
@@ -319,6 +321,36 @@ def neural_prep(prims, campos, cam_rot) -> tuple:
     (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from kinds/neural.py: density_weights."""
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
                              prims.omega0)
+
+
+# --- the relightable kinds' colour of a view (core/backends/csrc/relight_kernels.cpp) ---------------------
+
+class _RelightViewDC(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, sh, w1, b1, w2, b2, campos, light_xyz, point, intensity):
+        args = [t.contiguous() for t in (means, quats, sh, w1, b1, w2, b2, campos, light_xyz)]
+        ctx.light = (bool(point), float(intensity))
+        dc, hidden, slope = _ops().relight_view_dc_forward(*args, *ctx.light)
+        ctx.save_for_backward(*args, hidden, slope)   # the backward then needs no exp or log
+        return dc
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        want_view = ctx.needs_input_grad[7]
+        *grads, g_view = _ops().relight_view_dc_backward(grad.contiguous(), *ctx.saved_tensors, *ctx.light, want_view)
+        g_campos = -g_view.sum(0) if want_view else None   # v = μ − o
+        return (*grads, g_campos, None, None, None)
+
+
+def relight_view_dc(means, quats, sh, w1, b1, w2, b2, campos, light) -> torch.Tensor:
+    """kinds/relight.py: view_sh in one fused op for SH of degree 0 (sh (P, 1, 3)): the degree-0 SH
+    (P, 1, 3) of each primitive's colour (c_dc + c_θ(Rᵀd, Rᵀd_l)) · E (eq. 14) seen from campos (3,)
+    under `light` (cameras.Light: a point light's position or a directional light's direction, and
+    its intensity); differentiable w.r.t. means, quats, sh, the network (w1, b1, w2, b2) and campos."""
+    point = light.position is not None
+    light_xyz = means.new_tensor(light.position if point else light.direction)
+    return _RelightViewDC.apply(means, quats, sh, w1, b1, w2, b2, campos, light_xyz, point, float(light.intensity))
 
 
 # --- the loss (core/backends/csrc/loss_kernels.cpp) -------------------------------------------------------

@@ -236,7 +236,7 @@ class PrimitiveKind:
     def strategy(self, densify: dict, schedule, *, pixels: int | None, **common):
         """Population control from the train.densify config and its `schedule` (core/train/strategy.py:
         make_strategy); `pixels`: a training view's pixel count; `common`: extent, near, grow_scale,
-        max_primitives, initial_count. Default: a fixed population."""
+        max_primitives, initial_count, attrs (the kind's attributes). Default: a fixed population."""
         from radfield.core.train.strategy import FixedPopulation
 
         return FixedPopulation()

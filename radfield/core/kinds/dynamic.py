@@ -27,8 +27,8 @@ control copies every parameter's rows (a clone or split child keeps its parent's
 opacity_t), checkpoints carry `time_frequency` with the other attributes. The neural kind's per-step
 projections stay as they are: the frequency cap bounds ω0·|W1 row|, a spatial frequency that ξ W_t
 (a phase constant in space) does not change, and σ ≥ b2 − ‖W2‖₁ (core/train/positivity.py) holds
-whatever the phases, so at every time. The Gaussian kind's pruning and opacity reset read an upper
-bound of the opacity over time (`opacity_logit_bound`). Edits map W1 and b1 as the parent's hooks do
+whatever the phases, so at every time. The Gaussian kind's pruning and opacity reset read the
+opacity's peak over time (`DynamicGaussianStrategy`). Edits map W1 and b1 as the parent's hooks do
 and leave W_t (a phase: no affine map or halving of space changes it) and sh_t (the DC band,
 rotation-invariant) alone, so an edit commutes with taking a moment.
 """
@@ -73,6 +73,25 @@ def temporal_offset(coeffs: torch.Tensor, xi: float, frequency: float) -> torch.
     return torch.tensordot(phi, coeffs, dims=([0], [1]))
 
 
+# The per-view forms below are the training step's (bench-train: the cost of time): each moment's
+# basis is built once per (ξ, ω, dtype, device) and the temporal term is one matrix product with
+# the coefficients as they are stored (a view, no copy), fused with the addition of the static term.
+
+@functools.lru_cache(maxsize=1024)
+def basis_vector(xi: float, frequency: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """φ(ξ) (12,), for o + opacity_t φ(ξ) as one matrix-vector product (callers never write to it)."""
+    with torch.inference_mode(False):   # a cached inference tensor could not be saved for a backward
+        return torch.tensor(temporal_basis(xi, frequency), dtype=dtype, device=device)
+
+
+@functools.lru_cache(maxsize=1024)
+def colour_basis(xi: float, frequency: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """φ(ξ) ⊗ I₃ (36, 3): sh_t viewed as (P, 36) (term-major, channel-minor) times it is φ(ξ) · sh_t (P, 3)."""
+    with torch.inference_mode(False):
+        phi = torch.tensor(temporal_basis(xi, frequency), dtype=torch.float64)
+        return torch.kron(phi[:, None], torch.eye(3, dtype=torch.float64)).to(dtype=dtype, device=device)
+
+
 def view_time(camera) -> float:
     """camera.time, checked: a dynamic model is drawn at one moment ξ_t ∈ [0, 1]."""
     if camera.time is None:
@@ -88,7 +107,10 @@ def sh_at_time(prims, xi: float) -> torch.Tensor:
     Built with join_sh, so the fused colour op reads (DC, rest) in place as in static training."""
     parts = sh_parts(prims.sh)
     dc, rest = parts if parts is not None else (prims.sh[:, :1], prims.sh[:, 1:])
-    return join_sh(dc + temporal_offset(prims.sh_t, xi, prims.time_frequency)[:, None, :], rest)
+    n, sh_t = len(prims), prims.sh_t
+    basis = colour_basis(xi, prims.time_frequency, sh_t.dtype, sh_t.device)
+    # S(ξ) = S0 + φ(ξ) · (a, b, c) (eq. 10-12): one addmm
+    return join_sh(torch.addmm(dc.reshape(n, 3), sh_t.reshape(n, TEMPORAL_TERMS * 3), basis).view(n, 1, 3), rest)
 
 
 def static_fields(prims, static_type: type) -> dict:
@@ -156,7 +178,7 @@ class DynamicNeuralKind(NeuralKind):
 
     def at_time(self, prims, xi: float) -> NeuralPrimitives:
         return NeuralPrimitives(**{**static_fields(prims, NeuralPrimitives),
-                                   "b1": prims.b1 + xi * prims.w_t, "sh": sh_at_time(prims, xi)})
+                                   "b1": torch.add(prims.b1, prims.w_t, alpha=xi), "sh": sh_at_time(prims, xi)})
 
     # --- the model file: the parent's metadata plus ω of eq. 11-12
 
@@ -266,7 +288,9 @@ class DynamicGaussianKind(GaussianKind):
         return self.at_time(prims, view_time(camera))
 
     def at_time(self, prims, xi: float) -> Gaussians:
-        opacities = prims.opacities + temporal_offset(prims.opacity_t, xi, prims.time_frequency)
+        opacity_t = prims.opacity_t
+        opacities = torch.addmv(prims.opacities, opacity_t,
+                                basis_vector(xi, prims.time_frequency, opacity_t.dtype, opacity_t.device))
         return Gaussians(**{**static_fields(prims, Gaussians), "opacities": opacities, "sh": sh_at_time(prims, xi)})
 
     def write_metadata(self, prims):
@@ -279,7 +303,7 @@ class DynamicGaussianKind(GaussianKind):
         return super().check_values(prims) or check_temporal(prims, ("sh_t", "opacity_t"))
 
     def strategy(self, densify, schedule, *, pixels, **common):
-        """3DGS's adaptive density control on the opacity's bound over time (prune, reset)."""
+        """3DGS's adaptive density control on the opacity's peak over time (prune, reset)."""
         gaussian = densify["gaussian"]
         return dynamic_gaussian_strategy()(schedule, grad_threshold=gaussian["grad_threshold"],
                                        prune_scale=gaussian["prune_scale"], min_opacity=gaussian["min_opacity"],
@@ -316,32 +340,49 @@ class DynamicGaussianKind(GaussianKind):
             opacity_t=0.1 * torch.randn(n, TEMPORAL_TERMS, generator=generator))}
 
 
-def peak_opacity_logit(opacities: torch.Tensor, opacity_t: torch.Tensor, frequency: float) -> torch.Tensor:
-    """The largest opacity logit (P,) over PEAK_TIMES moments."""
-    return torch.stack([opacities + temporal_offset(opacity_t, xi, frequency) for xi in peak_times()]).amax(0)
+def peak_opacity_logit(opacities: torch.Tensor, opacity_t: torch.Tensor, frequency: float,
+                       times: list[float] | None = None) -> torch.Tensor:
+    """The largest opacity logit (P,) over `times` (default: the PEAK_TIMES moments)."""
+    times = peak_times() if times is None else times
+    return torch.stack([opacities + temporal_offset(opacity_t, xi, frequency) for xi in times]).amax(0)
 
 
-def opacity_logit_bound(opacities: torch.Tensor, opacity_t: torch.Tensor) -> torch.Tensor:
-    """An upper bound (P,) of the opacity logit over every ξ ∈ [0, 1], whatever ω: ξ^i ∈ [0, 1]
-    gives Σ max(a_i, 0), and b_i cos + c_i sin ≤ √(b_i² + c_i²)."""
-    a, b, c = opacity_t.split(DEGREE, dim=-1)
-    return opacities + a.clamp_min(0).sum(-1) + torch.sqrt(b * b + c * c).sum(-1)
+# moments (0, 0.01, ..., 1) at which population control takes a Gaussian's peak opacity: the
+# logit's temporal terms move by well under a logit between them for trained coefficients, where
+# a closed-form bound over [0, 1] (Σ max(a_i, 0) + Σ √(b_i² + c_i²)) overshot the peak by a median
+# 7.5 logits on smoke: its reset left most Gaussians far below 0.01 at every moment, too faint to
+# recover, and its pruning kept them (docs/usage.md "Dynamic scenes")
+STRATEGY_TIMES = 101
+
+
+def strategy_times() -> list[float]:
+    return [k / (STRATEGY_TIMES - 1) for k in range(STRATEGY_TIMES)]
 
 
 @functools.cache
 def dynamic_gaussian_strategy() -> type:
-    """GaussianStrategy with the opacity taken at its bound over time (core/train/strategy.py is
+    """GaussianStrategy with the opacity taken at its peak over time (core/train/strategy.py is
     imported on first use: it imports the kinds)."""
     from radfield.core.train.strategy import GaussianStrategy
 
     class DynamicGaussianStrategy(GaussianStrategy):
-        """3DGS's control on the opacity's upper bound over time: a Gaussian opaque at one moment
-        only is not pruned for being transparent at the others, and the opacity reset lowers o so
-        that the bound, hence every moment's opacity, is at most the reset value (the temporal
-        shape in opacity_t is kept)."""
+        """3DGS's control on the opacity's peak over time (STRATEGY_TIMES moments, ω from the
+        kind's attributes): a Gaussian opaque at one moment only is not pruned for being
+        transparent at the others, one transparent at every moment is, and the opacity reset lowers
+        o so that the peak is the reset value (the temporal shape in opacity_t is kept), as 3DGS's
+        reset leaves a static Gaussian at 0.01, not below it.
+
+        A clone or split child starts from its parent's Adam moments: with zeros (3DGS's rule, long
+        after the bias correction has faded) Adam's first ~100 steps of a new row are 3-6 × the
+        rate, and the 12 temporal coefficients of a logit, moving together, swung it by tens of
+        logits: most Gaussians went transparent at every moment (smoke: 8031 of 9235, held-out
+        PSNR 10 dB below the budgeted runs that never grow; docs/usage.md "Dynamic scenes")."""
+
+        inherited_moments = GAUSSIAN_DYNAMIC.param_names()
 
         def opacity_logits(self, params):
-            return opacity_logit_bound(params["opacities"].detach(), params["opacity_t"].detach())
+            return peak_opacity_logit(params["opacities"].detach(), params["opacity_t"].detach(),
+                                      self.attrs["time_frequency"], strategy_times())
 
         def reset_opacities(self, params, ceiling):
             params["opacities"].sub_((self.opacity_logits(params) - ceiling).clamp_min(0.0))

@@ -177,16 +177,17 @@ class StepSync:
         return self.pending
 
     def reduce(self, params: dict[str, torch.Tensor], accumulators: dict[str, torch.Tensor],
-               loss_sum: float, psnr_sum: float, step: int) -> tuple[float, float]:
+               loss_sum: torch.Tensor, psnr_sum: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """All-reduce the step's gradients, accumulator increments and loss/PSNR sums (one flat
-        SUM buffer); returns the batch's loss and PSNR sums."""
+        SUM buffer, in the parameters' dtype); returns the batch's loss and PSNR sums as float64
+        tensors on the device (nothing is read back: the trainer reads them every log_every steps)."""
         if self.size == 1:
             return loss_sum, psnr_sum
         first = next(iter(params.values()))
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
         sums = list(self.pending)
         parts = grads + [self.pending[n].to(first.dtype) for n in sums]
-        parts.append(torch.tensor([loss_sum, psnr_sum], dtype=first.dtype, device=first.device))
+        parts.append(torch.stack([loss_sum, psnr_sum]).to(device=first.device, dtype=first.dtype))
         flat = torch.cat([t.reshape(-1) for t in parts])
         clock = time.perf_counter()
         with _collective(self.world, "the gradient all-reduce", step):
@@ -199,8 +200,8 @@ class StepSync:
             p.grad = grad.view_as(p).clone()
         for name in sums:
             accumulators[name] += next(chunks).view_as(accumulators[name]).to(accumulators[name].dtype)
-        loss_sum, psnr_sum = next(chunks).tolist()
-        return loss_sum, psnr_sum
+        sums = next(chunks).double()
+        return sums[0], sums[1]
 
     def check(self, params: dict[str, torch.Tensor], step: int, first: bool = False) -> None:
         """Every world.check_every steps (and at the first step): the ranks' parameter checksums

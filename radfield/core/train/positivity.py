@@ -102,6 +102,7 @@ class NonNegativeDensity:
         self.near = near
         self.every = max(int(every), 1)
         self._mask = None  # (P,) bool: the primitives projected
+        self._rows = None  # their row numbers, found with the mask (not every step: on a GPU a read waits)
 
     @classmethod
     def for_training(cls, cameras: Sequence[Camera], cfg: dict, *, near: float) -> "NonNegativeDensity":
@@ -128,14 +129,15 @@ class NonNegativeDensity:
             return
         if stale(self._mask, params["w2"].shape[0], step, self.every):
             self._mask = self.mask(params)
-        if not bool(self._mask.any()):
+            self._rows = self._mask.nonzero()[:, 0]  # rows are projected independently: only these change
+        if not len(self._rows):
             return  # object-centric captures: no primitive has a narrow cone, nothing to do
         w2, b2 = params["w2"], params["b2"]
         fast = backends.kernel("project_nonnegative_", w2.device, w2.dtype)
         if fast is not None and w2.is_contiguous() and b2.is_contiguous() and b2.dtype == w2.dtype:
             fast(w2, b2, self._mask)   # one pass over the masked rows (fused: core/backends/csrc/positivity_kernels.cpp)
             return
-        rows = self._mask.nonzero()[:, 0]  # rows are projected independently: only these change
+        rows = self._rows
         w2, b2 = project_nonnegative(params["w2"][rows], params["b2"][rows])
         params["w2"][rows] = w2
         params["b2"][rows] = b2

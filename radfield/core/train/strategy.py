@@ -111,11 +111,16 @@ class _Strategy:
     # and counts add (a running maximum, as gsplat's max radii, would need a MAX all-reduce)
     REDUCTIONS = {"grad": "sum", "count": "sum"}
     split_uniform = False             # children inside the ellipsoid (neural) or ~N(0, s²) (3DGS)
+    # parameters whose new rows (clones, split children) start from their parent's Adam moments
+    # instead of zeros (edit_rows; a kind's own strategy sets it, core/kinds/dynamic.py)
+    inherited_moments: tuple[str, ...] = ()
     statistics_op = ""                # the backend op of a view's statistics (radfield.core.backends)
 
     def __init__(self, schedule: Schedule, *, extent: float, near: float, grad_threshold: float,
-                 grow_scale: float, prune_scale: float, max_primitives: int | None, initial_count: int):
+                 grow_scale: float, prune_scale: float, max_primitives: int | None, initial_count: int,
+                 attrs: dict | None = None):
         self.schedule = schedule
+        self.attrs = attrs or {}   # the kind's attributes (e.g. a dynamic kind's ω), for the kind's own rules
         self.extent = extent
         self.near = near
         self.grad_threshold = grad_threshold
@@ -183,7 +188,10 @@ class _Strategy:
         n_clone = int(clone.sum())
         for name, value in children.items():
             new_rows[name][n_clone:] = value
-        edit_rows(params, optimizer, ~prune & ~split, new_rows)
+        parents = None
+        if self.inherited_moments:   # the new rows' parents, in new_rows' order
+            parents = torch.cat([clone.nonzero()[:, 0], split.nonzero()[:, 0].repeat(SPLIT_CHILDREN)])
+        edit_rows(params, optimizer, ~prune & ~split, new_rows, parents, self.inherited_moments)
         state.update(self.init_state(params["means"].shape[0], params["means"].device))
         return {"cloned": n_clone, "split": int(split.sum()), "pruned": int(prune.sum())}
 
@@ -315,15 +323,17 @@ class FixedPopulation:
 
 
 def make_strategy(kind: str, densify: dict, *, extent: float, near: float, max_primitives: int | None,
-                  initial_count: int, pixels: int | None = None):
+                  initial_count: int, pixels: int | None = None, attrs: dict | None = None):
     """The strategy of primitive `kind` (radfield.core.kinds: its `strategy` hook) from the
     train.densify config; `pixels`: a training view's pixel count, which scales the neural
     thresholds (resolution_factor; None leaves them as configured). 3DGS's NDC-gradient threshold
-    needs no scaling."""
+    needs no scaling. `attrs`: the kind's attributes (TrainState.attrs; None: the kind's defaults),
+    which a kind's own rules may read (the dynamic Gaussians' ω, core/kinds/dynamic.py)."""
     schedule = Schedule(densify["start"], densify["stop"], densify["every"])
+    attrs = kinds.get(kind).default_attrs() if attrs is None else attrs
     return kinds.get(kind).strategy(densify, schedule, pixels=pixels, extent=extent, near=near,
                                     grow_scale=densify["grow_scale"], max_primitives=max_primitives,
-                                    initial_count=initial_count)
+                                    initial_count=initial_count, attrs=attrs)
 
 
 # --- geometry tests --------------------------------------------------------------------------
@@ -367,9 +377,11 @@ def negligible_density(w2: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:
 
 # --- optimiser-state surgery -----------------------------------------------------------------
 
-def edit_rows(params: Params, optimizer: torch.optim.Optimizer, keep: torch.Tensor, new_rows: Params) -> None:
+def edit_rows(params: Params, optimizer: torch.optim.Optimizer, keep: torch.Tensor, new_rows: Params,
+              parents: torch.Tensor | None = None, inherited: tuple[str, ...] = ()) -> None:
     """Replace every parameter by cat(param[keep], new_rows[name]) as a fresh leaf tensor, with
-    its Adam moments edited alike (kept rows keep theirs, new rows start at zero).
+    its Adam moments edited alike (kept rows keep theirs, new rows start at zero, or, for the
+    parameters named in `inherited`, at the moments of their rows `parents` (index per new row)).
     Needs one parameter per optimiser group, with the group's "name" a key of params."""
     for group in optimizer.param_groups:
         name = group["name"]
@@ -378,7 +390,8 @@ def edit_rows(params: Params, optimizer: torch.optim.Optimizer, keep: torch.Tens
         state = optimizer.state.pop(old, None)
         if state:
             for key in ("exp_avg", "exp_avg_sq"):
-                state[key] = torch.cat([state[key][keep], torch.zeros_like(new_rows[name], dtype=state[key].dtype)])
+                added = state[key][parents] if name in inherited else torch.zeros_like(new_rows[name], dtype=state[key].dtype)
+                state[key] = torch.cat([state[key][keep], added])
             optimizer.state[new] = state
         group["params"][0] = new
         params[name] = new

@@ -28,6 +28,12 @@ an N-step run: the means' rate is lr0 · r^(t / (N − 1)) at step t (so at step
 lr0 · r^(s / (N − 1)) and decays to lr0 · r at step N − 1), the SH degree and densification
 follow their step thresholds as in an N-step run. It is not the same as a fresh N-step run.
 
+Host reads: the loop reads nothing from the device on most steps (on a GPU a read waits for every
+queued kernel). A step's loss and PSNR stay on the device (StepRecords) until the records are read
+together every `log_every` steps and at the steps that read the device anyway (refinement, held-out
+views, checkpoints, the last step); the per-step randomness is drawn on the CPU and copied over
+without waiting.
+
 Randomness (view order, split children, ray jitter) is drawn from generators seeded by (seed, step), so a
 run is a pure function of its inputs and the step count: a checkpoint holds parameters, Adam
 moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
@@ -111,8 +117,11 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
     default 1): render.supersample, each training view rendered with n × n rays per pixel.
     extent: scene radius (3DGS's camera extent), in the frame of prims and cameras.
     start_state: resume from this snapshot (e.g. load_checkpoint) instead of from prims.
-    on_step(step, info): after every step; info has loss, psnr (of this step's views), primitives
-    and what population control did (and test_psnr on the steps held_out was measured).
+    on_step(step, info): once for every step, in order; info has loss, psnr (of this step's views),
+    primitives and what population control did (and test_psnr on the steps held_out was measured).
+    The calls come in bursts when the device is read (StepRecords): every cfg["log_every"] steps
+    (log_interval: by default every step on the CPU, every LOG_EVERY_GPU on a GPU) and at every
+    refinement, held-out, checkpoint and last step; a caller that clocks single steps sets it to 1.
     held_out(primitives): measured every cfg["eval_every"] steps (0: never) and at the last step.
     checkpoint(state): every cfg["checkpoint_every"] steps before the last.
     world: the ranks of a data-parallel training (radfield.core.train.distributed; None: this process
@@ -137,10 +146,12 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
     optimizer = make_optimizer(params, cfg["lr"], extent, state.kind)
     _load_moments(optimizer, state.moments, device)
     strategy = make_strategy(state.kind, cfg["densify"], extent=extent, near=near, max_primitives=max_primitives,
-                             initial_count=len(prims), pixels=images.shape[1] * images.shape[2])
+                             initial_count=len(prims), pixels=images.shape[1] * images.shape[2], attrs=state.attrs)
     accumulators = {k: v.to(device) for k, v in state.strategy.items()} or strategy.init_state(len(prims), device)
     bg = torch.as_tensor(background, dtype=torch.float32, device=device)
     iterations, batch = cfg["iterations"], cfg["batch_views"]
+    records = StepRecords(on_step, batch, log_interval(cfg, device))
+    zero = torch.zeros((), dtype=torch.float64, device=device)   # the start of a step's device sums
     supersample = cfg.get("supersample", 1)  # render.supersample, put into cfg by the train stage
     means_lr = cfg["lr"]["means"] * extent
     sync = StepSync(world, strategy.REDUCTIONS)  # the identity with one rank
@@ -158,8 +169,10 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
         regulariser = regularisers(params, cfg, state.kind) if sync.rank == 0 else None  # counted once over the ranks
         if regulariser is not None:
             regulariser.backward()
-        loss_sum = psnr_sum = 0.0
+        loss_sum = psnr_sum = zero
         backgrounds = None if alphas is None else torch.rand(batch, 3, generator=generator(seed, _BACKGROUND, step))
+        if backgrounds is not None:   # drawn on the CPU; a blocking copy would wait for the device's queue
+            backgrounds = backgrounds.to(device, non_blocking=True)
         offsets = jitter_offsets(cfg["ray_jitter"], batch, generator(seed, _JITTER, step))
         gathering = strategy.gathering(step + 1)
         gathered = sync.gather_into(accumulators, gathering)
@@ -169,7 +182,7 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
             before = {n: None if params[n].grad is None else params[n].grad.clone() for n in tracked}
             view_bg, target = bg, images[view]
             if backgrounds is not None:  # the same RGBA pixels "over" another colour
-                view_bg = backgrounds[k].to(device)
+                view_bg = backgrounds[k]
                 target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
             camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
             out = render_supersampled(assemble(params, state.kind, state.attrs), camera, supersample,
@@ -180,8 +193,9 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
             # this view's own gradients (unscaled), what the densification statistics measure
             grads = {n: own_gradient(params[n].grad, before[n], batch) for n in tracked}
             strategy.accumulate(gathered, params, grads, camera, step + 1)
-            loss_sum += float(loss.detach())
-            psnr_sum += float(psnr(out.color.detach().clamp(0, 1), target, mask))
+            # float64 sums on the device, added in the order Python added the floats: the same bits
+            loss_sum = loss_sum + loss.detach().double()
+            psnr_sum = psnr_sum + psnr(out.color.detach().clamp(0, 1), target, mask).double()
         loss_sum, psnr_sum = sync.reduce(params, accumulators, loss_sum, psnr_sum, step + 1)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
@@ -189,16 +203,62 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
         for rule in rules:
             rule.apply(params, step + 1)
         sync.check(params, step + 1)
-        info = {"loss": loss_sum / batch, "psnr": psnr_sum / batch, "primitives": params["means"].shape[0], **refined}
+        info = {"primitives": params["means"].shape[0], **refined}   # host values: no read of the device
         every = cfg["eval_every"]
         if held_out is not None and ((every and (step + 1) % every == 0) or step + 1 == iterations):
             with torch.no_grad():
                 info["test_psnr"] = float(held_out(assemble(params, state.kind, state.attrs).map(torch.Tensor.detach)))
-        if on_step is not None:
-            on_step(step + 1, info)
-        if checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations:
+        saving = checkpoint is not None and (step + 1) % cfg["checkpoint_every"] == 0 and step + 1 < iterations
+        records.add(step + 1, loss_sum, psnr_sum, info)
+        # steps that read the device anyway (refinement, held-out views, checkpoint) read the records
+        # too; a checkpoint's step is in the log before the checkpoint is (resume truncates the log there)
+        if (step + 1) % records.every == 0 or refined or "test_psnr" in info or saving or step + 1 == iterations:
+            records.flush()
+        if saving:
             checkpoint(snapshot(step + 1, state, params, optimizer, accumulators))
     return snapshot(max(iterations, state.step), state, params, optimizer, accumulators)
+
+
+LOG_EVERY_GPU = 50   # train.log_every's default off the CPU (log_interval)
+
+
+def log_interval(cfg: dict, device: torch.device) -> int:
+    """Steps between reads of the step statistics: train.log_every, or by default (null) 1 on the
+    CPU, where reading a tensor waits for nothing, and LOG_EVERY_GPU on a GPU, where every read
+    drains the device's queue and leaves it idle while the host launches the next step's kernels
+    (50 steps: about a second of training at the GPU path's ~20 ms a step, a progress bar that
+    still moves every second, and at most 50 records lost to a kill, which resume recomputes)."""
+    every = cfg.get("log_every")
+    if every is None:
+        return 1 if device.type == "cpu" else LOG_EVERY_GPU
+    if every < 1:
+        raise ValueError(f"train.log_every must be at least 1, got {every}")
+    return every
+
+
+class StepRecords:
+    """The statistics of the steps since the last read, kept on the device: each step's loss and
+    PSNR sums over its views (float64 tensors) and its host values (primitives, population control,
+    test_psnr). `flush` reads all the sums with one stack(...).tolist() and calls on_step(step, info)
+    for every pending step, in order, with info's loss and psnr the batch means as floats. So
+    on_step sees every step, late by up to `every` steps, with the values it saw when it was
+    called after each step."""
+
+    def __init__(self, on_step: Callable[[int, dict], None] | None, batch: int, every: int):
+        self.on_step, self.batch, self.every = on_step, batch, every
+        self.pending: list[tuple[int, torch.Tensor, torch.Tensor, dict]] = []
+
+    def add(self, step: int, loss_sum: torch.Tensor, psnr_sum: torch.Tensor, info: dict) -> None:
+        if self.on_step is not None:   # nobody reads them: keep nothing
+            self.pending.append((step, loss_sum, psnr_sum, info))
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        pending, self.pending = self.pending, []
+        sums = torch.stack([t for _, loss_sum, psnr_sum, _ in pending for t in (loss_sum, psnr_sum)]).tolist()
+        for k, (step, _, _, info) in enumerate(pending):
+            self.on_step(step, {"loss": sums[2 * k] / self.batch, "psnr": sums[2 * k + 1] / self.batch, **info})
 
 
 def own_gradient(total: torch.Tensor, before: torch.Tensor | None, batch: int) -> torch.Tensor:

@@ -4,7 +4,9 @@ A record holds what the trainer reports after a step (radfield.core.train.traine
 step, loss, psnr (of that step's training views), primitives, seconds (wall time since training
 began, summed over resumed attempts), what population control did (cloned, split, pruned, when
 it ran) and test_psnr on the steps where held-out views were measured. The log is appended to
-and flushed line by line, so a killed run keeps everything up to its last step; resuming from a
+and flushed line by line as the trainer hands the records over (every step on the CPU; every
+`train.log_every` steps on a GPU, where the trainer reads the device that rarely, and always at a
+checkpoint's step), so a killed run keeps everything up to its last hand-over; resuming from a
 checkpoint first drops the records after the checkpoint's step, so the log of a resumed run reads
 as that of an uninterrupted one.
 """

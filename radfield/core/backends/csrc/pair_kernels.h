@@ -1,7 +1,8 @@
 // The splatting weight α of one pixel ray through one primitive, forward and backward, for a batch
 // of pixels of one primitive at a time: shared by the block kernels (block_kernels.cpp, the
 // per-pair twins of core/render/rasterize.py's `_neural_block` / `_gaussian_block`) and the whole-view
-// tile rasteriser (view_kernels.cpp).
+// tile rasteriser (view_kernels.cpp). At the end, the quaternion rotation and its backward that the
+// per-primitive ops share (prepare_kernels.cpp, relight_kernels.cpp).
 //
 // SIMD: the code is written per pixel j of a batch (up to `cap` pixels of one primitive, stored as
 // structure of arrays) in loops that the compiler vectorises (`#pragma omp simd`: no reordering
@@ -629,6 +630,26 @@ inline T gaussian_alpha(T power, T value) {
 template <typename T>
 inline bool gaussian_passes(T power, T value) {
   return !(power > T(0)) && !(value > T(kAlphaMax)) && !(value < T(kAlphaMin));
+}
+
+// R(q̂) of a unit quaternion (w, x, y, z), row-major (core/geometry/rotations.py: quat_to_rotmat),
+// and ∂L/∂q̂ from ∂L/∂R: the neural primitives' frame (prepare_kernels.cpp) and the relightable
+// kinds' own frame (relight_kernels.cpp)
+template <typename T>
+void rotmat(const T* q, T* R) {
+  const T w = q[0], x = q[1], y = q[2], z = q[3];
+  R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y), R[7] = 2 * (y * z + w * x), R[8] = 1 - 2 * (x * x + y * y);
+}
+
+template <typename T>
+void rotmat_backward(const T* q, const T* g, T* gq) {
+  const T w = q[0], x = q[1], y = q[2], z = q[3];
+  gq[0] = 2 * (-z * g[1] + y * g[2] + z * g[3] - x * g[5] - y * g[6] + x * g[7]);
+  gq[1] = 2 * (y * g[1] + z * g[2] + y * g[3] - 2 * x * g[4] - w * g[5] + z * g[6] + w * g[7] - 2 * x * g[8]);
+  gq[2] = 2 * (-2 * y * g[0] + x * g[1] + w * g[2] + x * g[3] + z * g[5] - w * g[6] + z * g[7] - 2 * y * g[8]);
+  gq[3] = 2 * (-2 * z * g[0] - w * g[1] + x * g[2] + w * g[3] - 2 * z * g[4] + y * g[5] + x * g[6] + y * g[7]);
 }
 
 }  // namespace radfield

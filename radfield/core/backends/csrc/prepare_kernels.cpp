@@ -32,6 +32,8 @@
 namespace {
 
 using radfield::check_params;
+using radfield::rotmat;
+using radfield::rotmat_backward;
 
 // --- SH colour (3DGS's real SH basis and order, core/render/sh.py) -----------------------------------
 
@@ -309,25 +311,6 @@ std::vector<at::Tensor> sh_parts_color_backward(const at::Tensor& grad, const at
 }
 
 // --- neural primitives: ellipsoid frame and MLP phases ----------------------------------------
-
-// R(q̂) of a unit quaternion (w, x, y, z), row-major (primitives.py: quat_to_rotmat)
-template <typename T>
-void rotmat(const T* q, T* R) {
-  const T w = q[0], x = q[1], y = q[2], z = q[3];
-  R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
-  R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
-  R[6] = 2 * (x * z - w * y), R[7] = 2 * (y * z + w * x), R[8] = 1 - 2 * (x * x + y * y);
-}
-
-// ∂L/∂q̂ from ∂L/∂R
-template <typename T>
-void rotmat_backward(const T* q, const T* g, T* gq) {
-  const T w = q[0], x = q[1], y = q[2], z = q[3];
-  gq[0] = 2 * (-z * g[1] + y * g[2] + z * g[3] - x * g[5] - y * g[6] + x * g[7]);
-  gq[1] = 2 * (y * g[1] + z * g[2] + y * g[3] - 2 * x * g[4] - w * g[5] + z * g[6] + w * g[7] - 2 * x * g[8]);
-  gq[2] = 2 * (-2 * y * g[0] + x * g[1] + w * g[2] + x * g[3] + z * g[5] - w * g[6] + z * g[7] - 2 * y * g[8]);
-  gq[3] = 2 * (-2 * z * g[0] - w * g[1] + x * g[2] + w * g[3] - 2 * z * g[4] + y * g[5] + x * g[6] + y * g[7]);
-}
 
 template <typename T>
 struct NeuralFrame {  // what the forward computes for one primitive, and the backward needs again
