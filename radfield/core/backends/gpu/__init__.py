@@ -16,9 +16,10 @@ the conic with the 0.3 px² blur, the 3σ boxes; neural primitives: the dual-con
 ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k, (W2, b2), 1/max s: exactly the twin's),
 the depth order (a stable sort, as the twin), and the tile binning: every visible primitive × the
 16×16 tiles its box touches, keys (tile, depth rank) sorted by torch.sort, per-tile [start, end)
-ranges. Then two Triton launches (gaussian_kernels.py, neural_kernels.py): the forward, one program
-per tile compositing front to back with early termination, and the backward, walking each pixel's
-list back to front from its final T with atomic adds of the per-primitive gradients. Nothing is
+ranges. Then two Triton launches (gaussian_kernels.py, neural_kernels.py; the tile walk they share
+in tiles.py): the forward, one program per tile compositing front to back with early termination,
+and the backward, walking each pixel's list back to front from its final T with atomic adds of the
+per-primitive gradients. Nothing is
 stored per pair; the launches per view do not depend on the primitive count. The
 population-control statistics come out of autograd as on every path: the means' gradient
 (Gaussians) and the MLP's gradients (neural) are what the strategies read (core/train/strategy.py).

@@ -28,17 +28,9 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
+from radfield.core.backends.gpu.tiles import _composite, _store_tile, _tile_pixels, _uncomposite, _upstream
+
 SIDE = 16   # tile side in pixels (one program per tile, one lane per pixel)
-
-
-@triton.jit
-def _tile_pixels(tile, tiles_x, height, width, SIDE: tl.constexpr):
-    """The tile's pixel coordinates (x, y), their flat index and whether they are in the image."""
-    k = tl.arange(0, SIDE * SIDE)
-    px = (tile % tiles_x) * SIDE + k % SIDE
-    py = (tile // tiles_x) * SIDE + k // SIDE
-    inside = (px < width) & (py < height)
-    return px, py, py * width + px, inside
 
 
 @triton.jit
@@ -94,32 +86,12 @@ def gaussian_forward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr, 
         in_box, dx, dy, power, raw, alpha, hit = _splat(r, px, py, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr,
                                                         alpha_min, alpha_max)
         live = in_box & (done == 0)
-        hit = hit & live
-        after = trans * (1.0 - alpha)
-        stop = hit & (after < t_min)              # early termination: this pair is not composited
-        take = hit & (stop == 0)
-        w = tl.where(take, alpha * trans, 0.0)
-        acc_r += w * tl.load(color_ptr + 3 * r)
-        acc_g += w * tl.load(color_ptr + 3 * r + 1)
-        acc_b += w * tl.load(color_ptr + 3 * r + 2)
-        acc_z += w * tl.load(depth_ptr + r)
-        trans = tl.where(take, after, trans)
-        last = tl.where(take, (j - start + 1).to(tl.int32), last)
-        done = done | stop
-        n_pairs += live.to(tl.int32)
-        n_composited += take.to(tl.int32)
-        n_terminated += stop.to(tl.int32)
-        alive -= tl.sum(stop.to(tl.int32))
+        (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive) = _composite(
+            alpha, hit & live, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
+            acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive)
         j += 1
-    tl.store(out_color_ptr + 3 * pix, acc_r, mask=inside)
-    tl.store(out_color_ptr + 3 * pix + 1, acc_g, mask=inside)
-    tl.store(out_color_ptr + 3 * pix + 2, acc_b, mask=inside)
-    tl.store(out_depth_ptr + pix, acc_z, mask=inside)
-    tl.store(out_trans_ptr + pix, trans, mask=inside)
-    tl.store(last_ptr + pix, last, mask=inside)
-    tl.store(counts_ptr + 3 * tile, tl.sum(n_pairs))
-    tl.store(counts_ptr + 3 * tile + 1, tl.sum(n_composited))
-    tl.store(counts_ptr + 3 * tile + 2, tl.sum(n_terminated))
+    _store_tile(tile, pix, inside, trans, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated,
+                out_color_ptr, out_depth_ptr, out_trans_ptr, last_ptr, counts_ptr)
 
 
 @triton.jit
@@ -131,13 +103,8 @@ def gaussian_backward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr,
     px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
     alpha_min = tl.load(consts_ptr + 1)
     alpha_max = tl.load(consts_ptr + 2)
-    trans = tl.load(trans_ptr + pix, mask=inside, other=1.0)
-    last = tl.load(last_ptr + pix, mask=inside, other=0)
-    g_r = tl.load(g_color_ptr + 3 * pix, mask=inside, other=0.0)
-    g_g = tl.load(g_color_ptr + 3 * pix + 1, mask=inside, other=0.0)
-    g_b = tl.load(g_color_ptr + 3 * pix + 2, mask=inside, other=0.0)
-    g_z = tl.load(g_depth_ptr + pix, mask=inside, other=0.0)
-    suffix = tl.load(g_trans_ptr + pix, mask=inside, other=0.0) * trans   # S = g_T T_final, then the later pairs
+    trans, last, g_r, g_g, g_b, g_z, suffix = _upstream(pix, inside, trans_ptr, last_ptr, g_color_ptr, g_depth_ptr,
+                                                        g_trans_ptr)
     start = tl.load(offsets_ptr + tile)
     steps = tl.max(last)                          # the longest walk of the tile's pixels
     for step in range(0, steps):
@@ -147,26 +114,14 @@ def gaussian_backward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr,
                                                         alpha_min, alpha_max)
         hit = hit & (local < last)                # before `last` every hit was composited
         if tl.sum(hit.to(tl.int32)) > 0:
-            one_minus = 1.0 - alpha
-            trans = tl.where(hit, trans / one_minus, trans)     # T_i, before this pair
-            w = tl.where(hit, alpha * trans, 0.0)
-            cr = tl.load(color_ptr + 3 * r)
-            cg = tl.load(color_ptr + 3 * r + 1)
-            cb_ = tl.load(color_ptr + 3 * r + 2)
-            z = tl.load(depth_ptr + r)
-            shade = g_r * cr + g_g * cg + g_b * cb_ + g_z * z
-            g_alpha = tl.where(hit, shade * trans - suffix / one_minus, 0.0)
-            suffix += w * shade
+            trans, g_alpha, suffix = _uncomposite(alpha, hit, r, trans, suffix, g_r, g_g, g_b, g_z, color_ptr, depth_ptr,
+                                                  d_color_ptr, d_depth_ptr)
             # α = min(α_max, o e^power): no gradient through the clamp
             g_raw = tl.where(raw <= alpha_max, g_alpha, 0.0)
             g_power = g_raw * raw
             ca = tl.load(conic_ptr + 3 * r)
             cb = tl.load(conic_ptr + 3 * r + 1)
             cc = tl.load(conic_ptr + 3 * r + 2)
-            tl.atomic_add(d_color_ptr + 3 * r, tl.sum(g_r * w))
-            tl.atomic_add(d_color_ptr + 3 * r + 1, tl.sum(g_g * w))
-            tl.atomic_add(d_color_ptr + 3 * r + 2, tl.sum(g_b * w))
-            tl.atomic_add(d_depth_ptr + r, tl.sum(g_z * w))
             tl.atomic_add(d_opacity_ptr + r, tl.sum(g_raw * tl.exp(tl.minimum(power, 0.0))))
             tl.atomic_add(d_conic_ptr + 3 * r, tl.sum(g_power * (-0.5 * dx * dx)))
             tl.atomic_add(d_conic_ptr + 3 * r + 1, tl.sum(g_power * (-dx * dy)))

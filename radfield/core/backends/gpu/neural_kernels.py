@@ -3,9 +3,9 @@ op): the closed-form line integral of a neural primitive per (pixel, primitive) 
 or windowed (core/render/kernels.py: neural_optical_depth, windowed_optical_depth), composited per
 16×16 tile front to back, and its backward walking each pixel's list back to front.
 
-The same tile walk as gaussian_kernels.py (its docstring says the compositing rules and the
-backward's suffix); what differs is the pair: one lane per pixel, and the hidden units as a second
-axis (NP = N padded to a power of two, the padding masked). The maths and its backward are those
+The same tile walk as gaussian_kernels.py (tiles.py; gaussian_kernels.py's docstring says the
+compositing rules and the backward's suffix); what differs is the pair: one lane per pixel, and
+the hidden units as a second axis (NP = N padded to a power of two, the padding masked). The maths and its backward are those
 of the fused CPU kernels (core/backends/csrc/pair_kernels.h: ChordTile), which follow the torch
 twin's autograd (clamps pass the gradient at equality, torch.maximum splits it at a tie).
 Inputs (V, ...) in depth order: m_cam (V, 9) = S⁻¹Rᵀ R_cam, o_ell (V, 3), w_cam (V, N, 3) = ω0 W1 R_cam,
@@ -18,7 +18,7 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
-from radfield.core.backends.gpu.gaussian_kernels import _tile_pixels
+from radfield.core.backends.gpu.tiles import _composite, _store_tile, _tile_pixels, _uncomposite, _upstream
 
 
 @triton.jit
@@ -176,31 +176,12 @@ def neural_forward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, 
             d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW)
         alpha = tl.minimum(-_expm1_neg(integral), alpha_max)          # eq. 9 with the 3DGS clamp
         hit = live & (alpha >= alpha_min) & (delta > 0.0)
-        after = trans * (1.0 - alpha)
-        stop = hit & (after < t_min)
-        take = hit & (stop == 0)
-        w = tl.where(take, alpha * trans, 0.0)
-        acc_r += w * tl.load(color_ptr + 3 * r)
-        acc_g += w * tl.load(color_ptr + 3 * r + 1)
-        acc_b += w * tl.load(color_ptr + 3 * r + 2)
-        acc_z += w * tl.load(depth_ptr + r)
-        trans = tl.where(take, after, trans)
-        last = tl.where(take, (j - start + 1).to(tl.int32), last)
-        done = done | stop
-        n_pairs += live.to(tl.int32)
-        n_composited += take.to(tl.int32)
-        n_terminated += stop.to(tl.int32)
-        alive -= tl.sum(stop.to(tl.int32))
+        (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive) = _composite(
+            alpha, hit, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
+            acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive)
         j += 1
-    tl.store(out_color_ptr + 3 * pix, acc_r, mask=inside)
-    tl.store(out_color_ptr + 3 * pix + 1, acc_g, mask=inside)
-    tl.store(out_color_ptr + 3 * pix + 2, acc_b, mask=inside)
-    tl.store(out_depth_ptr + pix, acc_z, mask=inside)
-    tl.store(out_trans_ptr + pix, trans, mask=inside)
-    tl.store(last_ptr + pix, last, mask=inside)
-    tl.store(counts_ptr + 3 * tile, tl.sum(n_pairs))
-    tl.store(counts_ptr + 3 * tile + 1, tl.sum(n_composited))
-    tl.store(counts_ptr + 3 * tile + 2, tl.sum(n_terminated))
+    _store_tile(tile, pix, inside, trans, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated,
+                out_color_ptr, out_depth_ptr, out_trans_ptr, last_ptr, counts_ptr)
 
 
 @triton.jit
@@ -216,13 +197,8 @@ def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr,
     alpha_min = tl.load(consts_ptr + 1)
     alpha_max = tl.load(consts_ptr + 2)
     one = tl.load(consts_ptr + 3)
-    trans = tl.load(trans_ptr + pix, mask=inside, other=1.0)
-    last = tl.load(last_ptr + pix, mask=inside, other=0)
-    g_r = tl.load(g_color_ptr + 3 * pix, mask=inside, other=0.0)
-    g_g = tl.load(g_color_ptr + 3 * pix + 1, mask=inside, other=0.0)
-    g_b = tl.load(g_color_ptr + 3 * pix + 2, mask=inside, other=0.0)
-    g_z = tl.load(g_depth_ptr + pix, mask=inside, other=0.0)
-    suffix = tl.load(g_trans_ptr + pix, mask=inside, other=0.0) * trans
+    trans, last, g_r, g_g, g_b, g_z, suffix = _upstream(pix, inside, trans_ptr, last_ptr, g_color_ptr, g_depth_ptr,
+                                                        g_trans_ptr)
     start = tl.load(offsets_ptr + tile)
     steps = tl.max(last)
     for step in range(0, steps):
@@ -238,21 +214,9 @@ def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr,
         alpha = tl.minimum(-em1, alpha_max)
         hit = _box(r, px, py, bounds_ptr) & (alpha >= alpha_min) & (delta > 0.0) & (local < last) & inside
         if tl.sum(hit.to(tl.int32)) > 0:
-            # compositing (gaussian_kernels.py): T_i by division, ∂L/∂α_i, the suffix S
-            one_minus = 1.0 - alpha
-            trans = tl.where(hit, trans / one_minus, trans)
-            w = tl.where(hit, alpha * trans, 0.0)
-            cr = tl.load(color_ptr + 3 * r)
-            cg = tl.load(color_ptr + 3 * r + 1)
-            cb = tl.load(color_ptr + 3 * r + 2)
-            z = tl.load(depth_ptr + r)
-            shade = g_r * cr + g_g * cg + g_b * cb + g_z * z
-            g_alpha = tl.where(hit, shade * trans - suffix / one_minus, 0.0)
-            suffix += w * shade
-            tl.atomic_add(d_color_ptr + 3 * r, tl.sum(g_r * w))
-            tl.atomic_add(d_color_ptr + 3 * r + 1, tl.sum(g_g * w))
-            tl.atomic_add(d_color_ptr + 3 * r + 2, tl.sum(g_b * w))
-            tl.atomic_add(d_depth_ptr + r, tl.sum(g_z * w))
+            # compositing (tiles.py): T_i by division, ∂L/∂α_i, the suffix S
+            trans, g_alpha, suffix = _uncomposite(alpha, hit, r, trans, suffix, g_r, g_g, g_b, g_z, color_ptr, depth_ptr,
+                                                  d_color_ptr, d_depth_ptr)
             # eq. 9: ∂α/∂I = e^(−I) = 1 + expm1(−I), unless the 0.99 clamp is active
             g_i = tl.where(hit & (-em1 <= alpha_max), g_alpha * (em1 + 1.0), 0.0)
             # step 2 backward (pair_kernels.h: optical_depth_backward / windowed_pixel_backward)
