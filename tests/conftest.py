@@ -43,20 +43,32 @@ def fox() -> Path:
     return shared_dataset("fox_small", "images")
 
 
+def run_radfield(*args) -> int:
+    """Run `radfield ARGS` in this process; its exit code."""
+    argv = sys.argv
+    sys.argv = ["radfield", *map(str, args)]
+    try:
+        main()
+        return 0
+    except SystemExit as exit_:
+        return exit_.code or 0
+    finally:
+        sys.argv = argv
+
+
+@pytest.fixture(name="run_radfield", scope="session")
+def run_radfield_fixture():
+    """`run_radfield(*args) -> exit code`: `radfield ARGS` in this process (for module fixtures,
+    which cannot use `cli`)."""
+    return run_radfield
+
+
 @pytest.fixture
 def cli(capsys):
     """Run `radfield ARGS` in this process: cli(*args) -> (exit code, stdout, stderr)."""
 
     def run(*args) -> tuple[int, str, str]:
-        argv = sys.argv
-        sys.argv = ["radfield", *map(str, args)]
-        try:
-            main()
-            code = 0
-        except SystemExit as exit_:
-            code = exit_.code or 0
-        finally:
-            sys.argv = argv
+        code = run_radfield(*args)
         out, err = capsys.readouterr()
         return code, out, err
 

@@ -19,7 +19,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from radfield.cli.main import main
 from radfield.core.train import launch
 from radfield.core.train.distributed import compare_checksums
 from radfield.core.train.trainer import load_checkpoint
@@ -43,27 +42,16 @@ def radfield(*args, timeout=120) -> subprocess.CompletedProcess:
                           timeout=timeout)
 
 
-def in_process(*args) -> int:
-    argv, sys.argv = sys.argv, ["radfield", *args]
-    try:
-        main()
-        return 0
-    except SystemExit as exit_:
-        return exit_.code or 0
-    finally:
-        sys.argv = argv
-
-
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     return generate_scene("blobs", tmp_path_factory.mktemp("dist") / "blobs", n_train=8, n_test=2, size=32)
 
 
 @pytest.fixture(scope="module")
-def single(scene, tmp_path_factory):
+def single(scene, tmp_path_factory, run_radfield):
     """The single-process reference run directory."""
     run = tmp_path_factory.mktemp("single") / "run"
-    assert in_process(*reconstruct_args(scene, run), "--quiet") == 0
+    assert run_radfield(*reconstruct_args(scene, run), "--quiet") == 0
     return run
 
 
@@ -100,13 +88,13 @@ def test_nproc_equals_single_process(scene, single, tmp_path):
                                                       "radfield-run.json", "sfm", "tetra", "train"]
 
 
-def test_torchrun_continues_like_a_single_process(scene, single, tmp_path, capsys):
+def test_torchrun_continues_like_a_single_process(scene, single, tmp_path, capsys, run_radfield):
     """Continuing the finished single-process run to more steps: under torchrun rank 0 reads the
     final state and sends it to rank 1 (the path a resumed checkpoint takes too)."""
     alone, ranks, iterations = tmp_path / "alone", tmp_path / "ranks", ITERATIONS + 10
     shutil.copytree(single, alone)
     shutil.copytree(single, ranks)
-    assert in_process(*reconstruct_args(scene, alone, iterations), "--quiet") == 0
+    assert run_radfield(*reconstruct_args(scene, alone, iterations), "--quiet") == 0
     done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
                            "-m", "radfield", *reconstruct_args(scene, ranks, iterations)],
                           env=ENV, capture_output=True, text=True, timeout=120)
@@ -115,12 +103,12 @@ def test_torchrun_continues_like_a_single_process(scene, single, tmp_path, capsy
     assert_same_training(ranks, alone, iterations)
     # cached for a single process too: the number of ranks is not part of the train stage's key
     capsys.readouterr()
-    assert in_process(*reconstruct_args(scene, ranks, iterations), "--quiet") == 0
+    assert run_radfield(*reconstruct_args(scene, ranks, iterations), "--quiet") == 0
     assert "train cached" in capsys.readouterr().out
 
 
-def test_batch_views_below_ranks_is_one_line(scene, tmp_path, capsys):
-    assert in_process("reconstruct", str(scene), "-o", str(tmp_path / "run"), "--nproc", "2") == 1
+def test_batch_views_below_ranks_is_one_line(scene, tmp_path, capsys, run_radfield):
+    assert run_radfield("reconstruct", str(scene), "-o", str(tmp_path / "run"), "--nproc", "2") == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("radfield: error: 2 ranks need train.batch_views >= 2")
     assert not (tmp_path / "run").exists()
@@ -141,7 +129,7 @@ def _rank_pid(launcher: int, local_rank: int) -> int | None:
     return None
 
 
-def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path, capsys):
+def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path, capsys, run_radfield):
     run, iterations = tmp_path / "run", 80
     job = subprocess.Popen([sys.executable, "-m", "radfield", *reconstruct_args(scene, run, iterations), "--quiet",
                             "--nproc", "2"], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -168,7 +156,7 @@ def test_killed_rank_fails_cleanly_and_the_run_resumes(scene, tmp_path, capsys):
 
     # a single process picks the run up from the 2-rank checkpoint and finishes it
     capsys.readouterr()
-    assert in_process(*reconstruct_args(scene, run, iterations)) == 0
+    assert run_radfield(*reconstruct_args(scene, run, iterations)) == 0
     assert f"train: resuming from the checkpoint at step {step}" in capsys.readouterr().err
     assert load_checkpoint(run / "train" / "final_state.safetensors").step == iterations
     assert [r["step"] for r in _log(run / "train" / "log.jsonl")] == list(range(1, iterations + 1))

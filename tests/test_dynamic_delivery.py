@@ -47,21 +47,11 @@ def dynamic_model(seed: int = 0) -> DynamicNeuralPrimitives:
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
+def smoke(tmp_path_factory, run_radfield):
     """A tiny dynamic dataset (2 test cameras × 3 moments, 16 px) and a dynamic model file."""
-    from radfield.cli.main import main
-    import sys
-
     root = tmp_path_factory.mktemp("dynamic")
-    argv = sys.argv
-    sys.argv = ["radfield", "demo-scene", "smoke", "-o", str(root / "smoke"), "--size", str(SIZE), "--times", "3",
-                "--train-views", "3", "--test-views", "2", "-q"]
-    try:
-        main()
-    except SystemExit as exit_:
-        assert not exit_.code
-    finally:
-        sys.argv = argv
+    assert run_radfield("demo-scene", "smoke", "-o", root / "smoke", "--size", SIZE, "--times", 3,
+                        "--train-views", 3, "--test-views", 2, "-q") == 0
     save_model(root / "dynamic.safetensors", dynamic_model())
     save_model(root / "static.safetensors", random_neural(20, extent=0.5, seed=4))
     return root

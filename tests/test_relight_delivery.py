@@ -10,7 +10,6 @@ so every check compares with those.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import replace
 
 import cv2
@@ -54,20 +53,11 @@ def with_network(prims, seed=0, amplitude=0.4, hidden=8):
 
 
 @pytest.fixture(scope="module")
-def olat(tmp_path_factory):
+def olat(tmp_path_factory, run_radfield):
     """A tiny relighting dataset (2 test cameras × 2 lights, 16 px) and relightable model files."""
-    from radfield.cli.main import main
-
     root = tmp_path_factory.mktemp("relight")
-    argv = sys.argv
-    sys.argv = ["radfield", "demo-scene", "olat", "-o", str(root / "olat"), "--size", str(SIZE), "--train-views", "3",
-                "--test-views", "2", "--lights", "2", "-q"]
-    try:
-        main()
-    except SystemExit as exit_:
-        assert not exit_.code
-    finally:
-        sys.argv = argv
+    assert run_radfield("demo-scene", "olat", "-o", root / "olat", "--size", SIZE, "--train-views", 3,
+                        "--test-views", 2, "--lights", 2, "-q") == 0
     save_model(root / "relight.safetensors",
                with_network(random_neural(40, scale=0.35, extent=0.6, b2=1.5, w2_amplitude=0.4, seed=0), amplitude=0.6))
     save_model(root / "gaussian-relight.safetensors", with_network(random_gaussians(30, extent=0.6, scale=0.2, seed=3)))
@@ -168,20 +158,11 @@ def test_light_orbit_circles_the_object_at_the_dataset_lights_distance(cli, olat
 
 
 @pytest.fixture(scope="module")
-def relight_run(olat, tmp_path_factory):
+def relight_run(olat, tmp_path_factory, run_radfield):
     """A relightable run of the olat scene (5 steps: only its files matter here)."""
-    from radfield.cli.main import main
-
     run = tmp_path_factory.mktemp("relight-run") / "run"
-    argv = sys.argv
-    sys.argv = ["radfield", "reconstruct", str(olat / "olat"), "-o", str(run), "--set", "train.primitive=neural-relight",
-                "--set", "train.iterations=5", "--no-cage", "-q"]
-    try:
-        main()
-    except SystemExit as exit_:
-        assert not exit_.code
-    finally:
-        sys.argv = argv
+    assert run_radfield("reconstruct", olat / "olat", "-o", run, "--set", "train.primitive=neural-relight",
+                        "--set", "train.iterations=5", "--no-cage", "-q") == 0
     return run
 
 

@@ -4,7 +4,6 @@ the run records it, `eval` scores held-out (camera, light) frames per light, and
 kind on views without lights is one error line."""
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,20 +33,11 @@ def blobs(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def runs(olat, tmp_path_factory) -> dict[str, Path]:
+def runs(olat, tmp_path_factory, run_radfield) -> dict[str, Path]:
     """A relit run (the default: neural -> neural-relight) and the light-blind one of the same frames."""
-    from radfield.cli.main import main
-
-    root, argv = tmp_path_factory.mktemp("runs"), sys.argv
+    root = tmp_path_factory.mktemp("runs")
     for name, extra in (("relit", []), ("blind", ["--set", "data.light=ignore"])):
-        sys.argv = ["radfield", "reconstruct", str(olat), "-o", str(root / name), "--no-cage", "--iterations", STEPS,
-                    "-q", *extra]
-        try:
-            main()
-        except SystemExit as e:
-            assert not e.code, e.code
-        finally:
-            sys.argv = argv
+        assert run_radfield("reconstruct", olat, "-o", root / name, "--no-cage", "--iterations", STEPS, "-q", *extra) == 0
     return {"relit": root / "relit", "blind": root / "blind"}
 
 
