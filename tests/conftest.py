@@ -5,6 +5,8 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
+from torch.overrides import TorchFunctionMode
 
 from radfield.cli.main import main
 
@@ -253,3 +255,66 @@ def hand_run(root: Path, half: float = 0.8):
 @pytest.fixture(name="hand_run", scope="session")
 def hand_run_fixture():
     return hand_run
+
+
+# --- reads of the device's values --------------------------------------------------------------
+
+class HostReads(TorchFunctionMode):
+    """Inside (`with HostReads(...) as reads`): every op of radfield's own code that makes the host
+    wait for a tensor's value, in `reads.seen` as (reads.step, op, the function that called it). On
+    a GPU each of them drains the device's queue, so the GPU idles while the host launches what
+    follows; here CPU tensors stand in for the device's, so the ops are found by name: the reads
+    (item, tolist, int(), bool(), cpu(), numpy()), and the ops whose result's size is a device
+    value (nonzero, masked selection, unique, bincount, repeat_interleave without output_size,
+    one-argument where). Code that works on host tensors by design (a camera's own checks, draws
+    from CPU generators) is passed as `host_side`: nothing under those functions is counted. What
+    this cannot see: blocking copies to the device (tests/test_cuda.py checks those on a GPU)."""
+
+    READS = {"item", "tolist", "__int__", "__float__", "__bool__", "__index__", "cpu", "numpy", "nonzero", "argwhere",
+             "masked_select", "unique", "unique_consecutive", "bincount", "repeat_interleave", "where"}
+    LIBRARIES = ("torch", "triton", "numpy")   # their own frames between radfield's call and the op
+
+    def __init__(self, host_side=()):
+        super().__init__()
+        self.step, self.seen = 0, []
+        self.host_side = {function.__code__ for function in host_side}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if self.waits(getattr(func, "__name__", ""), args, kwargs):
+            caller = self.caller()
+            if caller is not None:
+                self.seen.append((self.step, func.__name__, caller))
+        return func(*args, **kwargs)
+
+    def waits(self, name: str, args, kwargs) -> bool:
+        if name in ("__getitem__", "__setitem__", "index_put_"):
+            index = args[1] if len(args) > 1 else None
+            return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool
+                       for i in (index if isinstance(index, tuple) else (index,)))
+        if name == "repeat_interleave":
+            return "output_size" not in kwargs
+        if name == "where":
+            return len(args) + len(kwargs) == 1
+        return name in self.READS
+
+    def caller(self) -> str | None:
+        """radfield's function that asked ("module.function"), or None: a library's own work (the
+        Triton interpreter's), or host-side code."""
+        frame, asked = sys._getframe(2), None
+        while frame is not None:
+            if frame.f_code in self.host_side:
+                return None
+            module = frame.f_globals.get("__name__", "")
+            if asked is None and module.split(".")[0] not in self.LIBRARIES:
+                if module.split(".")[0] != "radfield":
+                    return None
+                asked = f"{module}.{frame.f_code.co_name}"
+            frame = frame.f_back
+        return asked
+
+
+@pytest.fixture(name="host_reads")
+def host_reads_fixture():
+    """HostReads (above), the class."""
+    return HostReads

@@ -68,14 +68,18 @@ def test_the_same_path_on_the_cpu(cli, tmp_path):
 
 
 @needs_cuda
-def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch):
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind):
     """torch.cuda.set_sync_debug_mode("error") over every step that does not read the step records
-    (train.log_every 5; no population control, whose refinement steps read anyway; the rules
-    refresh at multiples of 5): loss, D-SSIM, PSNR sums, Adam, the SH schedule, the frequency cap,
-    σ ≥ 0, the footprint floor and random backgrounds run without waiting for the GPU. The renderer
-    runs outside the check (its pair counters are the render backends' business)."""
+    (train.log_every 5; the strategy gathers its statistics every step but refines never, as
+    refinement reads anyway; the rules refresh at multiples of 5): the Triton renderer, loss,
+    D-SSIM, PSNR sums, Adam, the SH schedule, the frequency cap, σ ≥ 0, the footprint floor, ray
+    jitter and random backgrounds run without waiting for the GPU, the binning's pair count
+    (gpu.pair_count, one read a view) excepted. Also the blocking copies to the device, which the
+    CPU check of the same loop (tests/test_triton.py) cannot see."""
+    from radfield.core.backends import gpu
     from radfield.core.geometry.cameras import Camera, look_at
-    from radfield.core.kinds import random_neural
+    from radfield.core.kinds import random_gaussians, random_neural
     from radfield.core.train import trainer
     from radfield.pipeline.config import load_defaults
 
@@ -86,29 +90,33 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch):
                               for c in cameras])
     cfg = load_defaults()["train"]
     cfg.update(iterations=12, batch_views=2, log_every=5, checkpoint_every=5, eval_every=0, nonnegative_density=180.0,
-               min_footprint=0.5, random_background=True)
-    cfg["densify"].update(start=100, stop=0, every=5)   # gathers nothing, refines nothing
+               min_footprint=0.5, ray_jitter=0.5, random_background=True)
+    cfg["densify"].update(start=1, stop=100, every=100)   # gathers every step, refines never
     reads = {5, 10, 12}   # the steps whose records are read
-    decayed, render_view = trainer.decayed, trainer.render_supersampled
+    decayed, count_pairs = trainer.decayed, gpu.pair_count
+    counted = []
 
     def step_marker(lr, ratio, step, iterations):   # the first thing each step does
         torch.cuda.set_sync_debug_mode("default" if step + 1 in reads else "error")
         return decayed(lr, ratio, step, iterations)
 
-    def unchecked_render(*args, **kwargs):
+    def allowed_read(touched):
         mode = torch.cuda.get_sync_debug_mode()
         torch.cuda.set_sync_debug_mode("default")
         try:
-            return render_view(*args, **kwargs)
+            counted.append(touched.device.type)
+            return count_pairs(touched)
         finally:
             torch.cuda.set_sync_debug_mode(mode)
 
     monkeypatch.setattr(trainer, "decayed", step_marker)
-    monkeypatch.setattr(trainer, "render_supersampled", unchecked_render)
+    monkeypatch.setattr(gpu, "pair_count", allowed_read)
     log = []
+    make = random_neural if kind == "neural" else random_gaussians
     try:
-        trainer.train(random_neural(20, seed=2), cameras, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0,
+        trainer.train(make(20, seed=2), cameras, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0,
                       seed=0, device="cuda", alphas=torch.ones(3, 16, 16), on_step=lambda s, i: log.append((s, i)))
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert [s for s, _ in log] == list(range(1, 13)) and all(math.isfinite(i["loss"]) for _, i in log)
+    assert counted == ["cuda"] * 24   # the Triton renderer drew every view (12 steps of 2)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
+from radfield.core.render.antialias import jitter_offsets
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train import trainer
@@ -25,8 +26,6 @@ from radfield.stages import init as init_stage
 from radfield.stages import train as train_stage
 
 BG = (1.0, 1.0, 1.0)
-# what makes the host wait for a device tensor's value (on a GPU: for every kernel queued before)
-READS = ("item", "__float__", "__int__", "__bool__", "__index__", "tolist", "cpu", "numpy", "nonzero")
 
 
 def orbit(n: int, size: int) -> list[Camera]:
@@ -47,44 +46,20 @@ def views(n: int = 3, size: int = 16):
 
 
 @contextlib.contextmanager
-def host_reads(monkeypatch):
-    """Inside: every read of a tensor's value in trainer.train, as (step, method), step the
-    optimiser step being run (from 1; 0: the set-up before the first). Not counted: the renderer's
-    own reads (its pair counters: the render backends' business, tested with them) and the
-    CPU-side randomness and cameras (view order, ray jitter: host tensors by design)."""
-    reads, now = [], {"step": 0, "outside": 0}
-
-    def counted(name, original):
-        def read(self, *args, **kwargs):
-            if not now["outside"]:
-                reads.append((now["step"], name))
-            return original(self, *args, **kwargs)
-        return read
-
-    def uncounted(function):
-        def call(*args, **kwargs):
-            now["outside"] += 1
-            try:
-                return function(*args, **kwargs)
-            finally:
-                now["outside"] -= 1
-        return call
-
+def step_reads(monkeypatch, host_reads):
+    """conftest.HostReads over trainer.train, each read with the optimiser step being run (from 1;
+    0: the set-up before the first). Host-side by design: the view order and the ray jitter (draws
+    from CPU generators) and the checks of the jittered camera they make."""
+    reads = host_reads(host_side=(trainer.views_for_step, jitter_offsets, Camera.__post_init__))
     decayed = trainer.decayed
 
     def step_marker(lr, ratio, step, iterations):   # the first thing each step does
-        now["step"] = step + 1
+        reads.step = step + 1
         return decayed(lr, ratio, step, iterations)
 
     monkeypatch.setattr(trainer, "decayed", step_marker)
-    for name in ("render_supersampled", "views_for_step", "jitter_offsets", "shifted"):
-        monkeypatch.setattr(trainer, name, uncounted(getattr(trainer, name)))
-    for name in READS:
-        monkeypatch.setattr(torch.Tensor, name, counted(name, getattr(torch.Tensor, name)))
-    try:
+    with reads:
         yield reads
-    finally:
-        monkeypatch.undo()
 
 
 def small_config(**changes) -> dict:
@@ -95,27 +70,28 @@ def small_config(**changes) -> dict:
 
 
 @pytest.mark.parametrize("make", [random_neural, random_gaussians])
-def test_the_loop_reads_the_device_only_at_flush_steps(tmp_path, monkeypatch, make):
+def test_the_loop_reads_the_device_only_at_flush_steps(tmp_path, monkeypatch, host_reads, make):
     """log_every 5, refinement and checkpoints at multiples of 5 (so are the rules' refreshes,
     strategy.refresh_interval), 12 steps: the host reads tensors at steps 5, 10 and 12 only, with
     every rule on (σ ≥ 0 on every primitive, frequency cap, footprint floor, ray jitter, random
-    backgrounds, the 3DGS opacity reset)."""
+    backgrounds, the 3DGS opacity reset), the renderer (the fused CPU kernels) included."""
     cameras, images = views()
     cfg = small_config(iterations=12, batch_views=2, log_every=5, checkpoint_every=5, eval_every=0,
                        nonnegative_density=180.0, min_footprint=0.5, ray_jitter=0.5, random_background=True,
                        densify={"start": 5, "stop": 10, "every": 5})
     cfg["densify"]["gaussian"]["opacity_reset_every"] = 5
     log = []
-    with host_reads(monkeypatch) as reads:
+    with step_reads(monkeypatch, host_reads) as reads:
         train(make(20, seed=2), cameras, images, cfg, background=BG, extent=1.0, seed=0,
               alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append((step, info)),
               checkpoint=lambda state: save_checkpoint(tmp_path / "checkpoint.safetensors", state))
     assert [step for step, _ in log] == list(range(1, 13))
     assert all(type(info["loss"]) is float and type(info["psnr"]) is float for _, info in log)
-    read_steps = {step for step, _ in reads}
-    assert read_steps - {0} == {5, 10, 12}, sorted(reads)
-    # one read of all the pending sums per flush (the counter sees reads)
-    assert [step for step, name in reads if name == "tolist"] == [5, 10, 12]
+    read_steps = {step for step, _, _ in reads.seen}
+    assert read_steps - {0} == {5, 10, 12}, reads.seen
+    # one read of all the pending sums per flush
+    flushes = [step for step, op, where in reads.seen if where == "radfield.core.train.trainer.flush"]
+    assert flushes == [5, 10, 12] and all(op == "tolist" for _, op, where in reads.seen if where.endswith(".flush"))
 
 
 @pytest.mark.parametrize("batch", [1, 3])

@@ -13,6 +13,7 @@ import importlib.util
 import itertools
 import math
 import os
+import re
 
 import pytest
 import torch
@@ -150,36 +151,129 @@ def test_an_empty_view_renders_the_background():
     assert all(torch.count_nonzero(g) == 0 for g in grads.values())
 
 
+@pytest.mark.parametrize("kind", ["neural", "gaussian", "neural-dynamic", "gaussian-relight"])
+def test_a_training_step_reads_the_device_once_a_view(kind, host_reads, monkeypatch):
+    """trainer.train on the Triton path (the code a GPU runs: the kernels, the per-view preparation
+    in torch, a conditioned kind's primitives of the view, loss, D-SSIM, Adam, the strategy's
+    statistics, the rules), 6 steps of 2 views with log_every 3: between the reads of the step
+    records (steps 3 and 6) the host reads one number a view, the binning's pair count
+    (gpu.pair_count), and nothing else: no render counter, no visible count (conftest.HostReads;
+    the blocking copies to the device are test_cuda.py's)."""
+    from dataclasses import replace
+
+    from radfield.core.geometry.cameras import Camera, Light
+    from radfield.core.kinds import random_neural
+    from radfield.core.render.antialias import jitter_offsets
+    from radfield.core.train import trainer
+    from radfield.pipeline.config import load_defaults
+
+    cams = [Camera(fx=20.8, fy=20.8, cx=8, cy=8, width=16, height=16, name=f"v{i}",
+                   c2w=look_at((3 * math.cos(i), 3 * math.sin(i), 0.5), (0, 0, 0))) for i in range(3)]
+    with torch.no_grad():
+        images = torch.stack([render(random_neural(30, seed=1), c).color.clamp(0, 1) for c in cams])
+    if kind.endswith("dynamic"):
+        cams = [replace(c, time=i / 2) for i, c in enumerate(cams)]
+    if kind.endswith("relight"):
+        cams = [replace(c, light=Light(position=(2.0, i - 1.0, 2.0))) for i, c in enumerate(cams)]
+    cfg = load_defaults()["train"]
+    cfg.update(iterations=6, batch_views=2, log_every=3, checkpoint_every=100, eval_every=0, nonnegative_density=180.0,
+               min_footprint=0.5, ray_jitter=0.5, random_background=True, sh_degree=0)
+    cfg["densify"].update(start=1, stop=100, every=100)   # gathers the statistics every step, refines never
+    start = (random_neural if kind.startswith("neural") else random_gaussians)(20, seed=2)
+    geometry = {name: getattr(start, name) for name in ("means", "log_scales", "quats", "sh")}
+    start = kinds.get(kind).from_points(geometry, kinds.get(kind).init_settings(load_defaults()), seed=0)
+    reads = host_reads(host_side=(trainer.views_for_step, jitter_offsets, Camera.__post_init__))
+    decayed = trainer.decayed
+
+    def step_marker(lr, ratio, step, iterations):   # the first thing each step does
+        reads.step = step + 1
+        return decayed(lr, ratio, step, iterations)
+
+    monkeypatch.setattr(trainer, "decayed", step_marker)
+    log = []
+    with backends.using(backends.TRITON), reads:
+        trainer.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
+                      device=DEVICE, alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append(step))
+    assert log == list(range(1, 7))
+    per_step = {step: sorted(f"{op} {where}" for s, op, where in reads.seen if s == step) for step in range(1, 7)}
+    pair_counts = ["__int__ radfield.core.backends.gpu.pair_count"] * 2
+    for step, seen in per_step.items():
+        if step in (3, 6):
+            assert seen == sorted([*pair_counts, "tolist radfield.core.train.trainer.flush"]), (step, seen)
+        else:
+            assert seen == pair_counts, (step, seen)
+
+
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
+def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
+    """The torch ops of one forward + backward on the Triton path (each a kernel launch on a GPU,
+    counted by a dispatch mode below autograd, so the backward's too; the ops that launch nothing,
+    views and detaches, left out) are the same for 50 and for 400 primitives: nothing is done per
+    primitive or per pair on the host. (The torch twin's ops grow with the pairs: one set a chunk.)"""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from radfield.bench.render import bench_cameras, bench_models
+
+    no_kernel = {"view", "_unsafe_view", "_reshape_alias", "as_strided", "t", "transpose", "expand", "slice", "select",
+                 "unsqueeze", "squeeze", "permute", "detach", "alias", "unbind", "split", "split_with_sizes",
+                 "lift_fresh", "empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided"}
+
+    class Launches(TorchDispatchMode):
+        count = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.count += func.__name__.split(".")[0] not in no_kernel
+            return func(*args, **(kwargs or {}))
+
+    cam = bench_cameras(1, 32, 32)[0]
+    counts = []
+    for n in (50, 400):
+        prims = bench_models(n, (kind,))[kind].to(device=DEVICE).map(lambda t: t.clone().requires_grad_(True))
+        with backends.using(backends.TRITON), Launches() as launches:
+            out = render(prims, cam)
+            (out.color.sum() + out.alpha.sum()).backward()
+        assert out.meta["visible"] > n / 4
+        counts.append(launches.count)
+    assert counts[0] == counts[1] and counts[0] > 0, counts
+
+
 def test_tile_lists_are_every_touched_tile_front_to_back():
-    """bin_tiles against a loop over boxes and tiles: each tile lists exactly the boxes that touch it,
-    in depth rank order."""
+    """bin_tiles against a loop over boxes and tiles: each tile lists exactly the visible boxes that
+    touch it, in depth rank order; the invisible ones (their boxes anything, even inverted or far
+    outside the image: the renderer passes every primitive) are in no list."""
     g = torch.Generator().manual_seed(3)
     width, height = 53, 37                     # 4 × 3 tiles, the last ones cut
     corner = torch.stack([torch.randint(0, width, (40,), generator=g), torch.randint(0, height, (40,), generator=g)], -1)
     size = torch.randint(0, 30, (40, 2), generator=g)
     far = torch.minimum(corner + size, torch.tensor([width - 1, height - 1]))
-    bounds = torch.cat([corner, far], -1).to(DEVICE)
-    offsets, entries = gpu.bin_tiles(bounds, height, width)
+    bounds = torch.cat([corner, far], -1)
+    visible = torch.rand(40, generator=g) < 0.7
+    bounds[~visible] = torch.randint(-10**6, 10**6, (int((~visible).sum()), 4), generator=g)
+    offsets, entries = gpu.bin_tiles(bounds.to(DEVICE), visible.to(DEVICE), height, width)
     tiles_x, tiles_y = math.ceil(width / 16), math.ceil(height / 16)
     assert offsets.shape == (tiles_x * tiles_y + 1,) and offsets.dtype == entries.dtype == torch.int32
-    offsets, entries, bounds = offsets.cpu().tolist(), entries.cpu().tolist(), bounds.cpu().tolist()
+    offsets, entries, bounds = offsets.cpu().tolist(), entries.cpu().tolist(), bounds.tolist()
     for ty, tx in itertools.product(range(tiles_y), range(tiles_x)):
         t = ty * tiles_x + tx
         expected = [r for r, (x0, y0, x1, y1) in enumerate(bounds)
-                    if x0 // 16 <= tx <= x1 // 16 and y0 // 16 <= ty <= y1 // 16]
+                    if visible[r] and x0 // 16 <= tx <= x1 // 16 and y0 // 16 <= ty <= y1 // 16]
         assert entries[offsets[t]:offsets[t + 1]] == expected, (tx, ty)
-    assert offsets[-1] == len(entries)
+    assert offsets[0] == 0 and offsets[-1] == len(entries) and 0 < visible.sum() < 40
 
 
-# Compiles every kernel for an H100 (sm_90) with no GPU: Triton's front end, its lowering to PTX and
-# the ptxas its wheel ships, so an error only the compiled kernels have (the interpreter runs Python)
-# fails here in CI too. In a fresh process: this one imported the kernels for the interpreter.
+# Compiles every kernel for an H100 (sm_90) with no GPU, with the backend's options: Triton's front
+# end, its lowering to PTX and the ptxas its wheel ships, so an error only the compiled kernels have
+# (the interpreter runs Python) fails here in CI too; ptxas's log says whether a kernel spills
+# registers to memory. In a fresh process: this one imported the kernels for the interpreter.
 COMPILE = r"""
 import inspect, sys
 import triton
+from triton import knobs
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
-from radfield.core.backends.gpu import gaussian_kernels, neural_kernels
+from radfield.core.backends.gpu import COMPILE_OPTIONS, gaussian_kernels, neural_kernels
+
+knobs.nvidia.dump_ptxas_log = True   # ptxas -v's lines, on stdout
 
 def compile_for_sm90(fn, **constexprs):
     names = list(inspect.signature(fn.fn).parameters)
@@ -188,9 +282,9 @@ def compile_for_sm90(fn, **constexprs):
     signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32 else "*fp32"
                  for n in names}
     source = ASTSource(fn, signature, constexprs={(names.index(k),): v for k, v in constexprs.items()})
-    kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options={"enable_fp_fusion": False})
+    print("kernel", fn.fn.__name__, sorted(constexprs.items()), flush=True)
+    kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=COMPILE_OPTIONS)
     assert len(kernel.asm["cubin"]) > 0
-    print(fn.fn.__name__, sorted(constexprs.items()))
 
 compile_for_sm90(gaussian_kernels.gaussian_forward, SIDE=16)
 compile_for_sm90(gaussian_kernels.gaussian_backward, SIDE=16)
@@ -209,4 +303,12 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     env["TRITON_CACHE_DIR"] = str(tmp_path / "cache")
     done = subprocess.run([sys.executable, "-c", COMPILE], env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert done.stdout.count("\n") == 6, done.stdout
+    # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
+    kernels = done.stdout.split("kernel ")[1:]
+    assert len(kernels) == 6, done.stdout
+    for log in kernels:
+        spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)
+        registers = re.findall(r"Used (\d+) registers", log)
+        assert spills and registers, log
+        assert all(int(stores) == int(loads) == 0 for stores, loads in spills), log
+        assert all(int(count) <= 255 for count in registers), log

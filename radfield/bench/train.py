@@ -13,7 +13,8 @@ timed part by part (the parts are run in the trainer's order, on its own functio
 Population control keeps the primitive count fixed (densification starts after the run), so
 each row measures one count: `refine` then costs its checks only. The `train()` column times the
 real `trainer.train`, end to end, as a check that the parts add up: one run of warm-up + steps
-steps, clocked by its on_step callback, gives the ms per step of the steps after the warm-up,
+steps, clocked by its on_step callback (at the reads of the step statistics, every `warmup` steps:
+on a GPU the steps between them run ahead of the device), gives the ms per step after the warm-up,
 with the SH degree schedule at its last stage from step 3 on (as the parts, which render at the
 full degree); the `setup` column is the rest of the call in ms: its set-up (copies of the
 parameters and images, the optimiser, the strategy) and the warm-up steps, paid once per call.
@@ -141,8 +142,11 @@ def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tu
     # the model's own SH degree, as the train stage trains it (3; the relightable kinds' 0), reached
     # from step 3 on: the parts' colour
     cfg["sh_degree"], cfg["sh_increase_every"] = prims.sh_degree, 1
-    cfg["log_every"] = 1           # on_step clocks every step (a GPU's default hands them over in bursts)
-    clock = []   # the time after each step
+    # the step statistics are read (and on_step called, in a burst) at the end of the warm-up and
+    # every `warmup` steps after it: the clock needs those two ends, and a GPU then runs ahead of
+    # the host in between as it does in a real run (train.log_every: 50), not one step at a time
+    cfg["log_every"] = max(warmup, 1)
+    clock = []   # the time on_step saw each step (at the read that handed it over)
 
     def on_step(step, info):
         sync()

@@ -41,6 +41,7 @@ from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.render.sh import sh_degree_from_coeffs
 from radfield.errors import RadfieldError
 from radfield.util.registry import Registry
+from radfield.util.transfer import to_device
 
 if TYPE_CHECKING:
     from radfield.core.geometry.cameras import Camera
@@ -386,11 +387,12 @@ def ellipsoid_bounds(prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tenso
         z = means_cam[:, 2]
         in_front = z - z_ext > near
         visible = z + z_ext > near
-        k = camera.K.to(means_cam)
+        k = to_device(camera.K, means_cam.device, means_cam.dtype)
         dual = k @ (means_cam[:, :, None] * means_cam[:, None, :] - sigma) @ k.T
-        full = torch.tensor([0, 0, camera.width - 1, camera.height - 1], device=means_cam.device)
         box = conic_box(dual, camera.width, camera.height)
-        bounds = torch.where(in_front[:, None], box, full)
+        # a primitive the near plane cuts: the whole image
+        full = (0, 0, camera.width - 1, camera.height - 1)
+        bounds = torch.stack([torch.where(in_front, side, edge) for side, edge in zip(box.unbind(-1), full)], -1)
         return clip_bounds(bounds, visible, camera)
 
 

@@ -46,6 +46,7 @@ from radfield.core.kinds.gaussian import Gaussians, GaussianKind
 from radfield.core.kinds.neural import NeuralKind, NeuralPrimitives
 from radfield.core.render.sh import join_sh, sh_parts
 from radfield.errors import RadfieldError
+from radfield.util.transfer import to_device
 
 DEGREE = 4                       # n = l = 4 (eq. 10-12): ξ^1..ξ^4, cos/sin(i ω ξ) for i = 1..4
 TEMPORAL_TERMS = 3 * DEGREE      # a_1..a_4, b_1..b_4, c_1..c_4
@@ -81,7 +82,7 @@ def temporal_offset(coeffs: torch.Tensor, xi: float, frequency: float) -> torch.
 def basis_vector(xi: float, frequency: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """φ(ξ) (12,), for o + opacity_t φ(ξ) as one matrix-vector product (callers never write to it)."""
     with torch.inference_mode(False):   # a cached inference tensor could not be saved for a backward
-        return torch.tensor(temporal_basis(xi, frequency), dtype=dtype, device=device)
+        return to_device(torch.tensor(temporal_basis(xi, frequency), dtype=dtype), device)
 
 
 @functools.lru_cache(maxsize=1024)
@@ -89,7 +90,7 @@ def colour_basis(xi: float, frequency: float, dtype: torch.dtype, device: torch.
     """φ(ξ) ⊗ I₃ (36, 3): sh_t viewed as (P, 36) (term-major, channel-minor) times it is φ(ξ) · sh_t (P, 3)."""
     with torch.inference_mode(False):
         phi = torch.tensor(temporal_basis(xi, frequency), dtype=torch.float64)
-        return torch.kron(phi[:, None], torch.eye(3, dtype=torch.float64)).to(dtype=dtype, device=device)
+        return to_device(torch.kron(phi[:, None], torch.eye(3, dtype=torch.float64)), device, dtype)
 
 
 def view_time(camera) -> float:

@@ -94,14 +94,14 @@ def pair_alpha(u, v, intrinsics, mean2d, conic, opacity):
 def _fused_cpu_view(prims: Gaussians, frame: ViewFrame, colors: torch.Tensor, t_min: float):
     """The whole view on the fused CPU kernels: EWA projection, bounds and depth order, and the
     compositing in C++ (core/backends/csrc/prepare_kernels.cpp, view_kernels.cpp); returns
-    (Σ w c, Σ w z, T, counters, the visible primitives front to back)."""
+    (Σ w c, Σ w z, T, counters, the number of visible primitives)."""
     camera = frame.camera
     mean2d, conic, cov = fused.gaussian_prep(frame.means_cam, prims.log_scales, prims.quats, frame.w2c[:3, :3],
                                              frame.intrinsics, camera.width, camera.height, frame.near)
     view = (mean2d, conic, torch.sigmoid(prims.opacities))
     bounds, ids = fused.gaussian_bounds(mean2d, cov, frame.depth, camera.width, camera.height, frame.near)
     out = fused.gaussian_view(bounds, ids, camera.height, camera.width, t_min, colors, frame.depth, *view)
-    return (*out, ids)
+    return (*out, ids.numel())
 
 
 class GaussianKind(PrimitiveKind):

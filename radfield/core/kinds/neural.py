@@ -166,7 +166,7 @@ def pair_alpha(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, windo
 def _fused_cpu_view(prims: NeuralPrimitives, frame: ViewFrame, colors: torch.Tensor, t_min: float):
     """The whole view on the fused CPU kernels: bounds and depth order, the neural frame and the
     compositing in C++ (core/backends/csrc/prepare_kernels.cpp, view_kernels.cpp); returns
-    (Σ w c, Σ w z, T, counters, the visible primitives front to back)."""
+    (Σ w c, Σ w z, T, counters, the number of visible primitives)."""
     camera = frame.camera
     bounds, ids = fused.neural_bounds(frame.means_cam, prims.log_scales, prims.quats, frame.w2c[:3, :3],
                                       frame.intrinsics, camera.width, camera.height, frame.near)
@@ -174,7 +174,7 @@ def _fused_cpu_view(prims: NeuralPrimitives, frame: ViewFrame, colors: torch.Ten
     view = (m_cam, o_ell, w_cam, c, *density_weights(prims, frame.campos - prims.means), inv_smax)
     out = fused.neural_view(bounds, ids, frame.intrinsics, camera.height, camera.width, t_min, colors, frame.depth,
                             *view, window=prims.window)
-    return (*out, ids)
+    return (*out, ids.numel())
 
 
 # --- what an edit does to the MLP ------------------------------------------------------------------

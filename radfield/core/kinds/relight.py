@@ -67,6 +67,7 @@ from radfield.core.kinds.gaussian import Gaussians, GaussianKind
 from radfield.core.kinds.neural import NeuralKind, NeuralPrimitives
 from radfield.core.render.sh import C0, fibonacci_sphere, sh_basis
 from radfield.errors import RadfieldError
+from radfield.util.transfer import to_device
 
 DEFAULT_COLOR_HIDDEN = 12       # H: hidden units of a primitive's colour network (module docstring)
 SH_DEGREE = 0                   # a new model's SH: c_dc only, eq. 14 as written (module docstring, measured)
@@ -93,10 +94,10 @@ def light_at_primitives(means: torch.Tensor, light) -> tuple[torch.Tensor, torch
     """(d_l (P, 3): the unit direction from each centre towards the light, E (P, 1): the light's
     irradiance there, intensity / r² for a point light at distance r, the intensity for a directional one)."""
     if light.position is not None:
-        to_light = means.new_tensor(light.position) - means
+        to_light = to_device(torch.tensor(light.position, dtype=means.dtype), means.device) - means
         r2 = (to_light * to_light).sum(-1, keepdim=True)
         return to_light / torch.sqrt(r2), light.intensity / r2
-    towards = -means.new_tensor(light.direction)   # a directional light shines along `direction`
+    towards = -to_device(torch.tensor(light.direction, dtype=means.dtype), means.device)   # it shines along `direction`
     return towards.expand_as(means), means.new_full((len(means), 1), light.intensity)
 
 
@@ -137,7 +138,7 @@ def dc_of_colour(colour: torch.Tensor) -> torch.Tensor:
 
 def view_sh(prims, camera) -> torch.Tensor:
     """The degree-0 SH of each primitive's colour in this view: d = normalise(μ − o)."""
-    campos = camera.c2w[:3, 3].to(device=prims.means.device, dtype=prims.means.dtype)
+    campos = to_device(camera.c2w[:3, 3], prims.means.device, prims.means.dtype)
     light = view_light(camera)
     # the same in one op with a hand-written backward (fused: core/backends/csrc/relight_kernels.cpp),
     # for the DC band alone (the kinds train degree 0); None: the torch twin below

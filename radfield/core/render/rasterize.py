@@ -24,6 +24,7 @@ Pipeline:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, MutableMapping
 from typing import NamedTuple
 
 import torch
@@ -33,6 +34,7 @@ from radfield.core.geometry.cameras import Camera
 from radfield.core.kinds import ViewFrame
 from radfield.core.render.composite import composite_view
 from radfield.core.render.sh import sh_parts, sh_to_color
+from radfield.util.transfer import to_device
 
 T_MIN = 1e-4            # 3DGS early termination threshold on transmittance
 
@@ -41,7 +43,42 @@ class Render(NamedTuple):
     color: torch.Tensor  # (H, W, 3)
     alpha: torch.Tensor  # (H, W) accumulated opacity 1 − T
     depth: torch.Tensor  # (H, W) opacity-weighted mean camera-space depth of primitive centres (0 where empty)
-    meta: dict
+    meta: "RenderCounts"
+
+
+class RenderCounts(MutableMapping):
+    """A render's counts (visible, pairs, contributing_pairs, candidate_pairs, terminated_pixels),
+    read from the device at the first look: on a GPU a read waits for every queued kernel, so a
+    training step that never looks never waits. Otherwise a dict."""
+
+    KEYS = ("visible", "pairs", "contributing_pairs", "candidate_pairs", "terminated_pixels")
+
+    def __init__(self, read: Callable[[], list[int]]):
+        self._read, self._values = read, None
+
+    def _counts(self) -> dict:
+        if self._values is None:
+            self._values = dict(zip(self.KEYS, self._read()))
+            self._read = None
+        return self._values
+
+    def __getitem__(self, key: str) -> int:
+        return self._counts()[key]
+
+    def __setitem__(self, key: str, value) -> None:
+        self._counts()[key] = value
+
+    def __delitem__(self, key: str) -> None:
+        del self._counts()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._counts())
+
+    def __len__(self) -> int:
+        return len(self._counts())
+
+    def __repr__(self) -> str:
+        return repr(self._counts()) if self._values is not None else "RenderCounts(not read yet)"
 
 
 def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0), near: float = 0.01,
@@ -63,8 +100,12 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
     prims = kinds.of(prims).at_view(prims, camera)
     device, dtype = prims.means.device, prims.means.dtype
     height, width = camera.height, camera.width
-    c2w = camera.c2w.to(device=device, dtype=dtype)
-    w2c = torch.linalg.inv(c2w)
+    # the camera's numbers made on the host, sent in one copy that does not wait for the device
+    c2w = camera.c2w.to(dtype)
+    on_host = torch.cat([c2w.reshape(16), torch.linalg.inv(c2w).reshape(16),
+                         torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], dtype=dtype)])
+    c2w, w2c, intrinsics = to_device(on_host, device).split((16, 16, 5))
+    c2w, w2c = c2w.view(4, 4), w2c.view(4, 4)
     campos = c2w[:3, 3]
     means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
     depth = means_cam[:, 2]
@@ -80,16 +121,17 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
     else:
         colors = sh_to_color(prims.sh, torch.nn.functional.normalize(prims.means - campos, dim=-1), degree)
 
-    intrinsics = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, near], device=device, dtype=dtype)
     frame = ViewFrame(camera, c2w, w2c, campos, means_cam, depth, intrinsics, near)
     view_op = backends.kernel(f"view.{kind.name}", device, dtype)
     if view_op is not None:
         # the whole view in one backend call (fused: core/backends/csrc/view_kernels.cpp): the kind's
-        # bounds, depth order and per-view tensors, then the same compositing rules; it takes every
-        # per-primitive tensor with `ids` (the visible primitives front to back) and gathers and
-        # scatters itself, so no autograd op of a gather is recorded here
-        acc_color, acc_depth, transmittance, counters, ids = view_op(prims, frame, colors, t_min)
-        n_pairs, n_contrib, n_done, n_candidates = counters.tolist()
+        # bounds, depth order and per-view tensors, then the same compositing rules; it gathers and
+        # scatters the per-primitive tensors itself, so no autograd op of a gather is recorded here
+        acc_color, acc_depth, transmittance, counters, visible = view_op(prims, frame, colors, t_min)
+
+        def counts():   # read only when someone looks (RenderCounts)
+            evaluated, composited, terminated, candidates = counters.tolist()
+            return [int(visible), evaluated, composited, candidates, terminated]
     else:
         bounds, visible, view = kind.twin_view(prims, frame)
         ids = torch.nonzero(visible).squeeze(1)
@@ -100,11 +142,11 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
             max_pairs, t_min)
         x0, y0, x1, y1 = bounds.unbind(-1)
         n_candidates = int(((x1 - x0 + 1) * (y1 - y0 + 1)).sum())
+        counts = lambda: [ids.numel(), n_pairs, n_contrib, n_candidates, n_done]
 
-    bg = torch.as_tensor(background, device=device, dtype=dtype)
+    bg = to_device(background if isinstance(background, torch.Tensor) else torch.tensor(background, dtype=dtype),
+                   device, dtype)
     color = acc_color + transmittance[..., None] * bg
     alpha = 1.0 - transmittance
     mean_depth = acc_depth / torch.clamp_min(alpha, 1e-10)
-    meta = {"visible": int(ids.numel()), "pairs": n_pairs, "contributing_pairs": n_contrib,
-            "candidate_pairs": n_candidates, "terminated_pixels": n_done}
-    return Render(color, alpha, mean_depth, meta)
+    return Render(color, alpha, mean_depth, RenderCounts(counts))

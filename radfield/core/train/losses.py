@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from radfield.core import backends
+from radfield.util.transfer import to_device
 
 SSIM_WINDOW = 11    # taps of the Gaussian window (standard SSIM, Wang et al. 2004)
 SSIM_SIGMA = 1.5
@@ -171,5 +172,5 @@ def _gaussian_window(dtype, device) -> torch.Tensor:
     with torch.inference_mode(False):   # a cached inference tensor could not be saved for a backward
         x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
         taps = torch.exp(-x * x / (2 * SSIM_SIGMA**2))
-        return (taps / taps.sum()).to(dtype=dtype, device=device)
+        return to_device(taps / taps.sum(), device, dtype)
 

@@ -54,6 +54,7 @@ from radfield.core import backends, kinds
 from radfield.core.geometry.cameras import Camera
 from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.render.kernels import ALPHA_MIN
+from radfield.util.transfer import to_device
 
 Params = dict[str, torch.Tensor]
 MLP_NAMES = ("w1", "b1", "w2", "b2")
@@ -162,7 +163,8 @@ class _Strategy:
         if frame is None or frame[0] is not camera:   # `is`: an id can be reused by a new camera
             if len(self._frames) >= 4096:   # jittered views are new cameras every step: stay bounded
                 self._frames.clear()
-            frame = self._frames[key] = (camera, camera.w2c.to(like)[:3].contiguous(), side_normals(camera, like))
+            frame = self._frames[key] = (camera, to_device(camera.w2c[:3], like.device, like.dtype).contiguous(),
+                                         side_normals(camera, like))
         return frame[1], frame[2]
 
     def _grow_and_prune(self, state: dict, params: Params, optimizer, prune: torch.Tensor,
@@ -278,7 +280,7 @@ class GaussianStrategy(_Strategy):
            camera.fy, camera.width, camera.height)
 
     def _signal(self, params: Params, grads: Params, camera: Camera) -> torch.Tensor:
-        w2c = camera.w2c.to(params["means"])
+        w2c = to_device(camera.w2c, params["means"].device, params["means"].dtype)
         depth = params["means"].detach() @ w2c[2, :3] + w2c[2, 3]
         grad_cam = grads["means"] @ w2c[:3, :3].T
         ndc_x = grad_cam[:, 0] * depth / camera.fx * (camera.width / 2)
@@ -342,7 +344,7 @@ def in_frustum(means: torch.Tensor, radius: torch.Tensor, camera: Camera, near: 
     """Whether the sphere of `radius` (P,) around each mean (P, 3) meets the camera's view
     frustum (beyond the near plane, inside the four side planes). Conservative: a sphere that
     only touches a frustum corner region counts as visible."""
-    w2c = camera.w2c.to(means)
+    w2c = to_device(camera.w2c, means.device, means.dtype)
     p = means.detach() @ w2c[:3, :3].T + w2c[:3, 3]
     inside = (p @ side_normals(camera, means).T).amin(-1) >= -radius   # all four planes: the nearest one
     return inside & (p[:, 2] + radius > near)
@@ -352,7 +354,8 @@ def side_normals(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     """The unit inward normals (4, 3) of the side planes of the view frustum, in camera space,
     through the camera centre: u ≥ 0, u ≤ W, v ≥ 0, v ≤ H (dtype and device of `like`)."""
     normals = torch.tensor([[camera.fx, 0.0, camera.cx], [-camera.fx, 0.0, camera.width - camera.cx],
-                            [0.0, camera.fy, camera.cy], [0.0, -camera.fy, camera.height - camera.cy]]).to(like)
+                            [0.0, camera.fy, camera.cy], [0.0, -camera.fy, camera.height - camera.cy]])
+    normals = to_device(normals, like.device, like.dtype)
     return torch.nn.functional.normalize(normals, dim=-1)
 
 

@@ -3,8 +3,8 @@
     runs(device, dtype) -> bool, why_not() -> str | None       the seam's Backend hooks
     gaussian_view(prims, frame, colors, t_min)                    op "view.gaussian" (kinds/gaussian.py)
     neural_view(prims, frame, colors, t_min)                      op "view.neural" (kinds/neural.py)
-        -> (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,), visible ids front to back)
-    bin_tiles(bounds, height, width) -> (offsets, entries)        the per-tile depth-ordered lists
+        -> (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,), the visible count (0-dim))
+    bin_tiles(bounds, visible, height, width) -> (offsets, entries)   the per-tile depth-ordered lists
 
 Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
 download (the wheel ships its compiler), and `TRITON_INTERPRET=1` runs the very same kernels on
@@ -16,7 +16,9 @@ the conic with the 0.3 px² blur, the 3σ boxes; neural primitives: the dual-con
 ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k, (W2, b2), 1/max s: exactly the twin's),
 the depth order (a stable sort, as the twin), and the tile binning: every visible primitive × the
 16×16 tiles its box touches, keys (tile, depth rank) sorted by torch.sort, per-tile [start, end)
-ranges. Then two Triton launches (gaussian_kernels.py, neural_kernels.py; the tile walk they share
+ranges. The host reads the device once a view, for the number of those pairs (the size of the key
+array, as 3DGS and gsplat read it): every primitive keeps its place in the order, the invisible
+ones after the visible, so that nothing else waits for a count. Then two Triton launches (gaussian_kernels.py, neural_kernels.py; the tile walk they share
 in tiles.py): the forward, one program per tile compositing front to back with early termination,
 and the backward, walking each pixel's list back to front from its final T with atomic adds of the
 per-primitive gradients. Nothing is
@@ -40,12 +42,18 @@ import os
 import torch
 
 from radfield.errors import RadfieldError
+from radfield.util.transfer import to_device
 
 NAME = "triton"
 TILE = 16   # tile side in pixels (gaussian_kernels.SIDE)
-# no FMA contraction (as the fused CPU build, -ffp-contract=off): the backward recomputes each pair's
-# α exactly as the forward did, whatever instructions the compiler picks in either kernel
-_COMPILE = {"enable_fp_fusion": False}
+# The kernels' compile options. No FMA contraction (as the fused CPU build, -ffp-contract=off): the
+# backward recomputes each pair's α exactly as the forward did, whatever instructions the compiler
+# picks in either kernel. 8 warps: one thread per pixel of a 16×16 tile, as 3DGS's rasteriser; with
+# 4 (two pixels a thread) the windowed neural backward needs more than 255 registers and spills
+# 760 bytes a thread, the other neural kernels 192–255 registers; with 8 none spills (ptxas for
+# sm_90: 32 registers for the Gaussian kernels, 121/153 for the neural forward, 188/233 for its
+# backward, hard-edged/windowed; tests/test_triton.py checks that none spills).
+COMPILE_OPTIONS = {"enable_fp_fusion": False, "num_warps": 8}
 
 
 @contextlib.contextmanager
@@ -105,25 +113,32 @@ def why_not() -> str | None:
 
 # --- tile binning (torch) ------------------------------------------------------------------------
 
-def bin_tiles(bounds: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+def bin_tiles(bounds: torch.Tensor, visible: torch.Tensor, height: int,
+              width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The tile lists of V boxes in depth order (bounds (V, 4) inclusive pixel boxes inside the
-    image): (offsets (tiles + 1,) int32, entries int32), tile t's depth ranks, front to back, at
-    entries[offsets[t]:offsets[t + 1]]. Every (box, tile it touches) pair is one key
-    tile · V + rank, sorted."""
+    image where `visible` (V,), anything elsewhere): (offsets (tiles + 1,) int32, entries int32),
+    tile t's depth ranks, front to back, at entries[offsets[t]:offsets[t + 1]]. Every (visible
+    box, tile it touches) pair is one key tile · V + rank, sorted."""
     device = bounds.device
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     count = max(bounds.shape[0], 1)
     tx0, ty0, tx1, ty1 = (bounds // TILE).long().unbind(-1)
     across = tx1 - tx0 + 1
-    touched = across * (ty1 - ty0 + 1)
-    rank = torch.repeat_interleave(torch.arange(bounds.shape[0], device=device), touched)
-    k = torch.arange(rank.numel(), device=device) - (torch.cumsum(touched, 0) - touched)[rank]
+    touched = torch.where(visible, across * (ty1 - ty0 + 1), 0)
+    pairs = pair_count(touched)
+    rank = torch.repeat_interleave(torch.arange(bounds.shape[0], device=device), touched, output_size=pairs)
+    k = torch.arange(pairs, device=device) - (torch.cumsum(touched, 0) - touched)[rank]
     tile = (ty0[rank] + k // across[rank]) * tiles_x + tx0[rank] + k % across[rank]
     keys, _ = torch.sort(tile * count + rank)
-    per_tile = torch.bincount(keys // count, minlength=tiles_x * tiles_y)
-    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int32, device=device)
-    offsets[1:] = torch.cumsum(per_tile, 0)
-    return offsets, (keys % count).to(torch.int32)
+    # tile t's keys start at the first key ≥ t · V (a search, not a histogram: bincount reads its size)
+    starts = torch.arange(tiles_x * tiles_y + 1, device=device) * count
+    return torch.searchsorted(keys, starts).to(torch.int32), (keys % count).to(torch.int32)
+
+
+def pair_count(touched: torch.Tensor) -> int:
+    """The view's one read of the device: how many (tile, primitive) pairs its boxes make, the
+    length of the key array to allocate (3DGS and gsplat read the same number)."""
+    return int(touched.sum())
 
 
 # --- the views: one autograd op per kind, two launches each ------------------------------------------
@@ -140,10 +155,10 @@ def _outputs(like: torch.Tensor, height: int, width: int, tiles: int):
             torch.zeros(tiles, 3, dtype=torch.int32, device=like.device))
 
 
-def _counters(counts: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
-    """(evaluated, composited, terminated, candidate pairs): the candidates are the boxes' pixels."""
+def _counters(counts: torch.Tensor, bounds: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """(evaluated, composited, terminated, candidate pairs): the candidates are the visible boxes' pixels."""
     x0, y0, x1, y1 = bounds.long().unbind(-1)
-    return torch.cat([counts.long().sum(0), ((x1 - x0 + 1) * (y1 - y0 + 1)).sum().reshape(1)])
+    return torch.cat([counts.long().sum(0), torch.where(visible, (x1 - x0 + 1) * (y1 - y0 + 1), 0).sum().reshape(1)])
 
 
 def _upstream(like: torch.Tensor, height: int, width: int, g_color, g_depth, g_trans):
@@ -151,12 +166,12 @@ def _upstream(like: torch.Tensor, height: int, width: int, g_color, g_depth, g_t
             for g, shape in ((g_color, (height, width, 3)), (g_depth, (height, width)), (g_trans, (height, width)))]
 
 
-def _prepared(tensors, bounds: torch.Tensor, height: int, width: int, t_min: float):
+def _prepared(tensors, bounds: torch.Tensor, visible: torch.Tensor, height: int, width: int, t_min: float):
     """What both views' forwards set up before their launch: the per-primitive inputs contiguous,
     int32 bounds, the tile lists, the constants, the tile grid and the zeroed outputs."""
     inputs = [t.contiguous() for t in tensors]
     bounds = bounds.to(torch.int32).contiguous()
-    offsets, entries = bin_tiles(bounds, height, width)
+    offsets, entries = bin_tiles(bounds, visible, height, width)
     tiles_x, tiles = _sizes(height, width)
     return (inputs, bounds, offsets, entries, _constants(inputs[0], t_min), tiles_x, tiles,
             _outputs(inputs[0], height, width, tiles))
@@ -164,9 +179,15 @@ def _prepared(tensors, bounds: torch.Tensor, height: int, width: int, t_min: flo
 
 def _constants(like: torch.Tensor, t_min: float) -> torch.Tensor:
     """(t_min, α_min, α_max, 1) in the inputs' dtype (the kernels' thresholds are the twin's)."""
+    return _constants_on(t_min, like.dtype, like.device)
+
+
+@functools.lru_cache(maxsize=16)
+def _constants_on(t_min: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Made once per (t_min, dtype, device), not every view."""
     from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
 
-    return torch.tensor([t_min, ALPHA_MIN, ALPHA_MAX, 1.0], dtype=like.dtype, device=like.device)
+    return to_device(torch.tensor([t_min, ALPHA_MIN, ALPHA_MAX, 1.0], dtype=dtype), device)
 
 
 class _GaussianView(torch.autograd.Function):
@@ -174,18 +195,18 @@ class _GaussianView(torch.autograd.Function):
     opacity, colors and depth (all (V, ...), in depth order)."""
 
     @staticmethod
-    def forward(ctx, bounds, height, width, t_min, mean2d, conic, opacity, colors, depth):
+    def forward(ctx, bounds, visible, height, width, t_min, mean2d, conic, opacity, colors, depth):
         from radfield.core.backends.gpu import gaussian_kernels as K
 
         inputs, bounds, offsets, entries, consts, tiles_x, tiles, outputs = _prepared(
-            (mean2d, conic, opacity, colors, depth), bounds, height, width, t_min)
+            (mean2d, conic, opacity, colors, depth), bounds, visible, height, width, t_min)
         acc_color, acc_depth, trans, last, counts = outputs
         with _launching():
             K.gaussian_forward[(tiles,)](offsets, entries, bounds, *inputs, consts, acc_color, acc_depth, trans, last,
-                                         counts, height, width, tiles_x, SIDE=TILE, **_COMPILE)
+                                         counts, height, width, tiles_x, SIDE=TILE, **COMPILE_OPTIONS)
         ctx.sizes = (height, width, tiles_x, tiles)
         ctx.save_for_backward(offsets, entries, bounds, *inputs, consts, trans, last)
-        counters = _counters(counts, bounds)
+        counters = _counters(counts, bounds, visible)
         ctx.mark_non_differentiable(counters)
         return acc_color, acc_depth, trans, counters
 
@@ -200,8 +221,8 @@ class _GaussianView(torch.autograd.Function):
         grads = [torch.zeros_like(t) for t in inputs]   # mean2d, conic, opacity, colors, depth
         with _launching():
             K.gaussian_backward[(tiles,)](offsets, entries, bounds, *inputs, consts, trans, last, *upstream, *grads,
-                                          height, width, tiles_x, SIDE=TILE, **_COMPILE)
-        return None, None, None, None, *grads
+                                          height, width, tiles_x, SIDE=TILE, **COMPILE_OPTIONS)
+        return None, None, None, None, None, *grads
 
 
 class _NeuralView(torch.autograd.Function):
@@ -209,22 +230,22 @@ class _NeuralView(torch.autograd.Function):
     inv_smax, colors and depth (all (V, ...), in depth order); `window`: the windowed density."""
 
     @staticmethod
-    def forward(ctx, bounds, intrinsics, height, width, t_min, window, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors,
-                depth):
+    def forward(ctx, bounds, visible, intrinsics, height, width, t_min, window, m_cam, o_ell, w_cam, c, w2, b2, inv_smax,
+                colors, depth):
         from radfield.core.backends.gpu import neural_kernels as K
 
         inputs, bounds, offsets, entries, consts, tiles_x, tiles, outputs = _prepared(
-            (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth), bounds, height, width, t_min)
+            (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth), bounds, visible, height, width, t_min)
         intrinsics = intrinsics.detach().contiguous()
         units = c.shape[1]
         acc_color, acc_depth, trans, last, counts = outputs
         with _launching():
             K.neural_forward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, acc_color, acc_depth, trans,
                                        last, counts, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
-                                       WINDOW=bool(window), **_COMPILE)
+                                       WINDOW=bool(window), **COMPILE_OPTIONS)
         ctx.sizes = (height, width, tiles_x, tiles, units, bool(window))
         ctx.save_for_backward(offsets, entries, bounds, intrinsics, *inputs, consts, trans, last)
-        counters = _counters(counts, bounds)
+        counters = _counters(counts, bounds, visible)
         ctx.mark_non_differentiable(counters)
         return acc_color, acc_depth, trans, counters
 
@@ -240,8 +261,8 @@ class _NeuralView(torch.autograd.Function):
         with _launching():
             K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
                                         *grads, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
-                                        WINDOW=window, **_COMPILE)
-        return None, None, None, None, None, None, *grads
+                                        WINDOW=window, **COMPILE_OPTIONS)
+        return None, None, None, None, None, None, None, *grads
 
 
 def _padded(units: int) -> int:
@@ -250,23 +271,23 @@ def _padded(units: int) -> int:
 
 
 def _front_to_back(frame, visible: torch.Tensor) -> torch.Tensor:
-    """The visible primitives' indices by camera-space depth, stable, as the twin orders them."""
-    ids = torch.nonzero(visible).squeeze(1)
-    return ids[torch.argsort(frame.depth[ids].detach(), stable=True)]
+    """Every primitive's index: the visible ones by camera-space depth, stable, as the twin orders
+    them, then the others (a sort of all of them: picking the visible ones out would read their count)."""
+    return torch.argsort(torch.where(visible, frame.depth.detach(), torch.inf), stable=True)
 
 
 def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
     """Op "view.gaussian" on Triton: the twin's per-view preparation (kinds/gaussian.py: twin_view)
     and depth order, then the tile kernels; returns (Σ w c, Σ w z, T, counters (evaluated,
-    composited, terminated, candidate pairs), the visible primitives front to back)."""
+    composited, terminated, candidate pairs), the number of visible primitives (0-dim))."""
     from radfield.core import kinds
 
     bounds, visible, (mean2d, conic, opacity) = kinds.of(prims).twin_view(prims, frame)
     ids = _front_to_back(frame, visible)
     camera = frame.camera
-    out = _GaussianView.apply(bounds[ids], camera.height, camera.width, float(t_min), mean2d[ids], conic[ids],
-                              opacity[ids], colors[ids], frame.depth[ids])
-    return (*out, ids)
+    out = _GaussianView.apply(bounds[ids], visible[ids], camera.height, camera.width, float(t_min), mean2d[ids],
+                              conic[ids], opacity[ids], colors[ids], frame.depth[ids])
+    return (*out, visible.sum())
 
 
 def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
@@ -279,6 +300,7 @@ def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
     ids = _front_to_back(frame, visible)
     m_cam, o_ell, w_cam, c, w2, b2, inv_smax = (t[ids] for t in view)
     camera = frame.camera
-    out = _NeuralView.apply(bounds[ids], frame.intrinsics, camera.height, camera.width, float(t_min), prims.window,
-                            m_cam.reshape(-1, 9), o_ell, w_cam, c, w2, b2, inv_smax, colors[ids], frame.depth[ids])
-    return (*out, ids)
+    out = _NeuralView.apply(bounds[ids], visible[ids], frame.intrinsics, camera.height, camera.width, float(t_min),
+                            prims.window, m_cam.reshape(-1, 9), o_ell, w_cam, c, w2, b2, inv_smax, colors[ids],
+                            frame.depth[ids])
+    return (*out, visible.sum())
