@@ -1,47 +1,95 @@
 #!/usr/bin/env bash
-# The device checks of one session on a GPU machine (CONTRIBUTING.md "GPU checks"): the CUDA tests
-# and the GPU figures, in one script that fits a short lease. The machine has a CUDA torch but not
-# the geometry and SfM libraries (pymeshlab, pyvista, pycolmap, pytetwild, fast-simplification), so
-# everything here runs `--no-cage`. Wheels it lacks travel in .whl/ (OpenImageIO, plyfile):
+# The device checks of a session on a GPU machine (CONTRIBUTING.md "GPU checks"): the CUDA tests and
+# every figure of issue 27, in parts that fit a short lease (15 minutes, start-up included):
+#
+#   scripts/gpu_check.sh                 tests, bench and e2e64 (about 7 minutes)
+#   scripts/gpu_check.sh tests           the CUDA tests, the Triton kernels compiled on CUDA tensors
+#   scripts/gpu_check.sh bench           the issue's table, before (the torch twins, --baseline: the
+#                                        same run) and after (Triton), and its speed targets
+#   scripts/gpu_check.sh e2e64           a 100-view 64x64 object scene, 3000 steps, --no-cage, on the
+#                                        GPU: time and held-out PSNR (the CPU's figure, the same
+#                                        method: DEVICE=cpu scripts/gpu_check.sh e2e64)
+#   scripts/gpu_check.sh e2e800 [STEPS]  glossy at 800x800 (100 + 20 views), STEPS steps (default
+#                                        30000) within the time left: ms per step and PSNR
+#
+# The machine has a CUDA torch and Triton but not the geometry and SfM libraries (pymeshlab,
+# pyvista, pycolmap, pytetwild, fast-simplification), so everything runs `--no-cage`. Wheels it
+# lacks travel in .whl/ (run(carry=[".whl"])):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
 #     --platform manylinux_2_28_x86_64 -d .whl OpenImageIO==3.2.2.0 plyfile==1.1.5
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
-if compgen -G ".whl/*.whl" >/dev/null; then
+if compgen -G ".whl/*.whl" >/dev/null && ! $PY -c "import OpenImageIO, plyfile" 2>/dev/null; then
     $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
     export PYTHONPATH=/tmp/site
 fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 radfield() { $PY -m radfield "$@"; }
 secs() { local t0; t0=$(date +%s%N); "$@"; local rc=$?; echo "  ($(( ($(date +%s%N) - t0) / 1000000 )) ms, exit $rc)"; }
-OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"; W=$(mktemp -d)
+W=$(mktemp -d); trap 'rm -rf "$W"' EXIT
+CORES=$(nproc)
+DEVICE=${DEVICE:-cuda}   # DEVICE=cpu runs a part on the CPU (its figures for the same-method comparisons)
+scene() { $PY -c "from radfield.datasets.synthetic import generate_scene as g; g('$1', '$2', size=$3, mesh=False, workers=$CORES)"; }
 
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-$PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name())"
-for lib in pymeshlab pyvista pycolmap pytetwild fast_simplification; do
-    $PY -c "import $lib" 2>/dev/null && echo "note: $lib is installed here" || echo "no $lib here"
-done
+summary() {   # a run's train time, steps, primitives and held-out PSNR
+    radfield info "$1" --json | $PY -c "import json,sys; s=json.load(sys.stdin)['stages']; t=s['train']; \
+print('  train', {k: t.get(k) for k in ('seconds', 'iterations', 'primitives')}, 'held-out psnr', s['eval'].get('psnr'))"
+}
 
-echo "== start-up (imports where they are used)"
-radfield bench-startup --repeats 3 | tail -3
+part_tests() {
+    echo "== CUDA tests, the backend comparisons and the blocked-import tests"
+    secs $PY -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_backends.py tests/test_imports.py 2>&1 | tail -5
+    echo "== the Triton backend's kernels compiled on CUDA tensors against the torch twin (tests/test_triton.py)"
+    secs env -u TRITON_INTERPRET $PY -m pytest -q -p no:cacheprovider tests/test_triton.py 2>&1 | tail -5
+    echo "== a --no-cage reconstruction on the GPU, then render, eval, export"
+    scene blobs "$W/blobs" 64
+    secs radfield reconstruct "$W/blobs" -o "$W/run" --no-cage --device "$DEVICE" --iterations 300 -q
+    summary "$W/run"
+    secs radfield render "$W/run" -o "$W/frames" --device "$DEVICE" -q
+    secs radfield eval "$W/run" -o "$W/report" --device "$DEVICE" -q
+    secs radfield export "$W/run" -f ply-3dgs -o "$W/model.ply" --refine 20 -q
+}
 
-echo "== CUDA tests, the backend comparisons and the blocked-import tests"
-secs $PY -m pytest -q -p no:cacheprovider -x tests/test_cuda.py tests/test_backends.py tests/test_imports.py 2>&1 | tail -5
+part_bench() {
+    echo "== issue table: bench-render, 10k primitives, 256x256 (before: the torch twins, same run)"
+    secs radfield bench-render --device "$DEVICE" --primitives 10000 --views 4 --repeats 3 --baseline
+    echo "== issue table: kernel launches of one forward+backward, 10k primitives, 256x256 (twins, then Triton)"
+    RADFIELD_KERNELS=torch radfield bench-render --device "$DEVICE" --primitives 10000 --views 1 --repeats 1 --profile \
+        | grep "kernel launches"
+    radfield bench-render --device "$DEVICE" --primitives 10000 --views 1 --repeats 1 --profile | grep "kernel launches"
+    echo "== issue table: bench-train, neural, 10k primitives, 64 / 256 / 800 (before: the twins, same run)"
+    secs radfield bench-train --device "$DEVICE" --kinds neural --primitives 10000 --sizes 64,256,800 --steps 10 --baseline -q
+    echo "== targets: bench-render, 100k primitives, 800x800 (forward >= 100 FPS neural, >= 300 FPS Gaussians)"
+    secs radfield bench-render --device "$DEVICE" --primitives 100000 --width 800 --height 800 --views 4 --repeats 3
+    echo "== targets: bench-train, neural and Gaussians, 100k primitives, 256 / 800 (neural at 800: <= 25 ms a step)"
+    secs radfield bench-train --device "$DEVICE" --kinds neural,gaussian --primitives 100000 --sizes 256,800 --steps 10 -q
+}
 
-echo "== a --no-cage reconstruction on the GPU, then render, eval, export (no geometry libraries)"
-$PY -c "from radfield.datasets.synthetic import generate_scene; generate_scene('blobs', '$W/blobs', mesh=False)"
-secs radfield reconstruct "$W/blobs" -o "$W/run" --no-cage --device cuda --iterations 300 -q
-radfield info "$W/run" --json | $PY -c "import json,sys; s=json.load(sys.stdin)['stages']; print('  train', {k: s['train'].get(k) for k in ('seconds','primitives','train_psnr')}, 'eval psnr', s['eval'].get('psnr'))"
-secs radfield render "$W/run" -o "$W/frames" --device cuda -q
-secs radfield eval "$W/run" -o "$W/report" --device cuda -q
-secs radfield export "$W/run" -f ply-3dgs -o "$W/model.ply" --refine 20 -q
+part_e2e64() {
+    echo "== issue table: reconstruct of a 100-view 64x64 object scene (studio), 3000 steps, --no-cage, GPU"
+    secs scene studio "$W/studio64" 64   # no mesh.ply: its writer needs pyvista
+    secs radfield reconstruct "$W/studio64" -o "$W/studio64-run" --no-cage --device "$DEVICE" -q
+    summary "$W/studio64-run"
+}
 
-echo "== the Triton backend's kernels compiled on CUDA tensors against the torch twin (tests/test_triton.py, no interpreter)"
-secs env -u TRITON_INTERPRET $PY -m pytest -q -p no:cacheprovider tests/test_triton.py 2>&1 | tail -5
+part_e2e800() {
+    local steps=${1:-30000}
+    echo "== target: reconstruct of glossy at 800x800 (100 + 20 views), $steps steps, --no-cage, GPU (<= 10 min for 30k)"
+    secs scene glossy "$W/glossy800" 800
+    secs radfield reconstruct "$W/glossy800" -o "$W/glossy800-run" --no-cage --device "$DEVICE" --iterations "$steps" -q
+    summary "$W/glossy800-run"
+}
 
-echo "== bench-render on the GPU (the Triton view kernels; --baseline: the torch twins in the same run)"
-secs radfield bench-render --device cuda --primitives 10000 --views 4 --repeats 3 --baseline
-echo "== bench-train on the GPU"
-secs radfield bench-train --device cuda --primitives 10000 --sizes 64,256 --steps 5 --quiet
-rm -rf "$W"
+if [ "$DEVICE" = cuda ]; then
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+    $PY -c "import torch, triton; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(), 'triton', triton.__version__)"
+fi
+case "${1:-default}" in
+    default) part_tests; part_bench; part_e2e64 ;;
+    tests) part_tests ;;
+    bench) part_bench ;;
+    e2e64) part_e2e64 ;;
+    e2e800) part_e2e800 "${2:-30000}" ;;
+    *) echo "usage: scripts/gpu_check.sh [tests|bench|e2e64|e2e800 [STEPS]]" >&2; exit 2 ;;
+esac

@@ -14,6 +14,8 @@ import pytest
     (["render", "model.safetensors", "-o", "out", "--near", "close"], "Invalid value for '--near'"),
     (["bench-render", "--primitives", "lots"], "Invalid value for '--primitives'"),
     (["demo-scene", "blobs", "-o", "scene", "--size", "big"], "Invalid value for '--size'"),
+    (["demo-scene", "blobs", "-o", "scene", "--workers", "0"], "--workers must be at least 1, got 0"),
+    (["demo-scene", "smoke", "-o", "scene", "--workers", "4"], "demo-scene smoke: --workers is for the static scenes"),
     (["no-such-command"], "No such command 'no-such-command'"),
 ])
 def test_usage_errors_are_one_line_and_exit_1(cli, tmp_path, monkeypatch, args, message):

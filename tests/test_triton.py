@@ -237,6 +237,38 @@ def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
     assert counts[0] == counts[1] and counts[0] > 0, counts
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_colour_matches_the_torch_twin(degree, dtype):
+    """Op "sh_color" on Triton (prepare_kernels.py) against sh_to_color(sh, normalize(v)): the colours
+    and the gradients of sh and v, for 300 primitives (3 programs, the last one part full) with
+    more coefficients than the degree reads, colours clamped at 0 (SH pulled below −0.5), and v of
+    every length (a tiny one included)."""
+    from radfield.core.render.sh import sh_to_color
+
+    g = torch.Generator().manual_seed(degree)
+    sh = (torch.randn(300, 16, 3, generator=g, dtype=torch.float64) * 0.6).to(device=DEVICE, dtype=dtype)
+    sh[:40, 0] = -3.0                                                     # colour clamped at 0
+    v = (torch.randn(300, 3, generator=g, dtype=torch.float64) * torch.rand(300, 1, generator=g, dtype=torch.float64)
+         * 5).to(device=DEVICE, dtype=dtype)
+    v[7] = torch.tensor([1e-3, -2e-3, 5e-4])
+    weights = torch.randn(300, 3, generator=g, dtype=torch.float64).to(device=DEVICE, dtype=dtype)
+    results = []
+    for backend in (backends.TRITON, backends.TORCH):
+        inputs = [t.clone().requires_grad_(True) for t in (sh, v)]
+        with backends.using(backend):
+            op = backends.kernel("sh_color", DEVICE, dtype)
+            assert (op is not None) == (backend == backends.TRITON)
+            color = op(*inputs, degree) if op else sh_to_color(inputs[0], torch.nn.functional.normalize(inputs[1], dim=-1), degree)
+        (color * weights).sum().backward()
+        # (degree 0: the twin's colour does not depend on v, so v has no gradient there: zero)
+        results.append((color.detach(), *(torch.zeros_like(t) if t.grad is None else t.grad for t in inputs)))
+    assert (results[1][0] == 0).any() and (results[1][0] > 0).any()
+    for name, fast, slow in zip(("colour", "d/dsh", "d/dv"), *results):
+        torch.testing.assert_close(fast, slow, **TOL[dtype], msg=lambda m: f"{name}: {m}")
+    assert (results[0][1][:, (degree + 1) ** 2:] == 0).all()   # coefficients beyond the degree: no gradient
+
+
 def test_tile_lists_are_every_touched_tile_front_to_back():
     """bin_tiles against a loop over boxes and tiles: each tile lists exactly the visible boxes that
     touch it, in depth rank order; the invisible ones (their boxes anything, even inverted or far
@@ -271,26 +303,37 @@ import triton
 from triton import knobs
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
-from radfield.core.backends.gpu import COMPILE_OPTIONS, gaussian_kernels, neural_kernels
+from radfield.core.backends.gpu import COMPILE_OPTIONS, PREPARE_OPTIONS, gaussian_kernels, neural_kernels, prepare_kernels
 
 knobs.nvidia.dump_ptxas_log = True   # ptxas -v's lines, on stdout
 
-def compile_for_sm90(fn, **constexprs):
+def compile_for_sm90(fn, options=COMPILE_OPTIONS, floats="*fp32", **constexprs):
     names = list(inspect.signature(fn.fn).parameters)
-    ints = {"height", "width", "tiles_x", "N"}
+    ints = {"height", "width", "tiles_x", "N", "P", "K"}
     ints32 = {"offsets_ptr", "entries_ptr", "bounds_ptr", "last_ptr", "counts_ptr"}
-    signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32 else "*fp32"
+    signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32 else floats
                  for n in names}
     source = ASTSource(fn, signature, constexprs={(names.index(k),): v for k, v in constexprs.items()})
     print("kernel", fn.fn.__name__, sorted(constexprs.items()), flush=True)
-    kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=COMPILE_OPTIONS)
+    kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=options)
     assert len(kernel.asm["cubin"]) > 0
+    return kernel
 
 compile_for_sm90(gaussian_kernels.gaussian_forward, SIDE=16)
 compile_for_sm90(gaussian_kernels.gaussian_backward, SIDE=16)
 for window in (False, True):
     compile_for_sm90(neural_kernels.neural_forward, SIDE=16, NP=8, WINDOW=window)
     compile_for_sm90(neural_kernels.neural_backward, SIDE=16, NP=8, WINDOW=window)
+for kernel in (prepare_kernels.sh_color_forward, prepare_kernels.sh_color_backward):
+    compile_for_sm90(kernel, PREPARE_OPTIONS, COEFFS=16, BLOCK=prepare_kernels.BLOCK)
+for kernel in (prepare_kernels.neural_prep_forward, prepare_kernels.neural_prep_backward):
+    compile_for_sm90(kernel, PREPARE_OPTIONS, NP=8, BLOCK=prepare_kernels.BLOCK)
+# a float literal held in a plain local is made a float32 scalar: a float64 kernel's SH constants
+# must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/render/sh.py, 64-bit hex)
+ptx = compile_for_sm90(prepare_kernels.sh_color_backward, PREPARE_OPTIONS, "*fp64", COEFFS=16,
+                       BLOCK=prepare_kernels.BLOCK).asm["ptx"]
+full, rounded = ("0d3FD20DD750429B6D", "0d40071FF8E45CAD2D"), ("0d3FD20DD760000000", "0d40071FF8E0000000")
+print("float64 constants:", all(h in ptx for h in full) and not any(h in ptx for h in rounded))
 """
 
 
@@ -305,7 +348,8 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 6, done.stdout
+    assert len(kernels) == 11, done.stdout
+    assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)
         registers = re.findall(r"Used (\d+) registers", log)

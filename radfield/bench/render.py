@@ -141,7 +141,8 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
             echo(f"  {name:11s} torch twin  forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame")
         t = time_model(prims, cams, repeats, device)
         results[name] = t
-        echo(f"  {name:11s} forward {t.forward_ms:8.1f} ms/frame   forward+backward {t.backward_ms:8.1f} ms/frame   "
+        echo(f"  {name:11s} forward {t.forward_ms:8.1f} ms/frame ({1e3 / t.forward_ms:.0f} FPS)   "
+             f"forward+backward {t.backward_ms:8.1f} ms/frame   "
              f"{t.pairs / 1e6:.2f} M pairs/frame ({t.contributing / 1e6:.2f} M contributing)   "
              f"{t.pairs / t.forward_ms / 1e3:.2f} M pairs/s forward")
         if baseline:
@@ -153,12 +154,18 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
          f"forward+backward {n.backward_ms / g.backward_ms:.2f}x; per pair {(n.forward_ms / n.pairs) / (g.forward_ms / g.pairs):.2f}x")
     if profile:
         from torch.profiler import ProfilerActivity, profile as torch_profile
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if str(device).startswith("cuda") else [])
         for name, prims in models.items():
             params = prims.to(device).map(lambda t: t.clone().requires_grad_(True))
-            with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            with torch_profile(activities=activities) as prof:
                 render(params, cams[0]).color.sum().backward()
+            costs = prof.key_averages()
             echo(f"\n  top costs, {name}, one forward+backward:")
-            echo(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+            echo(costs.table(sort_by="self_cpu_time_total", row_limit=12))
+            if len(activities) > 1:   # torch's launches and Triton's (the driver API's)
+                launches = sum(e.count for e in costs if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cuLaunchKernelEx",
+                                                                  "cudaLaunchKernelExC"))
+                echo(f"  kernel launches, {name}, one forward+backward: {launches}")
     out = {k: vars(v) for k, v in results.items()}
     for k, v in before.items():
         out[f"{k}/torch"] = vars(v)

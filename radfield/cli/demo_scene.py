@@ -24,6 +24,7 @@ def demo_scene(
     times: Annotated[Optional[int], typer.Option(help="smoke and moving only: the moments each camera photographs, k/(N-1) for k = 0..N-1 (default 24).")] = None,
     held_out_times: Annotated[bool, typer.Option("--held-out-times", help="smoke and moving only: the test cameras photograph the moments between the training times, (k+1/2)/(N-1), so no test time is a training time.")] = False,
     lights: Annotated[Optional[int], typer.Option(help="olat and olat-glossy only: the point lights each camera photographs the object under, every one at a new position (default 5).")] = None,
+    workers: Annotated[int, typer.Option(help="Views rendered at once, in worker processes (the static scenes; the images are the same whatever the number).")] = 1,
     exist_ok: Annotated[bool, typer.Option("--exist-ok", help="Do nothing if OUTPUT already holds this scene (same name, seed and deformation).")] = False,
     deform: Annotated[Optional[str], typer.Option(help="Render the scene's shapes deformed by a smooth map, through the same cameras as the undeformed scene: twist (45 degrees per unit about z), bend (30 degrees per unit about y, along z) or squash (the affine map x' = A x, scales 1.2/0.9/0.8 with shears). Writes the map as an edit spec, OUTPUT/deform.yaml: the ground truth of `radfield edit RUN --spec OUTPUT/deform.yaml`.")] = None,
     force: Force = False,
@@ -40,6 +41,10 @@ def demo_scene(
         raise RadfieldError(f"demo-scene {name}: --times is for the dynamic scenes ({', '.join(_DYNAMIC)})")
     if name not in _DYNAMIC and held_out_times:
         raise RadfieldError(f"demo-scene {name}: --held-out-times is for the dynamic scenes ({', '.join(_DYNAMIC)})")
+    if workers != 1 and (name in _DYNAMIC or name in _OLAT):
+        raise RadfieldError(f"demo-scene {name}: --workers is for the static scenes")
+    if workers < 1:
+        raise RadfieldError(f"demo-scene: --workers must be at least 1, got {workers}")
     if name not in _OLAT and lights is not None:
         raise RadfieldError(f"demo-scene {name}: --lights is for the one-light-at-a-time scenes ({', '.join(_OLAT)})")
     if name not in _DYNAMIC and name not in _OLAT:
@@ -62,7 +67,8 @@ def demo_scene(
         else:
             from radfield.datasets.synthetic import generate_scene
 
-            generate_scene(name, folder, n_train=train_views, n_test=test_views, size=size, seed=seed, deform=deform)
+            generate_scene(name, folder, n_train=train_views, n_test=test_views, size=size, seed=seed, deform=deform,
+                           workers=workers)
 
     if output.is_dir() and any(output.iterdir()):   # --force: the scene's files replace those of the same names
         from radfield.util.atomic import atomic_folder

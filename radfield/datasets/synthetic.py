@@ -625,7 +625,7 @@ def write_mesh(scene: Scene, path: Path, deform: Deformation | None = None) -> N
 
 def generate_scene(
     name: str, out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None, size: int = 64,
-    seed: int = 0, mesh: bool = True, deform: str | None = None,
+    seed: int = 0, mesh: bool = True, deform: str | None = None, workers: int = 1,
 ) -> Path:
     """Render scene `name` into a new NeRF-synthetic folder `out_dir` (see the module docstring);
     n_train / n_test default to the scene's own counts (Scene.train_views / test_views).
@@ -633,7 +633,9 @@ def generate_scene(
     Written to a temporary sibling folder and renamed, so `out_dir` is either complete or absent;
     an existing non-empty `out_dir` is refused. `deform` ('twist', 'bend' or 'squash', `DEFORMATIONS`)
     renders the scene's shapes deformed by that map through the same cameras (the ground truth of the
-    same map applied by `radfield edit`) and writes the map as an edit spec, `deform.yaml`."""
+    same map applied by `radfield edit`) and writes the map as an edit spec, `deform.yaml`.
+    workers > 1 renders that many views at once in worker processes (the same images: every view's
+    samples come from its own (seed, split, view) stream)."""
     scene = get_scene(name)
     deformation = None if deform is None else get_deformation(deform)
     if deformation is not None and (scene.lighting.shadows or scene.lighting.radius > 0):
@@ -646,10 +648,12 @@ def generate_scene(
         raise RadfieldError(
             f"generate_scene: need n_train >= 1, n_test >= 1 and size >= 8 (got {n_train}, {n_test}, {size})"
         )
+    if workers < 1:
+        raise RadfieldError(f"generate_scene: need workers >= 1 (got {workers})")
     with new_folder(out_dir) as tmp:   # complete or absent (util/atomic.py)
         train, test = orbit_cameras(n_train, n_test, size, seed)
         for split, cameras in (("train", train), ("test", test)):
-            _write_split(scene, tmp, split, cameras, seed, deformation)
+            _write_split(name, tmp, split, cameras, seed, deform, workers)
         if scene.mesh and mesh:
             write_mesh(scene, tmp / "mesh.ply", deformation)
         description = _describe(scene, seed)
@@ -664,25 +668,33 @@ def generate_scene(
     return out_dir
 
 
-def _write_split(scene: Scene, root: Path, split: str, cameras: list[Camera], seed: int,
-                 deform: Deformation | None = None) -> None:
+def _write_split(name: str, root: Path, split: str, cameras: list[Camera], seed: int, deform: str | None,
+                 workers: int) -> None:
     (root / split).mkdir()
-    frames = []
-    for k, camera in enumerate(cameras):
-        # Each view's own sample pattern, reproducible from (seed, split, view).
-        rng = np.random.default_rng([seed, ("train", "test").index(split), k])
-        rgba, depth = render_view(scene, camera, rng=rng, deform=deform)
-        write_image(root / split / f"{camera.name}.png", rgba)
-        write_image(root / split / f"{camera.name}_depth.exr", depth)
-        frames.append(
-            {
-                "file_path": f"./{split}/{camera.name}",
-                "depth_file_path": f"./{split}/{camera.name}_depth.exr",
-                "transform_matrix": opencv_to_opengl(camera.c2w).tolist(),
-            }
-        )
+    views = [(name, root, split, k, camera, seed, deform) for k, camera in enumerate(cameras)]
+    if workers > 1 and len(views) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        # spawned, not forked: the parent may hold torch's thread pools
+        with ProcessPoolExecutor(min(workers, len(views)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            frames = list(pool.map(_write_view, views))
+    else:
+        frames = [_write_view(view) for view in views]
     meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
     (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+
+
+def _write_view(view: tuple) -> dict:
+    """Render view k of a split and write its image and depth; its frame entry. Each view's own
+    sample pattern, reproducible from (seed, split, view)."""
+    name, root, split, k, camera, seed, deform = view
+    rng = np.random.default_rng([seed, ("train", "test").index(split), k])
+    rgba, depth = render_view(get_scene(name), camera, rng=rng, deform=None if deform is None else get_deformation(deform))
+    write_image(root / split / f"{camera.name}.png", rgba)
+    write_image(root / split / f"{camera.name}_depth.exr", depth)
+    return {"file_path": f"./{split}/{camera.name}", "depth_file_path": f"./{split}/{camera.name}_depth.exr",
+            "transform_matrix": opencv_to_opengl(camera.c2w).tolist()}
 
 
 def _describe(scene: Scene, seed: int) -> dict:

@@ -178,3 +178,4 @@ del _op
 from radfield.core.backends import gpu  # noqa: E402
 
 register(Backend(TRITON, gpu.runs, gpu.why_not))
+implement("sh_color", TRITON, gpu.sh_color)

@@ -4,6 +4,7 @@
     gaussian_view(prims, frame, colors, t_min)                    op "view.gaussian" (kinds/gaussian.py)
     neural_view(prims, frame, colors, t_min)                      op "view.neural" (kinds/neural.py)
         -> (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,), the visible count (0-dim))
+    sh_color(sh, v, degree) -> colour (P, 3)                      op "sh_color" (core/render/rasterize.py)
     bin_tiles(bounds, visible, height, width) -> (offsets, entries)   the per-tile depth-ordered lists
 
 Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
@@ -54,6 +55,9 @@ TILE = 16   # tile side in pixels (gaussian_kernels.SIDE)
 # sm_90: 32 registers for the Gaussian kernels, 121/153 for the neural forward, 188/233 for its
 # backward, hard-edged/windowed; tests/test_triton.py checks that none spills).
 COMPILE_OPTIONS = {"enable_fp_fusion": False, "num_warps": 8}
+# the per-primitive kernels (prepare_kernels.py): 4 warps for their 128 primitives a program; no FMA
+# contraction either, so that the backward's recomputed sums take the forward's clamp
+PREPARE_OPTIONS = {"enable_fp_fusion": False, "num_warps": 4}
 
 
 @contextlib.contextmanager
@@ -265,6 +269,90 @@ class _NeuralView(torch.autograd.Function):
         return None, None, None, None, None, None, None, *grads
 
 
+class _SHColor(torch.autograd.Function):
+    """max(Σ_k Y_k(v/|v|) sh_k + 0.5, 0) (prepare_kernels.py), differentiable w.r.t. sh and v."""
+
+    @staticmethod
+    def forward(ctx, sh, v, degree):
+        from radfield.core.backends.gpu import prepare_kernels as K
+
+        sh, v = sh.contiguous(), v.contiguous()
+        out = v.new_empty(v.shape[0], 3)
+        count = v.shape[0]
+        with _launching():
+            K.sh_color_forward[(-(-count // K.BLOCK),)](sh, v, out, count, sh.shape[1], COEFFS=(degree + 1) ** 2,
+                                                        BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+        ctx.degree = degree
+        ctx.save_for_backward(sh, v)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        from radfield.core.backends.gpu import prepare_kernels as K
+
+        sh, v = ctx.saved_tensors
+        g_sh, g_v = torch.zeros_like(sh), torch.empty_like(v)
+        count = v.shape[0]
+        with _launching():
+            K.sh_color_backward[(-(-count // K.BLOCK),)](grad.contiguous(), sh, v, g_sh, g_v, count, sh.shape[1],
+                                                         COEFFS=(ctx.degree + 1) ** 2, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+        return g_sh, g_v, None
+
+
+class _NeuralPrep(torch.autograd.Function):
+    """The neural primitives' per-view tensors (m_cam (P, 3, 3), o_ell (P, 3), w_cam (P, N, 3), c (P, N),
+    inv_smax (P,); prepare_kernels.py), differentiable w.r.t. means, log_scales, quats, w1 and b1;
+    `view` = (o, R_cam row-major, ω0) in their dtype."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, w1, b1, view):
+        from radfield.core.backends.gpu import prepare_kernels as K
+
+        inputs = [t.contiguous() for t in (means, log_scales, quats, w1, b1, view)]
+        count, units = b1.shape
+        outputs = (means.new_empty(count, 3, 3), means.new_empty(count, 3), w1.new_empty(count, units, 3),
+                   b1.new_empty(count, units), means.new_empty(count))
+        with _launching():
+            K.neural_prep_forward[(-(-count // K.BLOCK),)](*inputs, *outputs, count, units, NP=_padded(units),
+                                                           BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+        ctx.save_for_backward(*inputs[:4], inputs[5])
+        return outputs
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        from radfield.core.backends.gpu import prepare_kernels as K
+
+        means, log_scales, quats, w1, view = ctx.saved_tensors
+        count, units = w1.shape[:2]
+        shapes = ((count, 3, 3), (count, 3), (count, units, 3), (count, units), (count,))
+        grads = [means.new_zeros(shape) if g is None else g.contiguous() for g, shape in zip(grads, shapes)]
+        out = [torch.empty_like(t) for t in (means, log_scales, quats, w1)] + [w1.new_empty(count, units)]
+        with _launching():
+            K.neural_prep_backward[(-(-count // K.BLOCK),)](*grads, means, log_scales, quats, w1, view, *out, count,
+                                                            units, NP=_padded(units), BLOCK=K.BLOCK,
+                                                            **PREPARE_OPTIONS)
+        return (*out, None)
+
+
+def neural_prep(prims, campos: torch.Tensor, cam_rot: torch.Tensor) -> tuple:
+    """(m_cam, o_ell, w_cam, c, inv_smax) of kinds/neural.py view_tensors (without its (W2, b2)) on
+    Triton: one launch, and one for the backward."""
+    view = torch.cat([campos, cam_rot.reshape(9), campos.new_full((1,), float(prims.omega0))])
+    return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, view)
+
+
+def sh_color(sh: torch.Tensor, v: torch.Tensor, degree: int) -> torch.Tensor:
+    """Op "sh_color" on Triton: sh.sh_to_color(sh, normalize(v), degree) (v = μ − o) in one launch, and
+    one for its backward."""
+    if v.shape[0] == 0:   # no grid to launch: the twin's empty result
+        from radfield.core.render.sh import sh_to_color
+
+        return sh_to_color(sh, torch.nn.functional.normalize(v, dim=-1), degree)
+    return _SHColor.apply(sh, v, degree)
+
+
 def _padded(units: int) -> int:
     """The hidden units' axis in the kernels: a power of two (the padding is masked)."""
     return max(1 << (units - 1).bit_length(), 1)
@@ -292,13 +380,22 @@ def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
 
 def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
     """Op "view.neural" on Triton: the twin's bounds and per-view tensors (kinds/neural.py:
-    twin_view: the ellipsoid frame, the MLP phases, (W2, b2)), then the tile kernels; returns as
-    gaussian_view."""
-    from radfield.core import kinds
+    twin_view: the ellipsoid frame, the MLP phases, (W2, b2)), the frame and phases by the
+    preparation kernel (neural_prep), then the tile kernels; returns as gaussian_view."""
+    from radfield.core.kinds.base import ellipsoid_bounds
+    from radfield.core.kinds.neural import density_weights
 
-    bounds, visible, view = kinds.of(prims).twin_view(prims, frame)
+    # the twin's bounds (torch, no gradient); its per-view tensors (view_tensors) in one launch
+    bounds, visible = ellipsoid_bounds(prims, frame)
     ids = _front_to_back(frame, visible)
-    m_cam, o_ell, w_cam, c, w2, b2, inv_smax = (t[ids] for t in view)
+    if len(prims.means):
+        m_cam, o_ell, w_cam, c, inv_smax = neural_prep(prims, frame.campos, frame.c2w[:3, :3])
+        w2, b2 = density_weights(prims, frame.campos - prims.means)
+    else:   # nothing to launch
+        from radfield.core.kinds.neural import view_tensors
+
+        m_cam, o_ell, w_cam, c, w2, b2, inv_smax = view_tensors(prims, frame.campos, frame.c2w[:3, :3])
+    m_cam, o_ell, w_cam, c, w2, b2, inv_smax = (t[ids] for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax))
     camera = frame.camera
     out = _NeuralView.apply(bounds[ids], visible[ids], frame.intrinsics, camera.height, camera.width, float(t_min),
                             prims.window, m_cam.reshape(-1, 9), o_ell, w_cam, c, w2, b2, inv_smax, colors[ids],

@@ -1,0 +1,312 @@
+"""The Triton kernels of the per-view, per-primitive preparation (core/backends/gpu/__init__.py
+wraps them in autograd ops): one lane per primitive, forward and hand-written backward, in place of
+the dozens of small torch ops each of their twins launches.
+
+    sh_color_forward / sh_color_backward    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|,
+                                            v = μ − o (twin: core/render/sh.py sh_to_color; the
+                                            fused CPU op: csrc/prepare_kernels.cpp sh_color)
+
+The basis is 3DGS's real SH up to degree 3, in its order and signs (core/render/sh.py). Imported
+only when the "triton" backend prepares a view (as the view kernels; TRITON_INTERPRET=1 runs them
+on CPU tensors in the tests).
+"""
+
+from __future__ import annotations
+
+import triton
+import triton.language as tl
+
+BLOCK = 128   # primitives per program
+
+
+
+@triton.jit
+def _basis(k: tl.constexpr, x, y, z):
+    """Y_k at the unit direction (x, y, z) and its gradient (∂x, ∂y, ∂z), as csrc/prepare_kernels.cpp sh_basis
+    (the constants of core/render/sh.py: constexpr locals, so that a float64 kernel reads them in
+    float64; a plain local is made a float32 scalar, a kernel cannot read a module global)."""
+    C0: tl.constexpr = 0.28209479177387814
+    C1: tl.constexpr = 0.4886025119029199
+    C2_0: tl.constexpr = 1.0925484305920792
+    C2_1: tl.constexpr = -1.0925484305920792
+    C2_2: tl.constexpr = 0.31539156525252005
+    C2_3: tl.constexpr = -1.0925484305920792
+    C2_4: tl.constexpr = 0.5462742152960396
+    C3_0: tl.constexpr = -0.5900435899266435
+    C3_1: tl.constexpr = 2.890611442640554
+    C3_2: tl.constexpr = -0.4570457994644658
+    C3_3: tl.constexpr = 0.3731763325901154
+    C3_4: tl.constexpr = -0.4570457994644658
+    C3_5: tl.constexpr = 1.445305721320277
+    C3_6: tl.constexpr = -0.5900435899266435
+    zero = x * 0.0
+    if k == 0:
+        return zero + C0, zero, zero, zero
+    elif k == 1:
+        return -C1 * y, zero, zero - C1, zero
+    elif k == 2:
+        return C1 * z, zero, zero, zero + C1
+    elif k == 3:
+        return -C1 * x, zero - C1, zero, zero
+    elif k == 4:
+        return C2_0 * x * y, C2_0 * y, C2_0 * x, zero
+    elif k == 5:
+        return C2_1 * y * z, zero, C2_1 * z, C2_1 * y
+    elif k == 6:
+        return C2_2 * (2.0 * z * z - x * x - y * y), C2_2 * -2.0 * x, C2_2 * -2.0 * y, C2_2 * 4.0 * z
+    elif k == 7:
+        return C2_3 * x * z, C2_3 * z, zero, C2_3 * x
+    elif k == 8:
+        return C2_4 * (x * x - y * y), C2_4 * 2.0 * x, C2_4 * -2.0 * y, zero
+    elif k == 9:
+        return C3_0 * y * (3.0 * x * x - y * y), C3_0 * 6.0 * x * y, C3_0 * (3.0 * x * x - 3.0 * y * y), zero
+    elif k == 10:
+        return C3_1 * x * y * z, C3_1 * y * z, C3_1 * x * z, C3_1 * x * y
+    elif k == 11:
+        return (C3_2 * y * (4.0 * z * z - x * x - y * y), C3_2 * -2.0 * x * y,
+                C3_2 * (4.0 * z * z - x * x - 3.0 * y * y), C3_2 * 8.0 * y * z)
+    elif k == 12:
+        return (C3_3 * z * (2.0 * z * z - 3.0 * x * x - 3.0 * y * y), C3_3 * -6.0 * x * z, C3_3 * -6.0 * y * z,
+                C3_3 * (6.0 * z * z - 3.0 * x * x - 3.0 * y * y))
+    elif k == 13:
+        return (C3_4 * x * (4.0 * z * z - x * x - y * y), C3_4 * (4.0 * z * z - 3.0 * x * x - y * y),
+                C3_4 * -2.0 * x * y, C3_4 * 8.0 * x * z)
+    elif k == 14:
+        return C3_5 * z * (x * x - y * y), C3_5 * 2.0 * x * z, C3_5 * -2.0 * y * z, C3_5 * (x * x - y * y)
+    else:
+        return C3_6 * x * (x * x - 3.0 * y * y), C3_6 * (3.0 * x * x - 3.0 * y * y), C3_6 * -6.0 * x * y, zero
+
+
+@triton.jit
+def _direction(v_ptr, p, live):
+    """v = μ − o of primitives p, its norm (as torch's normalize: at least 1e-12) and d̂ = v/|v|."""
+    vx = tl.load(v_ptr + 3 * p, mask=live, other=1.0)
+    vy = tl.load(v_ptr + 3 * p + 1, mask=live, other=0.0)
+    vz = tl.load(v_ptr + 3 * p + 2, mask=live, other=0.0)
+    norm = tl.maximum(tl.sqrt(vx * vx + vy * vy + vz * vz), 1e-12)
+    return vx, vy, vz, norm, vx / norm, vy / norm, vz / norm
+
+
+@triton.jit
+def sh_color_forward(sh_ptr, v_ptr, out_ptr, P, K, COEFFS: tl.constexpr, BLOCK: tl.constexpr):
+    """colour (P, 3) of sh (P, K, 3) at v (P, 3): the first COEFFS = (degree + 1)² coefficients."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    _, _, _, _, x, y, z = _direction(v_ptr, p, live)
+    r = x * 0.0
+    g = x * 0.0
+    b = x * 0.0
+    for k in tl.static_range(COEFFS):
+        basis, _, _, _ = _basis(k, x, y, z)
+        base = sh_ptr + (p * K + k) * 3
+        r += basis * tl.load(base, mask=live, other=0.0)
+        g += basis * tl.load(base + 1, mask=live, other=0.0)
+        b += basis * tl.load(base + 2, mask=live, other=0.0)
+    tl.store(out_ptr + 3 * p, tl.maximum(r + 0.5, 0.0), mask=live)
+    tl.store(out_ptr + 3 * p + 1, tl.maximum(g + 0.5, 0.0), mask=live)
+    tl.store(out_ptr + 3 * p + 2, tl.maximum(b + 0.5, 0.0), mask=live)
+
+
+@triton.jit
+def sh_color_backward(grad_ptr, sh_ptr, v_ptr, g_sh_ptr, g_v_ptr, P, K, COEFFS: tl.constexpr, BLOCK: tl.constexpr):
+    """∂L/∂sh (P, K, 3; zero beyond COEFFS) and ∂L/∂v (P, 3) from ∂L/∂colour (P, 3): the clamp passes
+    the gradient where Σ + 0.5 ≥ 0 (as torch's clamp_min); d̂ = v/|v| carries ∂/∂d̂ as (I − d̂d̂ᵀ)/|v|."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    vx, vy, vz, norm, x, y, z = _direction(v_ptr, p, live)
+    r = x * 0.0
+    g = x * 0.0
+    b = x * 0.0
+    for k in tl.static_range(COEFFS):   # the forward's sums again, for the clamp's mask
+        basis, _, _, _ = _basis(k, x, y, z)
+        base = sh_ptr + (p * K + k) * 3
+        r += basis * tl.load(base, mask=live, other=0.0)
+        g += basis * tl.load(base + 1, mask=live, other=0.0)
+        b += basis * tl.load(base + 2, mask=live, other=0.0)
+    gr = tl.where(r + 0.5 >= 0.0, tl.load(grad_ptr + 3 * p, mask=live, other=0.0), 0.0)
+    gg = tl.where(g + 0.5 >= 0.0, tl.load(grad_ptr + 3 * p + 1, mask=live, other=0.0), 0.0)
+    gb = tl.where(b + 0.5 >= 0.0, tl.load(grad_ptr + 3 * p + 2, mask=live, other=0.0), 0.0)
+    dx = x * 0.0
+    dy = x * 0.0
+    dz = x * 0.0
+    for k in tl.static_range(COEFFS):
+        basis, bx, by, bz = _basis(k, x, y, z)
+        base = sh_ptr + (p * K + k) * 3
+        out = g_sh_ptr + (p * K + k) * 3
+        tl.store(out, basis * gr, mask=live)
+        tl.store(out + 1, basis * gg, mask=live)
+        tl.store(out + 2, basis * gb, mask=live)
+        g_basis = (tl.load(base, mask=live, other=0.0) * gr + tl.load(base + 1, mask=live, other=0.0) * gg
+                   + tl.load(base + 2, mask=live, other=0.0) * gb)
+        dx += g_basis * bx
+        dy += g_basis * by
+        dz += g_basis * bz
+    # normalize's backward: (g − d̂ (d̂·g)) / |v| (|v| clamped at 1e-12 passes g/1e-12, as torch)
+    along = x * dx + y * dy + z * dz
+    small = tl.sqrt(vx * vx + vy * vy + vz * vz) < 1e-12
+    tl.store(g_v_ptr + 3 * p, tl.where(small, dx, dx - x * along) / norm, mask=live)
+    tl.store(g_v_ptr + 3 * p + 1, tl.where(small, dy, dy - y * along) / norm, mask=live)
+    tl.store(g_v_ptr + 3 * p + 2, tl.where(small, dz, dz - z * along) / norm, mask=live)
+
+
+# --- the neural frame of a view (twin: core/kinds/neural.py view_tensors; fused CPU op:
+# csrc/prepare_kernels.cpp neural_prep): M = S⁻¹Rᵀ, m_cam = M R_cam, o' = M (o − μ),
+# w_cam = ω0 W1 R_cam, c = ω0 (W1 (o − μ)/max s + b1), 1/max s
+
+@triton.jit
+def _rotation(q0, q1, q2, q3):
+    """R(q̂) (row-major, 9 values) of q̂ = q/|q| (|q| at least 1e-12, as torch's normalize), and q̂, |q|."""
+    qnorm = tl.maximum(tl.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
+    w = q0 / qnorm
+    x = q1 / qnorm
+    y = q2 / qnorm
+    z = q3 / qnorm
+    return ((1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+             2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+             2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)), (w, x, y, z), qnorm)
+
+
+@triton.jit
+def _frame(p, live, means_ptr, log_scales_ptr, quats_ptr, view_ptr):
+    """One lane per primitive: R (9), q̂ (4), |q|, the log-scales, 1/s (3), max s, rel = o − μ (3)."""
+    R, qn, qnorm = _rotation(tl.load(quats_ptr + 4 * p, mask=live, other=1.0),
+                             tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0),
+                             tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0),
+                             tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0))
+    l0 = tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0)
+    l1 = tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0)
+    l2 = tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0)
+    smax = tl.exp(tl.maximum(tl.maximum(l0, l1), l2))
+    rel = (tl.load(view_ptr) - tl.load(means_ptr + 3 * p, mask=live, other=0.0),
+           tl.load(view_ptr + 1) - tl.load(means_ptr + 3 * p + 1, mask=live, other=0.0),
+           tl.load(view_ptr + 2) - tl.load(means_ptr + 3 * p + 2, mask=live, other=0.0))
+    return R, qn, qnorm, (l0, l1, l2), (tl.exp(-l0), tl.exp(-l1), tl.exp(-l2)), smax, rel
+
+
+@triton.jit
+def neural_prep_forward(means_ptr, log_scales_ptr, quats_ptr, w1_ptr, b1_ptr, view_ptr, m_cam_ptr, o_ell_ptr,
+                        w_cam_ptr, c_ptr, inv_smax_ptr, P, N, NP: tl.constexpr, BLOCK: tl.constexpr):
+    """view = (o (3), R_cam (3×3 row-major), ω0): the neural primitives' per-view tensors, one lane each
+    (the units on a second axis of NP ≥ N lanes)."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    R, _, _, _, inv_s, smax, rel = _frame(p, live, means_ptr, log_scales_ptr, quats_ptr, view_ptr)
+    for i in tl.static_range(3):
+        # row i of M = S⁻¹Rᵀ: M[i][j] = R[j][i] / s_i
+        m0 = R[i] * inv_s[i]
+        m1 = R[3 + i] * inv_s[i]
+        m2 = R[6 + i] * inv_s[i]
+        for j in tl.static_range(3):
+            rc0 = tl.load(view_ptr + 3 + j)
+            rc1 = tl.load(view_ptr + 6 + j)
+            rc2 = tl.load(view_ptr + 9 + j)
+            tl.store(m_cam_ptr + 9 * p + 3 * i + j, m0 * rc0 + m1 * rc1 + m2 * rc2, mask=live)
+        tl.store(o_ell_ptr + 3 * p + i, m0 * rel[0] + m1 * rel[1] + m2 * rel[2], mask=live)
+    omega0 = tl.load(view_ptr + 12)
+    k = tl.arange(0, NP)
+    unit = live[:, None] & (k[None, :] < N)
+    row = p[:, None] * N + k[None, :]
+    w0 = omega0 * tl.load(w1_ptr + 3 * row, mask=unit, other=0.0)
+    w1 = omega0 * tl.load(w1_ptr + 3 * row + 1, mask=unit, other=0.0)
+    w2 = omega0 * tl.load(w1_ptr + 3 * row + 2, mask=unit, other=0.0)
+    for j in tl.static_range(3):
+        tl.store(w_cam_ptr + 3 * row + j, w0 * tl.load(view_ptr + 3 + j) + w1 * tl.load(view_ptr + 6 + j)
+                 + w2 * tl.load(view_ptr + 9 + j), mask=unit)
+    c = (w0 * (rel[0] / smax)[:, None] + w1 * (rel[1] / smax)[:, None] + w2 * (rel[2] / smax)[:, None]
+         + omega0 * tl.load(b1_ptr + row, mask=unit, other=0.0))
+    tl.store(c_ptr + row, c, mask=unit)
+    tl.store(inv_smax_ptr + p, 1.0 / smax, mask=live)
+
+
+@triton.jit
+def _units_backward(j: tl.constexpr, gc, rel_j, smax, omega0, row, unit, g_w_cam_ptr, w1_ptr, view_ptr, g_w1_ptr):
+    """Component j of the units' gradients: stores ∂W1[:, :, j] (w = ω0 W1_k: w_cam_k = w R_cam,
+    c_k = w·rel/max s + ω0 b1_k) and returns (w_kj rel_j (for ∂max s), Σ_k ∂c_k w_kj / max s (∂rel_j))."""
+    g_w = (tl.load(g_w_cam_ptr + 3 * row, mask=unit, other=0.0) * tl.load(view_ptr + 3 + 3 * j)
+           + tl.load(g_w_cam_ptr + 3 * row + 1, mask=unit, other=0.0) * tl.load(view_ptr + 4 + 3 * j)
+           + tl.load(g_w_cam_ptr + 3 * row + 2, mask=unit, other=0.0) * tl.load(view_ptr + 5 + 3 * j)
+           + gc * (rel_j / smax)[:, None])
+    tl.store(g_w1_ptr + 3 * row + j, omega0 * g_w, mask=unit)
+    w = omega0 * tl.load(w1_ptr + 3 * row + j, mask=unit, other=0.0)
+    return w * rel_j[:, None], tl.sum(gc * w, axis=1) / smax
+
+
+@triton.jit
+def _frame_backward(i: tl.constexpr, j: tl.constexpr, p, live, g_o_i, rel_j, g_m_cam_ptr, view_ptr):
+    """∂M[i][j] = Σ_l ∂m_cam[i][l] R_cam[j][l] + ∂o'_i rel_j (m_cam = M R_cam, o' = M rel)."""
+    return (tl.load(g_m_cam_ptr + 9 * p + 3 * i, mask=live, other=0.0) * tl.load(view_ptr + 3 + 3 * j)
+            + tl.load(g_m_cam_ptr + 9 * p + 3 * i + 1, mask=live, other=0.0) * tl.load(view_ptr + 4 + 3 * j)
+            + tl.load(g_m_cam_ptr + 9 * p + 3 * i + 2, mask=live, other=0.0) * tl.load(view_ptr + 5 + 3 * j)
+            + g_o_i * rel_j)
+
+
+@triton.jit
+def neural_prep_backward(g_m_cam_ptr, g_o_ell_ptr, g_w_cam_ptr, g_c_ptr, g_inv_smax_ptr, means_ptr, log_scales_ptr,
+                         quats_ptr, w1_ptr, view_ptr, g_means_ptr, g_log_scales_ptr, g_quats_ptr, g_w1_ptr, g_b1_ptr,
+                         P, N, NP: tl.constexpr, BLOCK: tl.constexpr):
+    """The gradients of (means, log_scales, quats, w1, b1) from those of the forward's outputs (as
+    csrc/prepare_kernels.cpp neural_prep_backward): through m_cam = M R_cam and o' = M rel into
+    M = S⁻¹Rᵀ, rel = o − μ and the units' w_cam and c; then M into R(q̂) and the scales, max s
+    into the largest log-scale (a tie split evenly, as torch's amax), q̂ = q/|q| into q."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    R, qn, qnorm, logs, inv_s, smax, rel = _frame(p, live, means_ptr, log_scales_ptr, quats_ptr, view_ptr)
+    omega0 = tl.load(view_ptr + 12)
+    g_o0 = tl.load(g_o_ell_ptr + 3 * p, mask=live, other=0.0)
+    g_o1 = tl.load(g_o_ell_ptr + 3 * p + 1, mask=live, other=0.0)
+    g_o2 = tl.load(g_o_ell_ptr + 3 * p + 2, mask=live, other=0.0)
+    k = tl.arange(0, NP)
+    unit = live[:, None] & (k[None, :] < N)
+    row = p[:, None] * N + k[None, :]
+    gc = tl.load(g_c_ptr + row, mask=unit, other=0.0)
+    tl.store(g_b1_ptr + row, omega0 * gc, mask=unit)
+    wr0, u0 = _units_backward(0, gc, rel[0], smax, omega0, row, unit, g_w_cam_ptr, w1_ptr, view_ptr, g_w1_ptr)
+    wr1, u1 = _units_backward(1, gc, rel[1], smax, omega0, row, unit, g_w_cam_ptr, w1_ptr, view_ptr, g_w1_ptr)
+    wr2, u2 = _units_backward(2, gc, rel[2], smax, omega0, row, unit, g_w_cam_ptr, w1_ptr, view_ptr, g_w1_ptr)
+    g_smax = (-tl.load(g_inv_smax_ptr + p, mask=live, other=0.0) - tl.sum(gc * (wr0 + wr1 + wr2), axis=1)) / (smax * smax)
+    # rel = o − μ: ∂μ_j = −∂rel_j, ∂rel_j = Σ_i M[i][j] ∂o'_i + the units'
+    tl.store(g_means_ptr + 3 * p, -(R[0] * inv_s[0] * g_o0 + R[1] * inv_s[1] * g_o1 + R[2] * inv_s[2] * g_o2 + u0),
+             mask=live)
+    tl.store(g_means_ptr + 3 * p + 1, -(R[3] * inv_s[0] * g_o0 + R[4] * inv_s[1] * g_o1 + R[5] * inv_s[2] * g_o2 + u1),
+             mask=live)
+    tl.store(g_means_ptr + 3 * p + 2, -(R[6] * inv_s[0] * g_o0 + R[7] * inv_s[1] * g_o1 + R[8] * inv_s[2] * g_o2 + u2),
+             mask=live)
+    # M[i][j] = R[j][i] / s_i: ∂R[j][i] = ∂M[i][j] / s_i, ∂(1/s_i) = Σ_j ∂M[i][j] R[j][i]
+    m00 = _frame_backward(0, 0, p, live, g_o0, rel[0], g_m_cam_ptr, view_ptr)
+    m01 = _frame_backward(0, 1, p, live, g_o0, rel[1], g_m_cam_ptr, view_ptr)
+    m02 = _frame_backward(0, 2, p, live, g_o0, rel[2], g_m_cam_ptr, view_ptr)
+    m10 = _frame_backward(1, 0, p, live, g_o1, rel[0], g_m_cam_ptr, view_ptr)
+    m11 = _frame_backward(1, 1, p, live, g_o1, rel[1], g_m_cam_ptr, view_ptr)
+    m12 = _frame_backward(1, 2, p, live, g_o1, rel[2], g_m_cam_ptr, view_ptr)
+    m20 = _frame_backward(2, 0, p, live, g_o2, rel[0], g_m_cam_ptr, view_ptr)
+    m21 = _frame_backward(2, 1, p, live, g_o2, rel[1], g_m_cam_ptr, view_ptr)
+    m22 = _frame_backward(2, 2, p, live, g_o2, rel[2], g_m_cam_ptr, view_ptr)
+    g_inv0 = m00 * R[0] + m01 * R[3] + m02 * R[6]
+    g_inv1 = m10 * R[1] + m11 * R[4] + m12 * R[7]
+    g_inv2 = m20 * R[2] + m21 * R[5] + m22 * R[8]
+    lmax = tl.maximum(tl.maximum(logs[0], logs[1]), logs[2])
+    ties = (logs[0] == lmax).to(smax.dtype) + (logs[1] == lmax).to(smax.dtype) + (logs[2] == lmax).to(smax.dtype)
+    share = g_smax * smax / ties
+    tl.store(g_log_scales_ptr + 3 * p, -g_inv0 * inv_s[0] + tl.where(logs[0] == lmax, share, 0.0), mask=live)
+    tl.store(g_log_scales_ptr + 3 * p + 1, -g_inv1 * inv_s[1] + tl.where(logs[1] == lmax, share, 0.0), mask=live)
+    tl.store(g_log_scales_ptr + 3 * p + 2, -g_inv2 * inv_s[2] + tl.where(logs[2] == lmax, share, 0.0), mask=live)
+    # R(q̂) (csrc/pair_kernels.h rotmat_backward; g[3j + i] = ∂R[j][i]), then q̂ = q/|q|
+    g0 = m00 * inv_s[0]
+    g1 = m10 * inv_s[1]
+    g2 = m20 * inv_s[2]
+    g3 = m01 * inv_s[0]
+    g4 = m11 * inv_s[1]
+    g5 = m21 * inv_s[2]
+    g6 = m02 * inv_s[0]
+    g7 = m12 * inv_s[1]
+    g8 = m22 * inv_s[2]
+    w, x, y, z = qn
+    gw = 2.0 * (-z * g1 + y * g2 + z * g3 - x * g5 - y * g6 + x * g7)
+    gx = 2.0 * (y * g1 + z * g2 + y * g3 - 2.0 * x * g4 - w * g5 + z * g6 + w * g7 - 2.0 * x * g8)
+    gy = 2.0 * (-2.0 * y * g0 + x * g1 + w * g2 + x * g3 + z * g5 - w * g6 + z * g7 - 2.0 * y * g8)
+    gz = 2.0 * (-2.0 * z * g0 - w * g1 + x * g2 + w * g3 - 2.0 * z * g4 + y * g5 + x * g6 + y * g7)
+    dot = gw * w + gx * x + gy * y + gz * z
+    tl.store(g_quats_ptr + 4 * p, (gw - w * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 1, (gx - x * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 2, (gy - y * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 3, (gz - z * dot) / qnorm, mask=live)
