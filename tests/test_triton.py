@@ -269,6 +269,31 @@ def test_sh_colour_matches_the_torch_twin(degree, dtype):
     assert (results[0][1][:, (degree + 1) ** 2:] == 0).all()   # coefficients beyond the degree: no gradient
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_neural_bounds_are_the_twins(dtype):
+    """gpu.neural_bounds (one launch) against kinds/base.py ellipsoid_bounds: the same boxes and
+    visibility for 400 ellipsoids around a camera close to them (some behind it, some cut by the
+    near plane: the whole image, some off-screen), on a 37×21 view."""
+    from radfield.core.kinds import ViewFrame, random_neural
+    from radfield.core.kinds.base import ellipsoid_bounds
+
+    prims = random_neural(400, extent=1.2, scale=0.25, seed=4).to(dtype=dtype, device=DEVICE)
+    cam = Camera(fx=30.0, fy=28.0, cx=18.3, cy=10.1, width=37, height=21, c2w=look_at((0.3, -1.0, 0.2), (0, 0, 0)))
+    c2w = cam.c2w.to(dtype=dtype, device=DEVICE)
+    w2c = torch.linalg.inv(c2w)
+    means_cam = prims.means @ w2c[:3, :3].T + w2c[:3, 3]
+    intrinsics = torch.tensor([cam.fx, cam.fy, cam.cx, cam.cy, 0.05], dtype=dtype, device=DEVICE)
+    frame = ViewFrame(cam, c2w, w2c, c2w[:3, 3], means_cam, means_cam[:, 2], intrinsics, 0.05)
+    with backends.using(backends.TRITON):
+        bounds, visible = gpu.neural_bounds(prims, frame)
+    twin_bounds, twin_visible = ellipsoid_bounds(prims, frame)
+    assert torch.equal(visible, twin_visible) and 50 < int(visible.sum()) < 400
+    assert torch.equal(bounds[visible].long(), twin_bounds[visible])
+    whole = torch.tensor([0, 0, 36, 20], device=DEVICE)
+    assert (twin_bounds[twin_visible] == whole).all(-1).any()   # some cut by the near plane
+    assert (means_cam[:, 2] < 0).any()
+
+
 def test_tile_lists_are_every_touched_tile_front_to_back():
     """bin_tiles against a loop over boxes and tiles: each tile lists exactly the visible boxes that
     touch it, in depth rank order; the invisible ones (their boxes anything, even inverted or far
@@ -311,8 +336,8 @@ def compile_for_sm90(fn, options=COMPILE_OPTIONS, floats="*fp32", **constexprs):
     names = list(inspect.signature(fn.fn).parameters)
     ints = {"height", "width", "tiles_x", "N", "P", "K"}
     ints32 = {"offsets_ptr", "entries_ptr", "bounds_ptr", "last_ptr", "counts_ptr"}
-    signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32 else floats
-                 for n in names}
+    signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32
+                 else "*i8" if n == "visible_ptr" else floats for n in names}
     source = ASTSource(fn, signature, constexprs={(names.index(k),): v for k, v in constexprs.items()})
     print("kernel", fn.fn.__name__, sorted(constexprs.items()), flush=True)
     kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=options)
@@ -328,6 +353,9 @@ for kernel in (prepare_kernels.sh_color_forward, prepare_kernels.sh_color_backwa
     compile_for_sm90(kernel, PREPARE_OPTIONS, COEFFS=16, BLOCK=prepare_kernels.BLOCK)
 for kernel in (prepare_kernels.neural_prep_forward, prepare_kernels.neural_prep_backward):
     compile_for_sm90(kernel, PREPARE_OPTIONS, NP=8, BLOCK=prepare_kernels.BLOCK)
+for kernel in (prepare_kernels.gaussian_prep_forward, prepare_kernels.gaussian_prep_backward):
+    compile_for_sm90(kernel, PREPARE_OPTIONS, BLOCK=prepare_kernels.BLOCK)
+compile_for_sm90(prepare_kernels.neural_bounds, PREPARE_OPTIONS, BLOCK=prepare_kernels.BLOCK)
 # a float literal held in a plain local is made a float32 scalar: a float64 kernel's SH constants
 # must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/render/sh.py, 64-bit hex)
 ptx = compile_for_sm90(prepare_kernels.sh_color_backward, PREPARE_OPTIONS, "*fp64", COEFFS=16,
@@ -348,7 +376,7 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 11, done.stdout
+    assert len(kernels) == 14, done.stdout
     assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)

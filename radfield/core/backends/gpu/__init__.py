@@ -343,6 +343,77 @@ def neural_prep(prims, campos: torch.Tensor, cam_rot: torch.Tensor) -> tuple:
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, view)
 
 
+class _GaussianPrep(torch.autograd.Function):
+    """The splats' EWA projection (mean2d (P, 2), conic (P, 3), the covariance's (a, b, c) (P, 3);
+    prepare_kernels.py), differentiable w.r.t. means_cam, log_scales and quats, and their pixel
+    boxes (P, 4) int32 and visibility (P,) bool; `view` = (W (9), fx, fy, cx, cy, near, the Jacobian
+    point's clamp (4)) in their dtype."""
+
+    @staticmethod
+    def forward(ctx, means_cam, log_scales, quats, view, width, height):
+        from radfield.core.backends.gpu import prepare_kernels as K
+
+        inputs = [t.contiguous() for t in (means_cam, log_scales, quats, view)]
+        count, device = means_cam.shape[0], means_cam.device
+        outputs = (means_cam.new_empty(count, 2), means_cam.new_empty(count, 3), means_cam.new_empty(count, 3),
+                   torch.empty(count, 4, dtype=torch.int32, device=device), torch.empty(count, dtype=torch.int8, device=device))
+        with _launching():
+            K.gaussian_prep_forward[(-(-count // K.BLOCK),)](*inputs, *outputs, count, width, height, BLOCK=K.BLOCK,
+                                                             **PREPARE_OPTIONS)
+        ctx.save_for_backward(*inputs)
+        bounds, visible = outputs[3], outputs[4].bool()
+        ctx.mark_non_differentiable(bounds, visible)
+        return (*outputs[:3], bounds, visible)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_mean2d, g_conic, g_cov, _bounds, _visible):
+        from radfield.core.backends.gpu import prepare_kernels as K
+
+        means_cam, log_scales, quats, view = ctx.saved_tensors
+        count = means_cam.shape[0]
+        grads = [means_cam.new_zeros(count, width) if g is None else g.contiguous()
+                 for g, width in ((g_mean2d, 2), (g_conic, 3), (g_cov, 3))]
+        out = [torch.empty_like(t) for t in (means_cam, log_scales, quats)]
+        with _launching():
+            K.gaussian_prep_backward[(-(-count // K.BLOCK),)](*grads, means_cam, log_scales, quats, view, *out, count,
+                                                              BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+        return (*out, None, None, None)
+
+
+def gaussian_prep(prims, frame) -> tuple:
+    """(bounds, visible, (mean2d, conic, opacity)) of kinds/gaussian.py twin_view (ewa_view and
+    splat_bounds) on Triton: one launch, and one for the backward. The clamp of the Jacobian's point
+    is the twin's, from the camera's numbers."""
+    camera = frame.camera
+    margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
+    numbers = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, frame.near,
+                            -camera.cx / camera.fx - margin_x, (camera.width - camera.cx) / camera.fx + margin_x,
+                            -camera.cy / camera.fy - margin_y, (camera.height - camera.cy) / camera.fy + margin_y],
+                           dtype=frame.means_cam.dtype)
+    view = torch.cat([frame.w2c[:3, :3].reshape(9), to_device(numbers, frame.means_cam.device)])
+    mean2d, conic, _, bounds, visible = _GaussianPrep.apply(frame.means_cam, prims.log_scales, prims.quats, view,
+                                                            camera.width, camera.height)
+    return bounds, visible, (mean2d, conic, torch.sigmoid(prims.opacities))
+
+
+@torch.no_grad()
+def neural_bounds(prims, frame) -> tuple[torch.Tensor, torch.Tensor]:
+    """(bounds (P, 4) int32, visible (P,) bool) of kinds/base.py ellipsoid_bounds in one launch."""
+    from radfield.core.backends.gpu import prepare_kernels as K
+
+    means_cam = frame.means_cam.detach().contiguous()
+    count, camera = means_cam.shape[0], frame.camera
+    view = torch.cat([frame.w2c[:3, :3].reshape(9), frame.intrinsics]).detach()
+    bounds = torch.empty(count, 4, dtype=torch.int32, device=means_cam.device)
+    visible = torch.empty(count, dtype=torch.int8, device=means_cam.device)
+    with _launching():
+        K.neural_bounds[(-(-count // K.BLOCK),)](means_cam, prims.log_scales.detach().contiguous(),
+                                                 prims.quats.detach().contiguous(), view, bounds, visible, count,
+                                                 camera.width, camera.height, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+    return bounds, visible.bool()
+
+
 def sh_color(sh: torch.Tensor, v: torch.Tensor, degree: int) -> torch.Tensor:
     """Op "sh_color" on Triton: sh.sh_to_color(sh, normalize(v), degree) (v = μ − o) in one launch, and
     one for its backward."""
@@ -365,12 +436,17 @@ def _front_to_back(frame, visible: torch.Tensor) -> torch.Tensor:
 
 
 def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
-    """Op "view.gaussian" on Triton: the twin's per-view preparation (kinds/gaussian.py: twin_view)
-    and depth order, then the tile kernels; returns (Σ w c, Σ w z, T, counters (evaluated,
+    """Op "view.gaussian" on Triton: the twin's per-view preparation (kinds/gaussian.py: twin_view,
+    the EWA projection and the bounds) by the preparation kernel (gaussian_prep) and depth order,
+    then the tile kernels; returns (Σ w c, Σ w z, T, counters (evaluated,
     composited, terminated, candidate pairs), the number of visible primitives (0-dim))."""
     from radfield.core import kinds
 
-    bounds, visible, (mean2d, conic, opacity) = kinds.of(prims).twin_view(prims, frame)
+    # the twin's EWA projection and bounds in one launch (gaussian_prep)
+    if len(prims.means):
+        bounds, visible, (mean2d, conic, opacity) = gaussian_prep(prims, frame)
+    else:   # nothing to launch
+        bounds, visible, (mean2d, conic, opacity) = kinds.of(prims).twin_view(prims, frame)
     ids = _front_to_back(frame, visible)
     camera = frame.camera
     out = _GaussianView.apply(bounds[ids], visible[ids], camera.height, camera.width, float(t_min), mean2d[ids],
@@ -382,19 +458,20 @@ def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
     """Op "view.neural" on Triton: the twin's bounds and per-view tensors (kinds/neural.py:
     twin_view: the ellipsoid frame, the MLP phases, (W2, b2)), the frame and phases by the
     preparation kernel (neural_prep), then the tile kernels; returns as gaussian_view."""
-    from radfield.core.kinds.base import ellipsoid_bounds
     from radfield.core.kinds.neural import density_weights
 
-    # the twin's bounds (torch, no gradient); its per-view tensors (view_tensors) in one launch
-    bounds, visible = ellipsoid_bounds(prims, frame)
-    ids = _front_to_back(frame, visible)
+    # the twin's bounds (kinds/base.py ellipsoid_bounds) and per-view tensors (view_tensors), each in one launch
     if len(prims.means):
+        bounds, visible = neural_bounds(prims, frame)
         m_cam, o_ell, w_cam, c, inv_smax = neural_prep(prims, frame.campos, frame.c2w[:3, :3])
         w2, b2 = density_weights(prims, frame.campos - prims.means)
     else:   # nothing to launch
+        from radfield.core.kinds.base import ellipsoid_bounds
         from radfield.core.kinds.neural import view_tensors
 
+        bounds, visible = ellipsoid_bounds(prims, frame)
         m_cam, o_ell, w_cam, c, w2, b2, inv_smax = view_tensors(prims, frame.campos, frame.c2w[:3, :3])
+    ids = _front_to_back(frame, visible)
     m_cam, o_ell, w_cam, c, w2, b2, inv_smax = (t[ids] for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax))
     camera = frame.camera
     out = _NeuralView.apply(bounds[ids], visible[ids], frame.intrinsics, camera.height, camera.width, float(t_min),

@@ -310,3 +310,298 @@ def neural_prep_backward(g_m_cam_ptr, g_o_ell_ptr, g_w_cam_ptr, g_c_ptr, g_inv_s
     tl.store(g_quats_ptr + 4 * p + 1, (gx - x * dot) / qnorm, mask=live)
     tl.store(g_quats_ptr + 4 * p + 2, (gy - y * dot) / qnorm, mask=live)
     tl.store(g_quats_ptr + 4 * p + 3, (gz - z * dot) / qnorm, mask=live)
+
+
+# --- the Gaussians' EWA projection (twin: core/kinds/gaussian.py ewa_view; fused CPU op:
+# csrc/prepare_kernels.cpp gaussian_prep): mean2d, the conic of J W Σ Wᵀ Jᵀ + 0.3 I, its (a, b, c)
+
+@triton.jit
+def _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr):
+    """One lane per splat: the camera-space centre, the clamped Jacobian point and J (4 values), R(q̂),
+    q̂, |q|, s, rot = W R, rs = rot diag(s) and t = J rs (2 × 3); view = (W row-major (9), fx, fy,
+    cx, cy, near, the Jacobian point's clamp lo_x, hi_x, lo_y, hi_y)."""
+    x = tl.load(means_cam_ptr + 3 * p, mask=live, other=0.0)
+    y = tl.load(means_cam_ptr + 3 * p + 1, mask=live, other=0.0)
+    z = tl.load(means_cam_ptr + 3 * p + 2, mask=live, other=1.0)
+    fx = tl.load(view_ptr + 9)
+    fy = tl.load(view_ptr + 10)
+    near = tl.load(view_ptr + 13)
+    zs = tl.where(z > near, z, 1.0)
+    tx = zs * tl.minimum(tl.maximum(x / zs, tl.load(view_ptr + 14)), tl.load(view_ptr + 15))
+    ty = zs * tl.minimum(tl.maximum(y / zs, tl.load(view_ptr + 16)), tl.load(view_ptr + 17))
+    j0 = fx / zs
+    j1 = -fx * tx / (zs * zs)
+    j2 = fy / zs
+    j3 = -fy * ty / (zs * zs)
+    R, qn, qnorm = _rotation(tl.load(quats_ptr + 4 * p, mask=live, other=1.0),
+                             tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0),
+                             tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0),
+                             tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0))
+    s0 = tl.exp(tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0))
+    s1 = tl.exp(tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0))
+    s2 = tl.exp(tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0))
+    rot = _times_w(view_ptr, R)
+    rs = (rot[0] * s0, rot[1] * s1, rot[2] * s2, rot[3] * s0, rot[4] * s1, rot[5] * s2,
+          rot[6] * s0, rot[7] * s1, rot[8] * s2)
+    t = (j0 * rs[0] + j1 * rs[6], j0 * rs[1] + j1 * rs[7], j0 * rs[2] + j1 * rs[8],
+         j2 * rs[3] + j3 * rs[6], j2 * rs[4] + j3 * rs[7], j2 * rs[5] + j3 * rs[8])
+    return (x, y, z, zs, tx, ty), (j0, j1, j2, j3), R, qn, qnorm, (s0, s1, s2), rot, rs, t
+
+
+@triton.jit
+def _times_w(view_ptr, R):
+    """W R (row-major) with W the view's world-to-camera rotation."""
+    w00 = tl.load(view_ptr)
+    w01 = tl.load(view_ptr + 1)
+    w02 = tl.load(view_ptr + 2)
+    w10 = tl.load(view_ptr + 3)
+    w11 = tl.load(view_ptr + 4)
+    w12 = tl.load(view_ptr + 5)
+    w20 = tl.load(view_ptr + 6)
+    w21 = tl.load(view_ptr + 7)
+    w22 = tl.load(view_ptr + 8)
+    return (w00 * R[0] + w01 * R[3] + w02 * R[6], w00 * R[1] + w01 * R[4] + w02 * R[7], w00 * R[2] + w01 * R[5] + w02 * R[8],
+            w10 * R[0] + w11 * R[3] + w12 * R[6], w10 * R[1] + w11 * R[4] + w12 * R[7], w10 * R[2] + w11 * R[5] + w12 * R[8],
+            w20 * R[0] + w21 * R[3] + w22 * R[6], w20 * R[1] + w21 * R[4] + w22 * R[7], w20 * R[2] + w21 * R[5] + w22 * R[8])
+
+
+@triton.jit
+def gaussian_prep_forward(means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr, mean2d_ptr, conic_ptr, cov_ptr,
+                          bounds_ptr, visible_ptr, P, width, height, BLOCK: tl.constexpr):
+    """mean2d (P, 2), conic (P, 3) and the covariance's (a, b, c) (P, 3) of the splats (EWA, 3DGS's
+    0.3 px² blur); and (no gradient) their 3σ pixel boxes (P, 4) int32, clipped to the image, and
+    visibility (P,) int8: beyond the near plane, a positive-definite covariance and a box in the
+    image (twin: core/kinds/gaussian.py splat_bounds, with IEEE roots and divisions as torch's)."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    centre, _, _, _, _, _, _, _, t = _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr)
+    x, y, z, zs, _, _ = centre
+    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + 0.3
+    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
+    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + 0.3
+    det = a * c - b * b
+    tl.store(conic_ptr + 3 * p, c / det, mask=live)
+    tl.store(conic_ptr + 3 * p + 1, -b / det, mask=live)
+    tl.store(conic_ptr + 3 * p + 2, a / det, mask=live)
+    tl.store(cov_ptr + 3 * p, a, mask=live)
+    tl.store(cov_ptr + 3 * p + 1, b, mask=live)
+    tl.store(cov_ptr + 3 * p + 2, c, mask=live)
+    mx = tl.load(view_ptr + 9) * x / zs + tl.load(view_ptr + 11)
+    my = tl.load(view_ptr + 10) * y / zs + tl.load(view_ptr + 12)
+    tl.store(mean2d_ptr + 2 * p, mx, mask=live)
+    tl.store(mean2d_ptr + 2 * p + 1, my, mask=live)
+    # the box: 3 √λ_max of (a, b, c), rounded up to whole pixels
+    lam_max = 0.5 * (a + c) + _sqrt_ieee(tl.maximum(0.25 * (a - c) * (a - c) + b * b, 0.0))
+    radius = tl.math.ceil(3.0 * _sqrt_ieee(lam_max))
+    big = (tl.maximum(width, height) + 1).to(x.dtype)
+    x0 = tl.maximum(tl.minimum(tl.maximum(_box_side(mx - radius, mx, True), -big), big).to(tl.int32), 0)
+    y0 = tl.maximum(tl.minimum(tl.maximum(_box_side(my - radius, my, True), -big), big).to(tl.int32), 0)
+    x1 = tl.minimum(tl.minimum(tl.maximum(_box_side(mx, mx + radius, False), -big), big).to(tl.int32), width - 1)
+    y1 = tl.minimum(tl.minimum(tl.maximum(_box_side(my, my + radius, False), -big), big).to(tl.int32), height - 1)
+    visible = (z > tl.load(view_ptr + 13)) & (det > 0.0) & (x1 >= x0) & (y1 >= y0)
+    tl.store(bounds_ptr + 4 * p, x0, mask=live)
+    tl.store(bounds_ptr + 4 * p + 1, y0, mask=live)
+    tl.store(bounds_ptr + 4 * p + 2, x1, mask=live)
+    tl.store(bounds_ptr + 4 * p + 3, y1, mask=live)
+    tl.store(visible_ptr + p, visible.to(tl.int8), mask=live)
+
+
+@triton.jit
+def gaussian_prep_backward(g_mean2d_ptr, g_conic_ptr, g_cov_ptr, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr,
+                           g_means_cam_ptr, g_log_scales_ptr, g_quats_ptr, P, BLOCK: tl.constexpr):
+    """The gradients of (means_cam, log_scales, quats) from those of (mean2d, conic, (a, b, c)), as
+    csrc/prepare_kernels.cpp gaussian_prep_backward (which has no (a, b, c) gradient: there they
+    only bound the splats; here they enter as they do in the twin)."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    centre, J, R, qn, qnorm, s, rot, rs, t = _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr)
+    x, y, z, zs, tx, ty = centre
+    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + 0.3
+    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
+    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + 0.3
+    det = a * c - b * b
+    # conic = (c, −b, a)/det, det = a c − b²
+    gc0 = tl.load(g_conic_ptr + 3 * p, mask=live, other=0.0)
+    gc1 = tl.load(g_conic_ptr + 3 * p + 1, mask=live, other=0.0)
+    gc2 = tl.load(g_conic_ptr + 3 * p + 2, mask=live, other=0.0)
+    g_det = -(gc0 * c - gc1 * b + gc2 * a) / (det * det)
+    g_a = gc2 / det + g_det * c + tl.load(g_cov_ptr + 3 * p, mask=live, other=0.0)
+    g_b = -gc1 / det - 2.0 * b * g_det + tl.load(g_cov_ptr + 3 * p + 1, mask=live, other=0.0)
+    g_c = gc0 / det + g_det * a + tl.load(g_cov_ptr + 3 * p + 2, mask=live, other=0.0)
+    # (a, b, c) of t tᵀ
+    gt0 = 2.0 * g_a * t[0] + g_b * t[3]
+    gt1 = 2.0 * g_a * t[1] + g_b * t[4]
+    gt2 = 2.0 * g_a * t[2] + g_b * t[5]
+    gt3 = g_b * t[0] + 2.0 * g_c * t[3]
+    gt4 = g_b * t[1] + 2.0 * g_c * t[4]
+    gt5 = g_b * t[2] + 2.0 * g_c * t[5]
+    # t = J rs, J = [[j0, 0, j1], [0, j2, j3]]
+    j0, j1, j2, j3 = J
+    g_j0 = gt0 * rs[0] + gt1 * rs[1] + gt2 * rs[2]
+    g_j1 = gt0 * rs[6] + gt1 * rs[7] + gt2 * rs[8]
+    g_j2 = gt3 * rs[3] + gt4 * rs[4] + gt5 * rs[5]
+    g_j3 = gt3 * rs[6] + gt4 * rs[7] + gt5 * rs[8]
+    g_rs = (j0 * gt0, j0 * gt1, j0 * gt2, j2 * gt3, j2 * gt4, j2 * gt5,
+            j1 * gt0 + j3 * gt3, j1 * gt1 + j3 * gt4, j1 * gt2 + j3 * gt5)
+    # rs = rot diag(s), rot = W R(q̂), s = exp(ℓ)
+    for j in tl.static_range(3):
+        g_s = g_rs[j] * rot[j] + g_rs[3 + j] * rot[3 + j] + g_rs[6 + j] * rot[6 + j]
+        tl.store(g_log_scales_ptr + 3 * p + j, g_s * s[j], mask=live)
+    g_R = _times_w_transposed(view_ptr, g_rs, s)
+    w, qx, qy, qz = qn
+    g = g_R
+    gw = 2.0 * (-qz * g[1] + qy * g[2] + qz * g[3] - qx * g[5] - qy * g[6] + qx * g[7])
+    gx = 2.0 * (qy * g[1] + qz * g[2] + qy * g[3] - 2.0 * qx * g[4] - w * g[5] + qz * g[6] + w * g[7] - 2.0 * qx * g[8])
+    gy = 2.0 * (-2.0 * qy * g[0] + qx * g[1] + w * g[2] + qx * g[3] + qz * g[5] - w * g[6] + qz * g[7] - 2.0 * qy * g[8])
+    gz = 2.0 * (-2.0 * qz * g[0] - w * g[1] + qx * g[2] + w * g[3] - 2.0 * qz * g[4] + qy * g[5] + qx * g[6] + qy * g[7])
+    dot = gw * w + gx * qx + gy * qy + gz * qz
+    tl.store(g_quats_ptr + 4 * p, (gw - w * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 1, (gx - qx * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 2, (gy - qy * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 3, (gz - qz * dot) / qnorm, mask=live)
+    # J = [[fx/zs, 0, −fx tx/zs²], [0, fy/zs, −fy ty/zs²]], tx = zs clamp(x/zs), mean2d = f x/zs + c
+    fx = tl.load(view_ptr + 9)
+    fy = tl.load(view_ptr + 10)
+    lo_x = tl.load(view_ptr + 14)
+    hi_x = tl.load(view_ptr + 15)
+    lo_y = tl.load(view_ptr + 16)
+    hi_y = tl.load(view_ptr + 17)
+    zz = zs * zs
+    g2x = tl.load(g_mean2d_ptr + 2 * p, mask=live, other=0.0)
+    g2y = tl.load(g_mean2d_ptr + 2 * p + 1, mask=live, other=0.0)
+    g_tx = -fx * g_j1 / zz
+    g_ty = -fy * g_j3 / zz
+    g_zs = -fx * g_j0 / zz + 2.0 * fx * tx * g_j1 / (zz * zs) - fy * g_j2 / zz + 2.0 * fy * ty * g_j3 / (zz * zs)
+    r_x = x / zs
+    r_y = y / zs
+    g_zs += tl.minimum(tl.maximum(r_x, lo_x), hi_x) * g_tx + tl.minimum(tl.maximum(r_y, lo_y), hi_y) * g_ty
+    g_rx = tl.where((r_x >= lo_x) & (r_x <= hi_x), zs * g_tx, 0.0)   # the clamp passes at equality
+    g_ry = tl.where((r_y >= lo_y) & (r_y <= hi_y), zs * g_ty, 0.0)
+    g_zs -= (g_rx * x + fx * x * g2x + g_ry * y + fy * y * g2y) / zz
+    tl.store(g_means_cam_ptr + 3 * p, g_rx / zs + fx * g2x / zs, mask=live)
+    tl.store(g_means_cam_ptr + 3 * p + 1, g_ry / zs + fy * g2y / zs, mask=live)
+    tl.store(g_means_cam_ptr + 3 * p + 2, tl.where(z > tl.load(view_ptr + 13), g_zs, 0.0), mask=live)
+
+
+@triton.jit
+def _times_w_transposed(view_ptr, g_rs, s):
+    """∂R = Wᵀ (∂rs diag(s)) (row-major), from rs = W R diag(s)."""
+    w00 = tl.load(view_ptr)
+    w01 = tl.load(view_ptr + 1)
+    w02 = tl.load(view_ptr + 2)
+    w10 = tl.load(view_ptr + 3)
+    w11 = tl.load(view_ptr + 4)
+    w12 = tl.load(view_ptr + 5)
+    w20 = tl.load(view_ptr + 6)
+    w21 = tl.load(view_ptr + 7)
+    w22 = tl.load(view_ptr + 8)
+    return ((w00 * g_rs[0] + w10 * g_rs[3] + w20 * g_rs[6]) * s[0], (w00 * g_rs[1] + w10 * g_rs[4] + w20 * g_rs[7]) * s[1],
+            (w00 * g_rs[2] + w10 * g_rs[5] + w20 * g_rs[8]) * s[2],
+            (w01 * g_rs[0] + w11 * g_rs[3] + w21 * g_rs[6]) * s[0], (w01 * g_rs[1] + w11 * g_rs[4] + w21 * g_rs[7]) * s[1],
+            (w01 * g_rs[2] + w11 * g_rs[5] + w21 * g_rs[8]) * s[2],
+            (w02 * g_rs[0] + w12 * g_rs[3] + w22 * g_rs[6]) * s[0], (w02 * g_rs[1] + w12 * g_rs[4] + w22 * g_rs[7]) * s[1],
+            (w02 * g_rs[2] + w12 * g_rs[5] + w22 * g_rs[8]) * s[2])
+
+
+# --- the neural primitives' pixel bounds (no gradient; twin: core/kinds/base.py ellipsoid_bounds)
+
+@triton.jit
+def _sqrt_ieee(x):
+    """√x rounded as IEEE (as torch's); float32 needs the _rn form, float64's is IEEE already."""
+    if x.dtype == tl.float32:
+        return tl.sqrt_rn(x)
+    else:
+        return tl.sqrt(x)
+
+
+@triton.jit
+def _div_ieee(a, b):
+    """a / b rounded as IEEE (as torch's); float32 needs the _rn form, float64's is IEEE already."""
+    if a.dtype == tl.float32:
+        return tl.div_rn(a, b)
+    else:
+        return a / b
+
+
+@triton.jit
+def _box_side(lo, hi, low_side: tl.constexpr):
+    """conic_box's integer side: the first (low_side) or last pixel centre j + 0.5 in [lo, hi], NaN → −1."""
+    if low_side:
+        side = tl.math.ceil(lo - 0.5)
+    else:
+        side = tl.math.floor(hi - 0.5)
+    return tl.where(side != side, -1.0, side)
+
+
+@triton.jit
+def neural_bounds(means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr, bounds_ptr, visible_ptr, P, width, height,
+                  BLOCK: tl.constexpr):
+    """bounds (P, 4) int32 and visible (P,) int8 of the bounding ellipsoids B(μ, R, s): the box of the
+    dual conic C* = K (μμᵀ − Σ) Kᵀ (camera frame, Σ = rs rsᵀ, rs = W R diag(s)), the whole image
+    for an ellipsoid the near plane cuts, clipped to the image; visible: some of it beyond the near
+    plane and its box not empty. view = (W (9), fx, fy, cx, cy, near)."""
+    p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = p < P
+    x = tl.load(means_cam_ptr + 3 * p, mask=live, other=0.0)
+    y = tl.load(means_cam_ptr + 3 * p + 1, mask=live, other=0.0)
+    z = tl.load(means_cam_ptr + 3 * p + 2, mask=live, other=0.0)
+    R, _, _ = _rotation(tl.load(quats_ptr + 4 * p, mask=live, other=1.0),
+                        tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0),
+                        tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0),
+                        tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0))
+    s0 = tl.exp(tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0))
+    s1 = tl.exp(tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0))
+    s2 = tl.exp(tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0))
+    rot = _times_w(view_ptr, R)
+    r00 = rot[0] * s0
+    r01 = rot[1] * s1
+    r02 = rot[2] * s2
+    r10 = rot[3] * s0
+    r11 = rot[4] * s1
+    r12 = rot[5] * s2
+    r20 = rot[6] * s0
+    r21 = rot[7] * s1
+    r22 = rot[8] * s2
+    # A = μμᵀ − Σ (the entries the dual's rows 0, 1 and 2 need)
+    a00 = x * x - (r00 * r00 + r01 * r01 + r02 * r02)
+    a11 = y * y - (r10 * r10 + r11 * r11 + r12 * r12)
+    sigma22 = r20 * r20 + r21 * r21 + r22 * r22
+    a22 = z * z - sigma22
+    a02 = x * z - (r00 * r20 + r01 * r21 + r02 * r22)
+    a12 = y * z - (r10 * r20 + r11 * r21 + r12 * r22)
+    fx = tl.load(view_ptr + 9)
+    fy = tl.load(view_ptr + 10)
+    cx = tl.load(view_ptr + 11)
+    cy = tl.load(view_ptr + 12)
+    near = tl.load(view_ptr + 13)
+    # C* = K A Kᵀ, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    d22 = a22
+    d02 = fx * a02 + cx * a22
+    d12 = fy * a12 + cy * a22
+    d00 = fx * (fx * a00 + cx * a02) + cx * (fx * a02 + cx * a22)
+    d11 = fy * (fy * a11 + cy * a12) + cy * (fy * a12 + cy * a22)
+    # the tangent lines u = const: C*_00 − 2u C*_02 + u² C*_22 = 0 (likewise v)
+    # (IEEE square roots and divisions, as torch's: a box side is a rounding of these)
+    root_u = _sqrt_ieee(tl.maximum(d02 * d02 - d00 * d22, 0.0))
+    root_v = _sqrt_ieee(tl.maximum(d12 * d12 - d11 * d22, 0.0))
+    u_a = _div_ieee(d02 + root_u, d22)
+    u_b = _div_ieee(d02 - root_u, d22)
+    v_a = _div_ieee(d12 + root_v, d22)
+    v_b = _div_ieee(d12 - root_v, d22)
+    big = (tl.maximum(width, height) + 1).to(x.dtype)
+    x0 = tl.minimum(tl.maximum(_box_side(tl.minimum(u_a, u_b), tl.maximum(u_a, u_b), True), -big), big)
+    y0 = tl.minimum(tl.maximum(_box_side(tl.minimum(v_a, v_b), tl.maximum(v_a, v_b), True), -big), big)
+    x1 = tl.minimum(tl.maximum(_box_side(tl.minimum(u_a, u_b), tl.maximum(u_a, u_b), False), -big), big)
+    y1 = tl.minimum(tl.maximum(_box_side(tl.minimum(v_a, v_b), tl.maximum(v_a, v_b), False), -big), big)
+    z_ext = _sqrt_ieee(sigma22)
+    in_front = z - z_ext > near
+    x0 = tl.maximum(tl.where(in_front, x0.to(tl.int32), 0), 0)
+    y0 = tl.maximum(tl.where(in_front, y0.to(tl.int32), 0), 0)
+    x1 = tl.minimum(tl.where(in_front, x1.to(tl.int32), width - 1), width - 1)
+    y1 = tl.minimum(tl.where(in_front, y1.to(tl.int32), height - 1), height - 1)
+    visible = (z + z_ext > near) & (x1 >= x0) & (y1 >= y0)
+    tl.store(bounds_ptr + 4 * p, x0, mask=live)
+    tl.store(bounds_ptr + 4 * p + 1, y0, mask=live)
+    tl.store(bounds_ptr + 4 * p + 2, x1, mask=live)
+    tl.store(bounds_ptr + 4 * p + 3, y1, mask=live)
+    tl.store(visible_ptr + p, visible.to(tl.int8), mask=live)
