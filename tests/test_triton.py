@@ -296,8 +296,8 @@ def test_neural_bounds_are_the_twins(dtype):
 
 def test_tile_lists_are_every_touched_tile_front_to_back():
     """bin_tiles against a loop over boxes and tiles: each tile lists exactly the visible boxes that
-    touch it, in depth rank order; the invisible ones (their boxes anything, even inverted or far
-    outside the image: the renderer passes every primitive) are in no list."""
+    touch it, in the depth order given; the invisible ones (their boxes anything, even inverted or
+    far outside the image: the renderer passes every primitive) are in no list."""
     g = torch.Generator().manual_seed(3)
     width, height = 53, 37                     # 4 × 3 tiles, the last ones cut
     corner = torch.stack([torch.randint(0, width, (40,), generator=g), torch.randint(0, height, (40,), generator=g)], -1)
@@ -306,14 +306,15 @@ def test_tile_lists_are_every_touched_tile_front_to_back():
     bounds = torch.cat([corner, far], -1)
     visible = torch.rand(40, generator=g) < 0.7
     bounds[~visible] = torch.randint(-10**6, 10**6, (int((~visible).sum()), 4), generator=g)
-    offsets, entries = gpu.bin_tiles(bounds.to(DEVICE), visible.to(DEVICE), height, width)
+    order = torch.randperm(40, generator=g)    # front to back
+    offsets, entries = gpu.bin_tiles(bounds.to(DEVICE), visible.to(DEVICE), order.to(DEVICE), height, width)
     tiles_x, tiles_y = math.ceil(width / 16), math.ceil(height / 16)
     assert offsets.shape == (tiles_x * tiles_y + 1,) and offsets.dtype == entries.dtype == torch.int32
     offsets, entries, bounds = offsets.cpu().tolist(), entries.cpu().tolist(), bounds.tolist()
     for ty, tx in itertools.product(range(tiles_y), range(tiles_x)):
         t = ty * tiles_x + tx
-        expected = [r for r, (x0, y0, x1, y1) in enumerate(bounds)
-                    if visible[r] and x0 // 16 <= tx <= x1 // 16 and y0 // 16 <= ty <= y1 // 16]
+        expected = [i for i in order.tolist() if visible[i] and bounds[i][0] // 16 <= tx <= bounds[i][2] // 16
+                    and bounds[i][1] // 16 <= ty <= bounds[i][3] // 16]
         assert entries[offsets[t]:offsets[t + 1]] == expected, (tx, ty)
     assert offsets[0] == 0 and offsets[-1] == len(entries) and 0 < visible.sum() < 40
 

@@ -5,26 +5,32 @@
     neural_view(prims, frame, colors, t_min)                      op "view.neural" (kinds/neural.py)
         -> (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,), the visible count (0-dim))
     sh_color(sh, v, degree) -> colour (P, 3)                      op "sh_color" (core/render/rasterize.py)
-    bin_tiles(bounds, visible, height, width) -> (offsets, entries)   the per-tile depth-ordered lists
+    bin_tiles(bounds, visible, order, height, width) -> (offsets, entries)   the per-tile depth-ordered lists
 
 Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
 download (the wheel ships its compiler), and `TRITON_INTERPRET=1` runs the very same kernels on
 CPU tensors, so CI (no GPU) tests them against the torch twins on tiny views (tests/test_triton.py).
 
-The design is gsplat's/3DGS's. Per view, in torch (so that autograd carries the gradients on to
-the parameters): the kind's own per-view preparation, `twin_view` (Gaussians: the EWA projection,
-the conic with the 0.3 px² blur, the 3σ boxes; neural primitives: the dual-conic boxes, the
-ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k, (W2, b2), 1/max s: exactly the twin's),
-the depth order (a stable sort, as the twin), and the tile binning: every visible primitive × the
-16×16 tiles its box touches, keys (tile, depth rank) sorted by torch.sort, per-tile [start, end)
-ranges. The host reads the device once a view, for the number of those pairs (the size of the key
-array, as 3DGS and gsplat read it): every primitive keeps its place in the order, the invisible
-ones after the visible, so that nothing else waits for a count. Then two Triton launches (gaussian_kernels.py, neural_kernels.py; the tile walk they share
-in tiles.py): the forward, one program per tile compositing front to back with early termination,
-and the backward, walking each pixel's list back to front from its final T with atomic adds of the
-per-primitive gradients. Nothing is
-stored per pair; the launches per view do not depend on the primitive count. The
-population-control statistics come out of autograd as on every path: the means' gradient
+The design is gsplat's/3DGS's. Per view:
+1. the kind's per-view preparation, one lane per primitive, forward and hand-written backward
+   (prepare_kernels.py; the twins: `twin_view` of kinds/gaussian.py and kinds/neural.py, and
+   core/render/sh.py): the colours from the SH; for Gaussians the EWA projection (mean2d, the conic
+   with the 0.3 px² blur) and the 3σ boxes in one launch; for neural primitives the dual-conic
+   boxes, then the ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k and 1/max s ((W2, b2)
+   stay torch: an edited model's rest metric scales them);
+2. in torch: the depth order (a stable sort, as the twin) and the tile binning: every visible
+   primitive × the 16×16 tiles its box touches, keys (tile, depth rank) sorted by torch.sort,
+   per-tile [start, end) ranges of primitive indices. The host reads the device once a view, for
+   the number of those pairs (the size of the key array, as 3DGS and gsplat read it): every
+   primitive keeps its place in the order, the invisible ones after the visible, so that nothing
+   else waits for a count;
+3. two Triton launches (gaussian_kernels.py, neural_kernels.py; the tile walk they share in
+   tiles.py): the forward, one program per tile compositing front to back with early termination,
+   and the backward, walking each pixel's list back to front from its final T with atomic adds of
+   the per-primitive gradients. The kernels read the primitives through the lists: nothing is
+   gathered into depth order, nothing is stored per pair, and the launches per view do not depend
+   on the primitive count.
+The population-control statistics come out of autograd as on every path: the means' gradient
 (Gaussians) and the MLP's gradients (neural) are what the strategies read (core/train/strategy.py).
 
 Where it runs: CUDA tensors (float32, float64) when triton is installed and a GPU is present; CPU
@@ -117,26 +123,29 @@ def why_not() -> str | None:
 
 # --- tile binning (torch) ------------------------------------------------------------------------
 
-def bin_tiles(bounds: torch.Tensor, visible: torch.Tensor, height: int,
+def bin_tiles(bounds: torch.Tensor, visible: torch.Tensor, order: torch.Tensor, height: int,
               width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The tile lists of V boxes in depth order (bounds (V, 4) inclusive pixel boxes inside the
-    image where `visible` (V,), anything elsewhere): (offsets (tiles + 1,) int32, entries int32),
-    tile t's depth ranks, front to back, at entries[offsets[t]:offsets[t + 1]]. Every (visible
-    box, tile it touches) pair is one key tile · V + rank, sorted."""
+    """The tile lists of P boxes (bounds (P, 4) inclusive pixel boxes inside the image where
+    `visible` (P,), anything elsewhere) in the depth order `order` (P,) (every index once, front to
+    back): (offsets (tiles + 1,) int32, entries int32), tile t's box indices, front to back, at
+    entries[offsets[t]:offsets[t + 1]]. Every (visible box, tile it touches) pair is one key
+    tile · P + the box's place in `order`, sorted."""
     device = bounds.device
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     count = max(bounds.shape[0], 1)
+    place = torch.empty_like(order)
+    place[order] = torch.arange(order.numel(), device=device)
     tx0, ty0, tx1, ty1 = (bounds // TILE).long().unbind(-1)
     across = tx1 - tx0 + 1
     touched = torch.where(visible, across * (ty1 - ty0 + 1), 0)
     pairs = pair_count(touched)
-    rank = torch.repeat_interleave(torch.arange(bounds.shape[0], device=device), touched, output_size=pairs)
-    k = torch.arange(pairs, device=device) - (torch.cumsum(touched, 0) - touched)[rank]
-    tile = (ty0[rank] + k // across[rank]) * tiles_x + tx0[rank] + k % across[rank]
-    keys, _ = torch.sort(tile * count + rank)
-    # tile t's keys start at the first key ≥ t · V (a search, not a histogram: bincount reads its size)
+    box = torch.repeat_interleave(torch.arange(bounds.shape[0], device=device), touched, output_size=pairs)
+    k = torch.arange(pairs, device=device) - (torch.cumsum(touched, 0) - touched)[box]
+    tile = (ty0[box] + k // across[box]) * tiles_x + tx0[box] + k % across[box]
+    keys, _ = torch.sort(tile * count + place[box])
+    # tile t's keys start at the first key ≥ t · P (a search, not a histogram: bincount reads its size)
     starts = torch.arange(tiles_x * tiles_y + 1, device=device) * count
-    return torch.searchsorted(keys, starts).to(torch.int32), (keys % count).to(torch.int32)
+    return torch.searchsorted(keys, starts).to(torch.int32), order[keys % count].to(torch.int32)
 
 
 def pair_count(touched: torch.Tensor) -> int:
@@ -170,12 +179,13 @@ def _upstream(like: torch.Tensor, height: int, width: int, g_color, g_depth, g_t
             for g, shape in ((g_color, (height, width, 3)), (g_depth, (height, width)), (g_trans, (height, width)))]
 
 
-def _prepared(tensors, bounds: torch.Tensor, visible: torch.Tensor, height: int, width: int, t_min: float):
+def _prepared(tensors, bounds: torch.Tensor, visible: torch.Tensor, order: torch.Tensor, height: int, width: int,
+              t_min: float):
     """What both views' forwards set up before their launch: the per-primitive inputs contiguous,
     int32 bounds, the tile lists, the constants, the tile grid and the zeroed outputs."""
     inputs = [t.contiguous() for t in tensors]
     bounds = bounds.to(torch.int32).contiguous()
-    offsets, entries = bin_tiles(bounds, visible, height, width)
+    offsets, entries = bin_tiles(bounds, visible, order, height, width)
     tiles_x, tiles = _sizes(height, width)
     return (inputs, bounds, offsets, entries, _constants(inputs[0], t_min), tiles_x, tiles,
             _outputs(inputs[0], height, width, tiles))
@@ -195,15 +205,16 @@ def _constants_on(t_min: float, dtype: torch.dtype, device: torch.device) -> tor
 
 
 class _GaussianView(torch.autograd.Function):
-    """(Σ w c, Σ w z, T, counters) of splats in depth order, differentiable w.r.t. mean2d, conic,
-    opacity, colors and depth (all (V, ...), in depth order)."""
+    """(Σ w c, Σ w z, T, counters) of splats composited in the depth order `order`, differentiable
+    w.r.t. mean2d, conic, opacity, colors and depth (all (P, ...), the kernels read them through
+    the tile lists: nothing is gathered into that order)."""
 
     @staticmethod
-    def forward(ctx, bounds, visible, height, width, t_min, mean2d, conic, opacity, colors, depth):
+    def forward(ctx, bounds, visible, order, height, width, t_min, mean2d, conic, opacity, colors, depth):
         from radfield.core.backends.gpu import gaussian_kernels as K
 
         inputs, bounds, offsets, entries, consts, tiles_x, tiles, outputs = _prepared(
-            (mean2d, conic, opacity, colors, depth), bounds, visible, height, width, t_min)
+            (mean2d, conic, opacity, colors, depth), bounds, visible, order, height, width, t_min)
         acc_color, acc_depth, trans, last, counts = outputs
         with _launching():
             K.gaussian_forward[(tiles,)](offsets, entries, bounds, *inputs, consts, acc_color, acc_depth, trans, last,
@@ -226,20 +237,20 @@ class _GaussianView(torch.autograd.Function):
         with _launching():
             K.gaussian_backward[(tiles,)](offsets, entries, bounds, *inputs, consts, trans, last, *upstream, *grads,
                                           height, width, tiles_x, SIDE=TILE, **COMPILE_OPTIONS)
-        return None, None, None, None, None, *grads
+        return None, None, None, None, None, None, *grads
 
 
 class _NeuralView(torch.autograd.Function):
     """As _GaussianView for neural primitives: differentiable w.r.t. m_cam, o_ell, w_cam, c, w2, b2,
-    inv_smax, colors and depth (all (V, ...), in depth order); `window`: the windowed density."""
+    inv_smax, colors and depth (all (P, ...)); `window`: the windowed density."""
 
     @staticmethod
-    def forward(ctx, bounds, visible, intrinsics, height, width, t_min, window, m_cam, o_ell, w_cam, c, w2, b2, inv_smax,
-                colors, depth):
+    def forward(ctx, bounds, visible, order, intrinsics, height, width, t_min, window, m_cam, o_ell, w_cam, c, w2, b2,
+                inv_smax, colors, depth):
         from radfield.core.backends.gpu import neural_kernels as K
 
         inputs, bounds, offsets, entries, consts, tiles_x, tiles, outputs = _prepared(
-            (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth), bounds, visible, height, width, t_min)
+            (m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth), bounds, visible, order, height, width, t_min)
         intrinsics = intrinsics.detach().contiguous()
         units = c.shape[1]
         acc_color, acc_depth, trans, last, counts = outputs
@@ -266,7 +277,7 @@ class _NeuralView(torch.autograd.Function):
             K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
                                         *grads, height, width, tiles_x, units, SIDE=TILE, NP=_padded(units),
                                         WINDOW=window, **COMPILE_OPTIONS)
-        return None, None, None, None, None, None, None, *grads
+        return None, None, None, None, None, None, None, None, *grads
 
 
 class _SHColor(torch.autograd.Function):
@@ -447,10 +458,9 @@ def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
         bounds, visible, (mean2d, conic, opacity) = gaussian_prep(prims, frame)
     else:   # nothing to launch
         bounds, visible, (mean2d, conic, opacity) = kinds.of(prims).twin_view(prims, frame)
-    ids = _front_to_back(frame, visible)
     camera = frame.camera
-    out = _GaussianView.apply(bounds[ids], visible[ids], camera.height, camera.width, float(t_min), mean2d[ids],
-                              conic[ids], opacity[ids], colors[ids], frame.depth[ids])
+    out = _GaussianView.apply(bounds, visible, _front_to_back(frame, visible), camera.height, camera.width,
+                              float(t_min), mean2d, conic, opacity, colors, frame.depth)
     return (*out, visible.sum())
 
 
@@ -471,10 +481,8 @@ def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
 
         bounds, visible = ellipsoid_bounds(prims, frame)
         m_cam, o_ell, w_cam, c, w2, b2, inv_smax = view_tensors(prims, frame.campos, frame.c2w[:3, :3])
-    ids = _front_to_back(frame, visible)
-    m_cam, o_ell, w_cam, c, w2, b2, inv_smax = (t[ids] for t in (m_cam, o_ell, w_cam, c, w2, b2, inv_smax))
     camera = frame.camera
-    out = _NeuralView.apply(bounds[ids], visible[ids], frame.intrinsics, camera.height, camera.width, float(t_min),
-                            prims.window, m_cam.reshape(-1, 9), o_ell, w_cam, c, w2, b2, inv_smax, colors[ids],
-                            frame.depth[ids])
+    out = _NeuralView.apply(bounds, visible, _front_to_back(frame, visible), frame.intrinsics, camera.height,
+                            camera.width, float(t_min), prims.window, m_cam.reshape(-1, 9), o_ell, w_cam, c, w2, b2,
+                            inv_smax, colors, frame.depth)
     return (*out, visible.sum())

@@ -5,10 +5,10 @@ Imported only when a view is drawn on the "triton" backend (it imports triton; w
 TRITON_INTERPRET=1 set before that import the same kernels run on CPU tensors, which is how the
 tests check them against the torch twin without a GPU).
 
-One program per 16×16 tile, one lane per pixel (BLOCK = 256). The inputs are the visible splats in
-depth order (rank r = position in that order): bounds (V, 4) int32 inclusive pixel boxes, mean2d
-(V, 2), conic (V, 3), opacity (V,), colour (V, 3), depth (V,); a tile reads the ranks
-entries[offsets[t]:offsets[t + 1]] (front to back). consts = (t_min, α_min, α_max) in the inputs'
+One program per 16×16 tile, one lane per pixel (BLOCK = 256). The inputs are every splat's, index
+r: bounds (P, 4) int32 inclusive pixel boxes, mean2d (P, 2), conic (P, 3), opacity (P,), colour
+(P, 3), depth (P,); a tile reads the indices entries[offsets[t]:offsets[t + 1]], its visible splats
+front to back (gpu.bin_tiles). consts = (t_min, α_min, α_max) in the inputs'
 dtype, so a float64 view compares at float64 with the twin's thresholds.
 
 Forward (paper eq. 4; the twin's rules, core/render/composite.py): a pixel evaluates a splat only

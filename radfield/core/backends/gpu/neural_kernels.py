@@ -8,8 +8,8 @@ compositing rules and the backward's suffix); what differs is the pair: one lane
 the hidden units as a second axis (NP = N padded to a power of two, the padding masked). The maths and its backward are those
 of the fused CPU kernels (core/backends/csrc/pair_kernels.h: ChordTile), which follow the torch
 twin's autograd (clamps pass the gradient at equality, torch.maximum splits it at a tie).
-Inputs (V, ...) in depth order: m_cam (V, 9) = S⁻¹Rᵀ R_cam, o_ell (V, 3), w_cam (V, N, 3) = ω0 W1 R_cam,
-c (V, N), w2 (V, N), b2 (V,), inv_smax (V,); intrinsics (fx, fy, cx, cy, near); consts (t_min, α_min, α_max, 1)
+Inputs (P, ...), read through the tile lists as the Gaussians' (gaussian_kernels.py): m_cam (P, 9) =
+S⁻¹Rᵀ R_cam, o_ell (P, 3), w_cam (P, N, 3) = ω0 W1 R_cam, c (P, N), w2 (P, N), b2 (P,), inv_smax (P,); intrinsics (fx, fy, cx, cy, near); consts (t_min, α_min, α_max, 1)
 in the inputs' dtype (the 1 makes the series' rational coefficients in that dtype, not float32).
 """
 

@@ -27,7 +27,7 @@ def _tile_pixels(tile, tiles_x, height, width, SIDE: tl.constexpr):
 @triton.jit
 def _composite(alpha, hit, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
                acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive):
-    """List entry j (rank r) at the tile's pixels, front to back: `live` pixels evaluated the pair,
+    """List entry j (primitive r) at the tile's pixels, front to back: `live` pixels evaluated the pair,
     `hit` ones have α ≥ α_min; the first pair that would take T below t_min is not composited and
     ends the pixel. Returns the pixels' state after it (T, done, last, Σ w c, Σ w z, the counts,
     the pixels still alive)."""
