@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The device checks of a session on a GPU machine (CONTRIBUTING.md "GPU checks"): the CUDA tests and
+# The device checks of a session on a GPU machine (CONTRIBUTING.md "Device (GPU) checks"): the CUDA tests and
 # every figure of issue 27, in parts that fit a short lease (15 minutes, start-up included):
 #
 #   scripts/gpu_check.sh                 tests, bench and e2e64 (about 7 minutes)

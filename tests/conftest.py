@@ -314,7 +314,22 @@ class HostReads(TorchFunctionMode):
         return asked
 
 
-@pytest.fixture(name="host_reads")
-def host_reads_fixture():
-    """HostReads (above), the class."""
-    return HostReads
+@pytest.fixture
+def training_reads(monkeypatch):
+    """HostReads over trainer.train (`with training_reads: train(...)`), each read with the optimiser
+    step being run (`step`: from 1; 0 is the set-up before the first). Host-side by design: the
+    view order and the ray jitter (draws from CPU generators) and the checks of the jittered
+    cameras they make."""
+    from radfield.core.geometry.cameras import Camera
+    from radfield.core.render.antialias import jitter_offsets
+    from radfield.core.train import trainer
+
+    reads = HostReads(host_side=(trainer.views_for_step, jitter_offsets, Camera.__post_init__))
+    decayed = trainer.decayed
+
+    def step_marker(lr, ratio, step, iterations):   # the first thing each step does
+        reads.step = step + 1
+        return decayed(lr, ratio, step, iterations)
+
+    monkeypatch.setattr(trainer, "decayed", step_marker)
+    return reads

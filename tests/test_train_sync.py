@@ -2,7 +2,6 @@
 device and are read every `train.log_every` steps (radfield.core.train.trainer.StepRecords), and
 the log is the same whatever log_every is. CPU checks; tests/test_cuda.py has the GPU's own."""
 
-import contextlib
 import dataclasses
 import json
 import math
@@ -11,7 +10,6 @@ import pytest
 import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.render.antialias import jitter_offsets
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train import trainer
@@ -45,23 +43,6 @@ def views(n: int = 3, size: int = 16):
         return cameras, torch.stack([render(truth, c, background=BG).color.clamp(0, 1) for c in cameras])
 
 
-@contextlib.contextmanager
-def step_reads(monkeypatch, host_reads):
-    """conftest.HostReads over trainer.train, each read with the optimiser step being run (from 1;
-    0: the set-up before the first). Host-side by design: the view order and the ray jitter (draws
-    from CPU generators) and the checks of the jittered camera they make."""
-    reads = host_reads(host_side=(trainer.views_for_step, jitter_offsets, Camera.__post_init__))
-    decayed = trainer.decayed
-
-    def step_marker(lr, ratio, step, iterations):   # the first thing each step does
-        reads.step = step + 1
-        return decayed(lr, ratio, step, iterations)
-
-    monkeypatch.setattr(trainer, "decayed", step_marker)
-    with reads:
-        yield reads
-
-
 def small_config(**changes) -> dict:
     cfg = load_defaults()["train"]
     cfg["densify"].update(changes.pop("densify", {}))
@@ -70,7 +51,7 @@ def small_config(**changes) -> dict:
 
 
 @pytest.mark.parametrize("make", [random_neural, random_gaussians])
-def test_the_loop_reads_the_device_only_at_flush_steps(tmp_path, monkeypatch, host_reads, make):
+def test_the_loop_reads_the_device_only_at_flush_steps(tmp_path, training_reads, make):
     """log_every 5, refinement and checkpoints at multiples of 5 (so are the rules' refreshes,
     strategy.refresh_interval), 12 steps: the host reads tensors at steps 5, 10 and 12 only, with
     every rule on (σ ≥ 0 on every primitive, frequency cap, footprint floor, ray jitter, random
@@ -81,7 +62,7 @@ def test_the_loop_reads_the_device_only_at_flush_steps(tmp_path, monkeypatch, ho
                        densify={"start": 5, "stop": 10, "every": 5})
     cfg["densify"]["gaussian"]["opacity_reset_every"] = 5
     log = []
-    with step_reads(monkeypatch, host_reads) as reads:
+    with training_reads as reads:
         train(make(20, seed=2), cameras, images, cfg, background=BG, extent=1.0, seed=0,
               alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append((step, info)),
               checkpoint=lambda state: save_checkpoint(tmp_path / "checkpoint.safetensors", state))

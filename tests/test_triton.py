@@ -152,7 +152,7 @@ def test_an_empty_view_renders_the_background():
 
 
 @pytest.mark.parametrize("kind", ["neural", "gaussian", "neural-dynamic", "gaussian-relight"])
-def test_a_training_step_reads_the_device_once_a_view(kind, host_reads, monkeypatch):
+def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     """trainer.train on the Triton path (the code a GPU runs: the kernels, the per-view preparation
     in torch, a conditioned kind's primitives of the view, loss, D-SSIM, Adam, the strategy's
     statistics, the rules), 6 steps of 2 views with log_every 3: between the reads of the step
@@ -161,9 +161,8 @@ def test_a_training_step_reads_the_device_once_a_view(kind, host_reads, monkeypa
     the blocking copies to the device are test_cuda.py's)."""
     from dataclasses import replace
 
-    from radfield.core.geometry.cameras import Camera, Light
+    from radfield.core.geometry.cameras import Light
     from radfield.core.kinds import random_neural
-    from radfield.core.render.antialias import jitter_offsets
     from radfield.core.train import trainer
     from radfield.pipeline.config import load_defaults
 
@@ -182,16 +181,8 @@ def test_a_training_step_reads_the_device_once_a_view(kind, host_reads, monkeypa
     start = (random_neural if kind.startswith("neural") else random_gaussians)(20, seed=2)
     geometry = {name: getattr(start, name) for name in ("means", "log_scales", "quats", "sh")}
     start = kinds.get(kind).from_points(geometry, kinds.get(kind).init_settings(load_defaults()), seed=0)
-    reads = host_reads(host_side=(trainer.views_for_step, jitter_offsets, Camera.__post_init__))
-    decayed = trainer.decayed
-
-    def step_marker(lr, ratio, step, iterations):   # the first thing each step does
-        reads.step = step + 1
-        return decayed(lr, ratio, step, iterations)
-
-    monkeypatch.setattr(trainer, "decayed", step_marker)
     log = []
-    with backends.using(backends.TRITON), reads:
+    with backends.using(backends.TRITON), training_reads as reads:
         trainer.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
                       device=DEVICE, alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append(step))
     assert log == list(range(1, 7))

@@ -154,8 +154,13 @@ def sh_color_backward(grad_ptr, sh_ptr, v_ptr, g_sh_ptr, g_v_ptr, P, K, COEFFS: 
 # w_cam = ω0 W1 R_cam, c = ω0 (W1 (o − μ)/max s + b1), 1/max s
 
 @triton.jit
-def _rotation(q0, q1, q2, q3):
-    """R(q̂) (row-major, 9 values) of q̂ = q/|q| (|q| at least 1e-12, as torch's normalize), and q̂, |q|."""
+def _rotation(quats_ptr, p, live):
+    """R(q̂) (row-major, 9 values) of primitives p's q̂ = q/|q| (|q| at least 1e-12, as torch's
+    normalize), and q̂, |q|."""
+    q0 = tl.load(quats_ptr + 4 * p, mask=live, other=1.0)
+    q1 = tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0)
+    q2 = tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0)
+    q3 = tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0)
     qnorm = tl.maximum(tl.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
     w = q0 / qnorm
     x = q1 / qnorm
@@ -167,12 +172,25 @@ def _rotation(q0, q1, q2, q3):
 
 
 @triton.jit
+def _store_rotation_backward(g_quats_ptr, p, live, qn, qnorm, g):
+    """∂q of primitives p from ∂R (g, row-major: g[3i + j] = ∂R[i][j]) through R(q̂)
+    (csrc/pair_kernels.h rotmat_backward) and q̂ = q/|q|."""
+    w, x, y, z = qn
+    gw = 2.0 * (-z * g[1] + y * g[2] + z * g[3] - x * g[5] - y * g[6] + x * g[7])
+    gx = 2.0 * (y * g[1] + z * g[2] + y * g[3] - 2.0 * x * g[4] - w * g[5] + z * g[6] + w * g[7] - 2.0 * x * g[8])
+    gy = 2.0 * (-2.0 * y * g[0] + x * g[1] + w * g[2] + x * g[3] + z * g[5] - w * g[6] + z * g[7] - 2.0 * y * g[8])
+    gz = 2.0 * (-2.0 * z * g[0] - w * g[1] + x * g[2] + w * g[3] - 2.0 * z * g[4] + y * g[5] + x * g[6] + y * g[7])
+    dot = gw * w + gx * x + gy * y + gz * z
+    tl.store(g_quats_ptr + 4 * p, (gw - w * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 1, (gx - x * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 2, (gy - y * dot) / qnorm, mask=live)
+    tl.store(g_quats_ptr + 4 * p + 3, (gz - z * dot) / qnorm, mask=live)
+
+
+@triton.jit
 def _frame(p, live, means_ptr, log_scales_ptr, quats_ptr, view_ptr):
     """One lane per primitive: R (9), q̂ (4), |q|, the log-scales, 1/s (3), max s, rel = o − μ (3)."""
-    R, qn, qnorm = _rotation(tl.load(quats_ptr + 4 * p, mask=live, other=1.0),
-                             tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0),
-                             tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0),
-                             tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0))
+    R, qn, qnorm = _rotation(quats_ptr, p, live)
     l0 = tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0)
     l1 = tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0)
     l2 = tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0)
@@ -300,16 +318,7 @@ def neural_prep_backward(g_m_cam_ptr, g_o_ell_ptr, g_w_cam_ptr, g_c_ptr, g_inv_s
     g6 = m02 * inv_s[0]
     g7 = m12 * inv_s[1]
     g8 = m22 * inv_s[2]
-    w, x, y, z = qn
-    gw = 2.0 * (-z * g1 + y * g2 + z * g3 - x * g5 - y * g6 + x * g7)
-    gx = 2.0 * (y * g1 + z * g2 + y * g3 - 2.0 * x * g4 - w * g5 + z * g6 + w * g7 - 2.0 * x * g8)
-    gy = 2.0 * (-2.0 * y * g0 + x * g1 + w * g2 + x * g3 + z * g5 - w * g6 + z * g7 - 2.0 * y * g8)
-    gz = 2.0 * (-2.0 * z * g0 - w * g1 + x * g2 + w * g3 - 2.0 * z * g4 + y * g5 + x * g6 + y * g7)
-    dot = gw * w + gx * x + gy * y + gz * z
-    tl.store(g_quats_ptr + 4 * p, (gw - w * dot) / qnorm, mask=live)
-    tl.store(g_quats_ptr + 4 * p + 1, (gx - x * dot) / qnorm, mask=live)
-    tl.store(g_quats_ptr + 4 * p + 2, (gy - y * dot) / qnorm, mask=live)
-    tl.store(g_quats_ptr + 4 * p + 3, (gz - z * dot) / qnorm, mask=live)
+    _store_rotation_backward(g_quats_ptr, p, live, qn, qnorm, (g0, g1, g2, g3, g4, g5, g6, g7, g8))
 
 
 # --- the Gaussians' EWA projection (twin: core/kinds/gaussian.py ewa_view; fused CPU op:
@@ -333,13 +342,8 @@ def _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr):
     j1 = -fx * tx / (zs * zs)
     j2 = fy / zs
     j3 = -fy * ty / (zs * zs)
-    R, qn, qnorm = _rotation(tl.load(quats_ptr + 4 * p, mask=live, other=1.0),
-                             tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0),
-                             tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0),
-                             tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0))
-    s0 = tl.exp(tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0))
-    s1 = tl.exp(tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0))
-    s2 = tl.exp(tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0))
+    R, qn, qnorm = _rotation(quats_ptr, p, live)
+    s0, s1, s2 = _scales(log_scales_ptr, p, live)
     rot = _times_w(view_ptr, R)
     rs = (rot[0] * s0, rot[1] * s1, rot[2] * s2, rot[3] * s0, rot[4] * s1, rot[5] * s2,
           rot[6] * s0, rot[7] * s1, rot[8] * s2)
@@ -349,20 +353,37 @@ def _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr):
 
 
 @triton.jit
+def _scales(log_scales_ptr, p, live):
+    """s = exp(ℓ) of primitives p."""
+    return (tl.exp(tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0)),
+            tl.exp(tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0)),
+            tl.exp(tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0)))
+
+
+@triton.jit
+def _world_to_camera(view_ptr):
+    """W, the view's world-to-camera rotation (the first 9 values of `view`, row-major)."""
+    return (tl.load(view_ptr), tl.load(view_ptr + 1), tl.load(view_ptr + 2), tl.load(view_ptr + 3),
+            tl.load(view_ptr + 4), tl.load(view_ptr + 5), tl.load(view_ptr + 6), tl.load(view_ptr + 7),
+            tl.load(view_ptr + 8))
+
+
+@triton.jit
 def _times_w(view_ptr, R):
     """W R (row-major) with W the view's world-to-camera rotation."""
-    w00 = tl.load(view_ptr)
-    w01 = tl.load(view_ptr + 1)
-    w02 = tl.load(view_ptr + 2)
-    w10 = tl.load(view_ptr + 3)
-    w11 = tl.load(view_ptr + 4)
-    w12 = tl.load(view_ptr + 5)
-    w20 = tl.load(view_ptr + 6)
-    w21 = tl.load(view_ptr + 7)
-    w22 = tl.load(view_ptr + 8)
+    w00, w01, w02, w10, w11, w12, w20, w21, w22 = _world_to_camera(view_ptr)
     return (w00 * R[0] + w01 * R[3] + w02 * R[6], w00 * R[1] + w01 * R[4] + w02 * R[7], w00 * R[2] + w01 * R[5] + w02 * R[8],
             w10 * R[0] + w11 * R[3] + w12 * R[6], w10 * R[1] + w11 * R[4] + w12 * R[7], w10 * R[2] + w11 * R[5] + w12 * R[8],
             w20 * R[0] + w21 * R[3] + w22 * R[6], w20 * R[1] + w21 * R[4] + w22 * R[7], w20 * R[2] + w21 * R[5] + w22 * R[8])
+
+
+@triton.jit
+def _covariance(t):
+    """(a, b, c) of t tᵀ + 0.3 I (3DGS's blur) and its determinant a c − b²."""
+    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + 0.3
+    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
+    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + 0.3
+    return a, b, c, a * c - b * b
 
 
 @triton.jit
@@ -376,10 +397,7 @@ def gaussian_prep_forward(means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr, me
     live = p < P
     centre, _, _, _, _, _, _, _, t = _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr)
     x, y, z, zs, _, _ = centre
-    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + 0.3
-    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
-    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + 0.3
-    det = a * c - b * b
+    a, b, c, det = _covariance(t)
     tl.store(conic_ptr + 3 * p, c / det, mask=live)
     tl.store(conic_ptr + 3 * p + 1, -b / det, mask=live)
     tl.store(conic_ptr + 3 * p + 2, a / det, mask=live)
@@ -416,10 +434,7 @@ def gaussian_prep_backward(g_mean2d_ptr, g_conic_ptr, g_cov_ptr, means_cam_ptr, 
     live = p < P
     centre, J, R, qn, qnorm, s, rot, rs, t = _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr)
     x, y, z, zs, tx, ty = centre
-    a = t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + 0.3
-    b = t[0] * t[3] + t[1] * t[4] + t[2] * t[5]
-    c = t[3] * t[3] + t[4] * t[4] + t[5] * t[5] + 0.3
-    det = a * c - b * b
+    a, b, c, det = _covariance(t)
     # conic = (c, −b, a)/det, det = a c − b²
     gc0 = tl.load(g_conic_ptr + 3 * p, mask=live, other=0.0)
     gc1 = tl.load(g_conic_ptr + 3 * p + 1, mask=live, other=0.0)
@@ -447,18 +462,7 @@ def gaussian_prep_backward(g_mean2d_ptr, g_conic_ptr, g_cov_ptr, means_cam_ptr, 
     for j in tl.static_range(3):
         g_s = g_rs[j] * rot[j] + g_rs[3 + j] * rot[3 + j] + g_rs[6 + j] * rot[6 + j]
         tl.store(g_log_scales_ptr + 3 * p + j, g_s * s[j], mask=live)
-    g_R = _times_w_transposed(view_ptr, g_rs, s)
-    w, qx, qy, qz = qn
-    g = g_R
-    gw = 2.0 * (-qz * g[1] + qy * g[2] + qz * g[3] - qx * g[5] - qy * g[6] + qx * g[7])
-    gx = 2.0 * (qy * g[1] + qz * g[2] + qy * g[3] - 2.0 * qx * g[4] - w * g[5] + qz * g[6] + w * g[7] - 2.0 * qx * g[8])
-    gy = 2.0 * (-2.0 * qy * g[0] + qx * g[1] + w * g[2] + qx * g[3] + qz * g[5] - w * g[6] + qz * g[7] - 2.0 * qy * g[8])
-    gz = 2.0 * (-2.0 * qz * g[0] - w * g[1] + qx * g[2] + w * g[3] - 2.0 * qz * g[4] + qy * g[5] + qx * g[6] + qy * g[7])
-    dot = gw * w + gx * qx + gy * qy + gz * qz
-    tl.store(g_quats_ptr + 4 * p, (gw - w * dot) / qnorm, mask=live)
-    tl.store(g_quats_ptr + 4 * p + 1, (gx - qx * dot) / qnorm, mask=live)
-    tl.store(g_quats_ptr + 4 * p + 2, (gy - qy * dot) / qnorm, mask=live)
-    tl.store(g_quats_ptr + 4 * p + 3, (gz - qz * dot) / qnorm, mask=live)
+    _store_rotation_backward(g_quats_ptr, p, live, qn, qnorm, _times_w_transposed(view_ptr, g_rs, s))
     # J = [[fx/zs, 0, −fx tx/zs²], [0, fy/zs, −fy ty/zs²]], tx = zs clamp(x/zs), mean2d = f x/zs + c
     fx = tl.load(view_ptr + 9)
     fy = tl.load(view_ptr + 10)
@@ -486,15 +490,7 @@ def gaussian_prep_backward(g_mean2d_ptr, g_conic_ptr, g_cov_ptr, means_cam_ptr, 
 @triton.jit
 def _times_w_transposed(view_ptr, g_rs, s):
     """∂R = Wᵀ (∂rs diag(s)) (row-major), from rs = W R diag(s)."""
-    w00 = tl.load(view_ptr)
-    w01 = tl.load(view_ptr + 1)
-    w02 = tl.load(view_ptr + 2)
-    w10 = tl.load(view_ptr + 3)
-    w11 = tl.load(view_ptr + 4)
-    w12 = tl.load(view_ptr + 5)
-    w20 = tl.load(view_ptr + 6)
-    w21 = tl.load(view_ptr + 7)
-    w22 = tl.load(view_ptr + 8)
+    w00, w01, w02, w10, w11, w12, w20, w21, w22 = _world_to_camera(view_ptr)
     return ((w00 * g_rs[0] + w10 * g_rs[3] + w20 * g_rs[6]) * s[0], (w00 * g_rs[1] + w10 * g_rs[4] + w20 * g_rs[7]) * s[1],
             (w00 * g_rs[2] + w10 * g_rs[5] + w20 * g_rs[8]) * s[2],
             (w01 * g_rs[0] + w11 * g_rs[3] + w21 * g_rs[6]) * s[0], (w01 * g_rs[1] + w11 * g_rs[4] + w21 * g_rs[7]) * s[1],
@@ -545,13 +541,8 @@ def neural_bounds(means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr, bounds_ptr
     x = tl.load(means_cam_ptr + 3 * p, mask=live, other=0.0)
     y = tl.load(means_cam_ptr + 3 * p + 1, mask=live, other=0.0)
     z = tl.load(means_cam_ptr + 3 * p + 2, mask=live, other=0.0)
-    R, _, _ = _rotation(tl.load(quats_ptr + 4 * p, mask=live, other=1.0),
-                        tl.load(quats_ptr + 4 * p + 1, mask=live, other=0.0),
-                        tl.load(quats_ptr + 4 * p + 2, mask=live, other=0.0),
-                        tl.load(quats_ptr + 4 * p + 3, mask=live, other=0.0))
-    s0 = tl.exp(tl.load(log_scales_ptr + 3 * p, mask=live, other=0.0))
-    s1 = tl.exp(tl.load(log_scales_ptr + 3 * p + 1, mask=live, other=0.0))
-    s2 = tl.exp(tl.load(log_scales_ptr + 3 * p + 2, mask=live, other=0.0))
+    R, _, _ = _rotation(quats_ptr, p, live)
+    s0, s1, s2 = _scales(log_scales_ptr, p, live)
     rot = _times_w(view_ptr, R)
     r00 = rot[0] * s0
     r01 = rot[1] * s1
