@@ -3,7 +3,6 @@ inputs as one-line errors, the time kept through scene.json, and `radfield demo-
 (an animated volume rendered by quadrature, checked against an independent ray marcher)."""
 
 import json
-import math
 import shutil
 from pathlib import Path
 
@@ -19,6 +18,8 @@ from radfield.datasets.synthetic import generate_scene, get_scene, orbit_cameras
 from radfield.datasets.timelapse import generate_dynamic
 from radfield.pipeline.config import load_defaults
 
+from shared_helpers import frames, nerfstudio_copy, rewrite
+
 TIMES = [0.0, 0.5, 1.0]
 
 
@@ -31,26 +32,6 @@ def smoke_data(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def blobs(tmp_path_factory) -> Path:
     return generate_scene("blobs", tmp_path_factory.mktemp("blobs") / "blobs", n_train=3, n_test=1, size=16, mesh=False)
-
-
-def frames(path: Path) -> list[dict]:
-    return json.loads(path.read_text())["frames"]
-
-
-def rewrite(path: Path, edit) -> None:
-    meta = json.loads(path.read_text())
-    edit(meta["frames"])
-    path.write_text(json.dumps(meta))
-
-
-def nerfstudio_copy(smoke_data: Path, root: Path) -> Path:
-    """A nerfstudio transforms.json of the smoke train frames (images copied beside it)."""
-    shutil.copytree(smoke_data / "train", root / "images")
-    meta = json.loads((smoke_data / "transforms_train.json").read_text())
-    for frame in meta["frames"]:
-        frame["file_path"] = frame["file_path"].replace("./train/", "images/") + ".png"
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
 
 
 # --- reading time -------------------------------------------------------------------------------

@@ -22,7 +22,6 @@ import torch
 from radfield.core import kinds
 from radfield.core.kinds import DynamicNeuralPrimitives, random_gaussians, random_neural
 from radfield.core.kinds.dynamic import TEMPORAL_TERMS
-from radfield.core.render.antialias import render_model
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
 from radfield.delivery.content import at_moment, gaussians_for
@@ -31,6 +30,8 @@ from radfield.delivery.io import load_model, save_model
 from radfield.delivery.times import parse_times
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config
+
+from shared_helpers import drawn
 
 SIZE = 16
 
@@ -55,15 +56,6 @@ def smoke(tmp_path_factory, run_radfield):
     save_model(root / "dynamic.safetensors", dynamic_model())
     save_model(root / "static.safetensors", random_neural(20, extent=0.5, seed=4))
     return root
-
-
-def drawn(model, camera) -> np.ndarray:
-    """What `radfield render` writes for `camera` (a model file: the default background and near)."""
-    config = load_config(None)
-    with torch.no_grad():
-        color = render_model(model, camera, background=tuple(config["data"]["background"]),
-                             near=config["render"]["near"]).color
-    return color.clamp(0, 1).numpy()
 
 
 def test_render_time_draws_that_moment(cli, smoke, tmp_path):

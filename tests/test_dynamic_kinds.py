@@ -24,6 +24,8 @@ from radfield.core.train.trainer import (assemble, initial_state, load_checkpoin
 from radfield.delivery.io import load_model, save_model
 from radfield.errors import RadfieldError
 
+from shared_helpers import refine_everything
+
 BG = (0.2, 0.3, 0.4)
 
 
@@ -196,21 +198,8 @@ def test_model_files_round_trip_and_refuse_bad_values(render_scene, kind, tmp_pa
 @pytest.mark.parametrize("kind", ["neural-dynamic", "gaussian-dynamic"])
 def test_population_control_carries_the_temporal_tensors(render_scene, densify_config, kind):
     prims, cam = scene(render_scene, kind, torch.float32)
-    state = initial_state(prims, 1)
-    assert set(kinds.get(kind).own_params) <= set(state.params)
-    params = {n: t.clone().requires_grad_(True) for n, t in state.params.items()}
-    optimizer = make_optimizer(params, {k: 1e-3 for k in ("means", "log_scales", "quats", "sh_dc", "sh_rest", "mlp",
-                                                          "opacities")}, 1.0, kind)
-    densify = densify_config()
-    strategy = make_strategy(kind, densify, extent=1.0, near=0.05, max_primitives=None, initial_count=len(prims),
-                             attrs=kinds.get(kind).attrs(prims))
-    acc = strategy.init_state(len(prims), "cpu")
-    acc["grad"][:] = torch.linspace(0, 1, len(prims)) + 1.0   # every primitive qualifies
-    acc["count"][:] = 1.0
-    before = {n: t.detach().clone() for n, t in params.items()}
-    report = strategy.refine(acc, params, optimizer, densify["every"], torch.Generator().manual_seed(0))
+    params, before, report = refine_everything(prims, kind, densify_config())
     grown = len(params["means"])
-    assert report["cloned"] + report["split"] > 0 and grown > len(prims)
     for name, t in params.items():
         assert t.shape[0] == grown, name
     # the new rows are their parents' temporal tensors (clone: exact copy; split: the same MLP and colour)

@@ -21,6 +21,8 @@ from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
 from radfield.datasets.synthetic import PointLight, generate_scene, intersect, render_view, shade
 from radfield.pipeline.config import load_defaults
 
+from shared_helpers import frames, nerfstudio_copy, rewrite
+
 CAMERAS, LIGHTS = 2, 3  # train cameras and lights per camera of the tiny olat scene
 
 
@@ -42,26 +44,6 @@ def olat_glossy_data(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def blobs(tmp_path_factory) -> Path:
     return generate_scene("blobs", tmp_path_factory.mktemp("blobs") / "blobs", n_train=3, n_test=1, size=16, mesh=False)
-
-
-def frames(path: Path) -> list[dict]:
-    return json.loads(path.read_text())["frames"]
-
-
-def rewrite(path: Path, edit) -> None:
-    meta = json.loads(path.read_text())
-    edit(meta["frames"])
-    path.write_text(json.dumps(meta))
-
-
-def nerfstudio_copy(olat_data: Path, root: Path) -> Path:
-    """A nerfstudio transforms.json of the olat train frames (images copied beside it)."""
-    shutil.copytree(olat_data / "train", root / "images")
-    meta = json.loads((olat_data / "transforms_train.json").read_text())
-    for frame in meta["frames"]:
-        frame["file_path"] = frame["file_path"].replace("./train/", "images/") + ".png"
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
 
 
 # --- reading lights -----------------------------------------------------------------------------

@@ -20,9 +20,7 @@ import torch
 
 from radfield.core import kinds
 from radfield.core.geometry.cameras import Camera, Light, look_at
-from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives, random_gaussians, random_neural
-from radfield.core.kinds.relight import init_network
-from radfield.core.render.antialias import render_model
+from radfield.core.kinds import random_gaussians, random_neural
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
 from radfield.delivery import report
@@ -32,24 +30,11 @@ from radfield.delivery.lights import light_angles, light_at, orbit_lights
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config
 
+from shared_helpers import drawn, with_network
+
 
 SIZE = 16
 LIGHT_A, LIGHT_B = (3.0, 0.0, 1.0), (-1.0, 3.0, 2.0)
-
-
-def with_network(prims, seed=0, amplitude=0.4, hidden=8):
-    """A relightable model of static `prims` with a random colour network of `hidden` units (output
-    clearly non-zero)."""
-    network = init_network(len(prims), hidden, seed)
-    g = torch.Generator().manual_seed(seed + 7)
-    network["color_w2"] = torch.randn(len(prims), 3, hidden, generator=g) * amplitude
-    network["color_b2"] = torch.randn(len(prims), 3, generator=g) * 0.1
-    if isinstance(prims, NeuralPrimitives):
-        return RelightNeuralPrimitives(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1",
-                                                                         "b1", "w2", "b2")},
-                                       omega0=prims.omega0, window=prims.window, **network)
-    return RelightGaussians(means=prims.means, log_scales=prims.log_scales, quats=prims.quats, sh=prims.sh,
-                            opacities=prims.opacities, **network)
 
 
 @pytest.fixture(scope="module")
@@ -63,15 +48,6 @@ def olat(tmp_path_factory, run_radfield):
     save_model(root / "gaussian-relight.safetensors", with_network(random_gaussians(30, extent=0.6, scale=0.2, seed=3)))
     save_model(root / "static.safetensors", random_neural(20, extent=0.5, seed=4))
     return root
-
-
-def drawn(model, camera) -> np.ndarray:
-    """What `radfield render` writes for `camera` (a model file: the default background and near)."""
-    config = load_config(None)
-    with torch.no_grad():
-        color = render_model(model, camera, background=tuple(config["data"]["background"]),
-                             near=config["render"]["near"]).color
-    return color.clamp(0, 1).numpy()
 
 
 def split_cameras(olat) -> list[Camera]:

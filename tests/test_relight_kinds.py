@@ -18,36 +18,21 @@ import torch
 from radfield.core import backends, kinds
 from radfield.core.geometry.cameras import Camera, Light, look_at
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.kinds import Gaussians, NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives
-from radfield.core.kinds.relight import init_network, network_count
+from radfield.core.kinds import Gaussians, NeuralPrimitives, RelightNeuralPrimitives
+from radfield.core.kinds.relight import network_count
 from radfield.core.render.rasterize import render
 from radfield.core.render.reference import neural_density, reference_render
 from radfield.core.render.sh import C0, eval_sh
-from radfield.core.train.strategy import make_strategy
-from radfield.core.train.trainer import assemble, initial_state, make_optimizer, mean_psnr, train
+from radfield.core.train.trainer import assemble, mean_psnr, train
 from radfield.delivery.io import load_model, save_model
 from radfield.errors import RadfieldError
+
+from shared_helpers import refine_everything, with_network
 
 BG = (0.2, 0.3, 0.4)
 POINT = Light(position=(1.0, -2.5, 1.5), intensity=9.0)
 SUN = Light(direction=(-0.3, 0.5, -1.0), intensity=1.0)
 NETWORK = ("color_w1", "color_b1", "color_w2", "color_b2")
-
-
-def with_network(prims, seed=0, amplitude=0.4, hidden=8):
-    """A relightable model of static `prims` with a random network of `hidden` units (output clearly
-    non-zero, and within the colour's range at the default amplitude and width)."""
-    n, dtype = len(prims), prims.means.dtype
-    net = init_network(n, hidden, seed, dtype)
-    g = torch.Generator().manual_seed(seed + 7)
-    net["color_w2"] = torch.randn(n, 3, hidden, generator=g, dtype=dtype) * amplitude
-    net["color_b2"] = torch.randn(n, 3, generator=g, dtype=dtype) * 0.1
-    if isinstance(prims, NeuralPrimitives):
-        return RelightNeuralPrimitives(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1",
-                                                                         "b1", "w2", "b2")},
-                                       omega0=prims.omega0, window=prims.window, **net)
-    return RelightGaussians(means=prims.means, log_scales=prims.log_scales, quats=prims.quats, sh=prims.sh,
-                            opacities=prims.opacities, **net)
 
 
 def scene(render_scene, kind, dtype=torch.float64):
@@ -207,20 +192,8 @@ def test_the_parameter_count_stays_within_twice_the_static_kind(render_scene):
 @pytest.mark.parametrize("kind", ["neural-relight", "gaussian-relight"])
 def test_population_control_carries_the_colour_network(render_scene, densify_config, kind):
     prims, cam = scene(render_scene, kind, torch.float32)
-    state = initial_state(prims, 1)
-    assert set(kinds.get(kind).own_params) <= set(state.params)
-    params = {n: t.clone().requires_grad_(True) for n, t in state.params.items()}
-    names = ("means", "log_scales", "quats", "sh_dc", "sh_rest", "mlp", "color", "opacities")
-    optimizer = make_optimizer(params, {k: 1e-3 for k in names}, 1.0, kind)
-    densify = densify_config()
-    strategy = make_strategy(kind, densify, extent=1.0, near=0.05, max_primitives=None, initial_count=len(prims))
-    acc = strategy.init_state(len(prims), "cpu")
-    acc["grad"][:] = torch.linspace(0, 1, len(prims)) + 1.0   # every primitive qualifies
-    acc["count"][:] = 1.0
-    before = {n: t.detach().clone() for n, t in params.items()}
-    report = strategy.refine(acc, params, optimizer, densify["every"], torch.Generator().manual_seed(0))
+    params, before, report = refine_everything(prims, kind, densify_config())
     grown = len(params["means"])
-    assert report["cloned"] + report["split"] > 0 and grown > len(prims)
     for name in NETWORK:   # clone and split children carry their parent's network
         assert params[name].shape[0] == grown
         rows = {tuple(r.flatten().tolist()) for r in before[name]}

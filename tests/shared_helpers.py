@@ -1,0 +1,88 @@
+"""Plain helpers that several test modules share (imported by name: pyproject.toml puts tests/ on
+the path). Fixtures live in conftest.py."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from radfield.core import kinds
+from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives
+from radfield.core.kinds.relight import init_network
+from radfield.core.render.antialias import render_model
+from radfield.core.train.strategy import make_strategy
+from radfield.core.train.trainer import initial_state, make_optimizer
+from radfield.pipeline.config import load_config
+
+
+# --- transforms.json files -----------------------------------------------------------------------
+
+def frames(path: Path) -> list[dict]:
+    return json.loads(path.read_text())["frames"]
+
+
+def rewrite(path: Path, edit) -> None:
+    """Apply edit(frames) to a transforms file's frames, in place."""
+    meta = json.loads(path.read_text())
+    edit(meta["frames"])
+    path.write_text(json.dumps(meta))
+
+
+def nerfstudio_copy(data: Path, root: Path) -> Path:
+    """A nerfstudio transforms.json of a NeRF-synthetic folder's train frames (images copied beside it)."""
+    shutil.copytree(data / "train", root / "images")
+    meta = json.loads((data / "transforms_train.json").read_text())
+    for frame in meta["frames"]:
+        frame["file_path"] = frame["file_path"].replace("./train/", "images/") + ".png"
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+# --- models ----------------------------------------------------------------------------------------
+
+def with_network(prims, seed=0, amplitude=0.4, hidden=8):
+    """A relightable model of static `prims` with a random colour network of `hidden` units (output
+    clearly non-zero, and within the colour's range at the default amplitude and width)."""
+    n, dtype = len(prims), prims.means.dtype
+    net = init_network(n, hidden, seed, dtype)
+    g = torch.Generator().manual_seed(seed + 7)
+    net["color_w2"] = torch.randn(n, 3, hidden, generator=g, dtype=dtype) * amplitude
+    net["color_b2"] = torch.randn(n, 3, generator=g, dtype=dtype) * 0.1
+    if isinstance(prims, NeuralPrimitives):
+        return RelightNeuralPrimitives(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1",
+                                                                         "b1", "w2", "b2")},
+                                       omega0=prims.omega0, window=prims.window, **net)
+    return RelightGaussians(means=prims.means, log_scales=prims.log_scales, quats=prims.quats, sh=prims.sh,
+                            opacities=prims.opacities, **net)
+
+
+def drawn(model, camera) -> np.ndarray:
+    """What `radfield render` writes for `camera` (a model file: the default background and near)."""
+    config = load_config(None)
+    with torch.no_grad():
+        color = render_model(model, camera, background=tuple(config["data"]["background"]),
+                             near=config["render"]["near"]).color
+    return color.clamp(0, 1).numpy()
+
+
+def refine_everything(prims, kind: str, densify: dict) -> tuple[dict, dict, dict]:
+    """One refinement of `prims` by its kind's strategy with every primitive qualifying (all grown:
+    cloned or split): (the parameters after, a copy of those before, the strategy's report)."""
+    state = initial_state(prims, 1)
+    assert set(kinds.get(kind).own_params) <= set(state.params)
+    params = {n: t.clone().requires_grad_(True) for n, t in state.params.items()}
+    rates = {k: 1e-3 for k in ("means", "log_scales", "quats", "sh_dc", "sh_rest", "mlp", "color", "opacities")}
+    optimizer = make_optimizer(params, rates, 1.0, kind)
+    strategy = make_strategy(kind, densify, extent=1.0, near=0.05, max_primitives=None, initial_count=len(prims),
+                             attrs=kinds.get(kind).attrs(prims))
+    acc = strategy.init_state(len(prims), "cpu")
+    acc["grad"][:] = torch.linspace(0, 1, len(prims)) + 1.0   # every primitive qualifies
+    acc["count"][:] = 1.0
+    before = {n: t.detach().clone() for n, t in params.items()}
+    report = strategy.refine(acc, params, optimizer, densify["every"], torch.Generator().manual_seed(0))
+    assert report["cloned"] + report["split"] > 0 and len(params["means"]) > len(prims)
+    return params, before, report
