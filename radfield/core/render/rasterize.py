@@ -10,11 +10,12 @@ Pipeline:
    covariance for Gaussians), and everything that depends only on the camera centre (o', c_k,
    SH colour);
 2. primitives sorted by depth;
-3. front-to-back compositing (paper eq. 4) with early termination, by one of two implementations
+3. front-to-back compositing (paper eq. 4) with early termination, by one of three implementations
    with the same semantics, chosen per device, dtype and kind by the kernel-backend seam
    (radfield.core.backends: op "view.<kind>"):
    - on the CPU, the fused C++ tile rasteriser (core/backends/fused.py, core/backends/csrc/view_kernels.cpp), the
      default, with fused ops for the colour and the neural frame of step 1;
+   - on CUDA, the Triton tile kernels (core/backends/gpu/), with Triton kernels for step 1;
    - the readable torch twin (core/render/composite.py: composite_view; RADFIELD_KERNELS=torch,
      other devices): the pixels of each projected bound become flat (primitive, pixel) pairs,
      evaluated in depth-ordered chunks of at most `max_pairs` (pixels whose transmittance fell
@@ -124,9 +125,11 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
     frame = ViewFrame(camera, c2w, w2c, campos, means_cam, depth, intrinsics, near)
     view_op = backends.kernel(f"view.{kind.name}", device, dtype)
     if view_op is not None:
-        # the whole view in one backend call (fused: core/backends/csrc/view_kernels.cpp): the kind's
-        # bounds, depth order and per-view tensors, then the same compositing rules; it gathers and
-        # scatters the per-primitive tensors itself, so no autograd op of a gather is recorded here
+        # the whole view in one backend call (fused: core/backends/csrc/view_kernels.cpp; Triton:
+        # core/backends/gpu/): the kind's bounds, depth order and per-view tensors, then the same
+        # compositing rules; it reads the per-primitive tensors itself (the fused kernels gather and
+        # scatter them, the Triton ones read them through the tile lists), so no autograd op of a
+        # gather is recorded here
         acc_color, acc_depth, transmittance, counters, visible = view_op(prims, frame, colors, t_min)
 
         def counts():   # read only when someone looks (RenderCounts)
