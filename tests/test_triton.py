@@ -140,6 +140,34 @@ def test_densification_statistics_match_the_torch_twin(kind, densify_config, ren
     torch.testing.assert_close(states[0]["grad"], states[1]["grad"], rtol=1e-3, atol=1e-7)
 
 
+@pytest.mark.parametrize("kind", ["gaussian", "neural"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_statistics_kernel_matches_the_torch_twin(kind, dtype, strategy_scene, densify_config):
+    """Ops "gaussian_accumulate" / "neural_accumulate" on Triton (statistics_kernels.py) against the
+    twin of `_Strategy.accumulate`: 4000 primitives spread well beyond the frustum, two views
+    (counts 0, 1 and 2), added into accumulators that already hold something."""
+    params, grads, cam = strategy_scene(kind, dtype)
+    params = {n: t.to(DEVICE) for n, t in params.items()}
+    grads = {n: t.to(DEVICE) for n, t in grads.items()}
+    strategy = make_strategy(kind, densify_config(), extent=1.0, near=0.05, max_primitives=None, initial_count=4000)
+    other = Camera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, look_at((-2.5, 2.0, 0.5), (0.2, 0.0, 0.0)))
+    states = []
+    for backend in (backends.TRITON, backends.TORCH):
+        state = {k: v.to(dtype) for k, v in strategy.init_state(4000, DEVICE).items()}
+        state["grad"] += 0.25   # the op adds into what is there
+        with backends.using(backend):
+            assert (backends.kernel(strategy.statistics_op, DEVICE, dtype) is None) == (backend == backends.TORCH)
+            for c in (cam, other):
+                strategy.accumulate(state, params, grads, c, step=1)
+        states.append(state)
+    fast, slow = states
+    assert torch.equal(fast["count"], slow["count"])
+    assert set(slow["count"].unique().tolist()) == {0.0, 1.0, 2.0}
+    tol = dict(rtol=1e-5, atol=1e-9) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(fast["grad"], slow["grad"], **tol)
+    assert (fast["grad"][slow["count"] == 0] == 0.25).all()
+
+
 def test_an_empty_view_renders_the_background():
     """Every splat behind the camera: nothing is drawn, T = 1, and every gradient is zero."""
     prims, cam = hard_scene(torch.float32)
@@ -199,8 +227,13 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
 def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
     """The torch ops of one forward + backward on the Triton path (each a kernel launch on a GPU,
     counted by a dispatch mode below autograd, so the backward's too; the ops that launch nothing,
-    views and detaches, left out) are the same for 50 and for 400 primitives: nothing is done per
-    primitive or per pair on the host. (The torch twin's ops grow with the pairs: one set a chunk.)"""
+    views and detaches, left out, and the interpreter's own copies of the kernels' arguments) are
+    the same for 50 and for 400 primitives: nothing is done per primitive or per pair on the host.
+    And they are few: 109 for neural primitives and 106 for Gaussians when this was written (611
+    and 628 with the preparation in torch), besides the 6-7 Triton launches. (The torch twin's ops
+    grow with the pairs: one set a chunk.)"""
+    import sys
+
     from torch.utils._python_dispatch import TorchDispatchMode
 
     from radfield.bench.render import bench_cameras, bench_models
@@ -213,7 +246,10 @@ def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
         count = 0
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            self.count += func.__name__.split(".")[0] not in no_kernel
+            frame = sys._getframe(1)
+            while frame is not None and frame.f_globals.get("__name__", "").split(".")[0] != "triton":
+                frame = frame.f_back
+            self.count += frame is None and func.__name__.split(".")[0] not in no_kernel   # (not the interpreter's)
             return func(*args, **(kwargs or {}))
 
     cam = bench_cameras(1, 32, 32)[0]
@@ -225,7 +261,7 @@ def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
             (out.color.sum() + out.alpha.sum()).backward()
         assert out.meta["visible"] > n / 4
         counts.append(launches.count)
-    assert counts[0] == counts[1] and counts[0] > 0, counts
+    assert counts[0] == counts[1] and 0 < counts[0] <= 150, counts
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -320,7 +356,8 @@ import triton
 from triton import knobs
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
-from radfield.core.backends.gpu import COMPILE_OPTIONS, PREPARE_OPTIONS, gaussian_kernels, neural_kernels, prepare_kernels
+from radfield.core.backends.gpu import (COMPILE_OPTIONS, PREPARE_OPTIONS, gaussian_kernels, neural_kernels,
+                                       prepare_kernels, statistics_kernels)
 
 knobs.nvidia.dump_ptxas_log = True   # ptxas -v's lines, on stdout
 
@@ -341,6 +378,9 @@ compile_for_sm90(gaussian_kernels.gaussian_backward, SIDE=16)
 for window in (False, True):
     compile_for_sm90(neural_kernels.neural_forward, SIDE=16, NP=8, WINDOW=window)
     compile_for_sm90(neural_kernels.neural_backward, SIDE=16, NP=8, WINDOW=window)
+for neural in (False, True):
+    compile_for_sm90(statistics_kernels.accumulate, PREPARE_OPTIONS, NP=8 if neural else 1, NEURAL=neural,
+                     BLOCK=statistics_kernels.BLOCK)
 ptx = {}
 for floats in ("*fp32", "*fp64"):   # (float64: the tests' dtype, which takes other branches of the kernels)
     for kernel in (prepare_kernels.sh_color_forward, prepare_kernels.sh_color_backward):
@@ -370,7 +410,7 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 20, done.stdout
+    assert len(kernels) == 22, done.stdout
     assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)

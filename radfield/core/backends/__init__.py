@@ -178,4 +178,6 @@ del _op
 from radfield.core.backends import gpu  # noqa: E402
 
 register(Backend(TRITON, gpu.runs, gpu.why_not))
-implement("sh_color", TRITON, gpu.sh_color)
+for _op in ("sh_color", "neural_accumulate", "gaussian_accumulate"):
+    implement(_op, TRITON, getattr(gpu, _op))
+del _op

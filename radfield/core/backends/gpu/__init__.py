@@ -5,6 +5,7 @@
     neural_view(prims, frame, colors, t_min)                      op "view.neural" (kinds/neural.py)
         -> (Σ w c (H, W, 3), Σ w z (H, W), T (H, W), counters (4,), the visible count (0-dim))
     sh_color(sh, v, degree) -> colour (P, 3)                      op "sh_color" (core/render/rasterize.py)
+    neural_accumulate(...), gaussian_accumulate(...)              the statistics ops (core/train/strategy.py)
     bin_tiles(bounds, visible, order, height, width) -> (offsets, entries)   the per-tile depth-ordered lists
 
 Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
@@ -433,6 +434,44 @@ def sh_color(sh: torch.Tensor, v: torch.Tensor, degree: int) -> torch.Tensor:
 
         return sh_to_color(sh, torch.nn.functional.normalize(v, dim=-1), degree)
     return _SHColor.apply(sh, v, degree)
+
+
+# --- population control's statistics of a view (statistics_kernels.py; the fused CPU ops' signatures) ------
+
+def neural_accumulate(grad_acc, count_acc, means, log_scales, g_w1, g_b1, g_w2, g_b2, w2c, normals,
+                      radius_scale: float, near: float) -> None:
+    """Op "neural_accumulate" on Triton: one view's visibility and MLP-gradient signal added into
+    the accumulators in place (twin: core/train/strategy.py `_Strategy.accumulate`)."""
+    _accumulate(grad_acc, count_acc, means, log_scales, None, (g_w1, g_b1, g_w2, g_b2), w2c, normals,
+                (radius_scale, near, 1.0, 1.0, 0.0, 0.0))
+
+
+def gaussian_accumulate(grad_acc, count_acc, means, log_scales, grad_means, w2c, normals, radius_scale: float,
+                        near: float, fx: float, fy: float, width: float, height: float) -> None:
+    """Op "gaussian_accumulate" on Triton: one view's visibility and screen-space gradient signal
+    added into the accumulators in place."""
+    _accumulate(grad_acc, count_acc, means, log_scales, grad_means, None, w2c, normals,
+                (radius_scale, near, fx, fy, width / 2, height / 2))
+
+
+@torch.no_grad()
+def _accumulate(grad_acc, count_acc, means, log_scales, grad_means, mlp_grads, w2c, normals, numbers) -> None:
+    from radfield.core.backends.gpu import statistics_kernels as K
+
+    count = means.shape[0]
+    if count == 0:
+        return
+    frame = torch.cat([w2c.reshape(12), normals.reshape(12), to_device(torch.tensor(numbers, dtype=means.dtype),
+                                                                       means.device)])
+    neural = mlp_grads is not None
+    g_w1, g_b1, g_w2, g_b2 = (t.contiguous() for t in mlp_grads) if neural else (means,) * 4
+    units = g_b1.shape[1] if neural else 1
+    with _launching():
+        K.accumulate[(-(-count // K.BLOCK),)](grad_acc, count_acc, means.detach().contiguous(),
+                                              log_scales.detach().contiguous(),
+                                              means if neural else grad_means.contiguous(), g_w1, g_b1, g_w2, g_b2,
+                                              frame, count, units, NP=_padded(units), NEURAL=neural, BLOCK=K.BLOCK,
+                                              **PREPARE_OPTIONS)
 
 
 def _padded(units: int) -> int:
