@@ -75,9 +75,9 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
     refinement reads anyway; the rules refresh at multiples of 5): the Triton renderer, loss,
     D-SSIM, PSNR sums, Adam, the SH schedule, the frequency cap, σ ≥ 0, the footprint floor, ray
     jitter and random backgrounds run without waiting for the GPU, the binning's pair count
-    (gpu.pair_count, one read a view) excepted. Also the blocking copies to the device, which the
+    (binning.pair_count, one read a view) excepted. Also the blocking copies to the device, which the
     CPU check of the same loop (tests/test_triton.py) cannot see."""
-    from radfield.core.backends import gpu
+    from radfield.core.backends.gpu import binning
     from radfield.core.geometry.cameras import Camera, look_at
     from radfield.core.kinds import random_gaussians, random_neural
     from radfield.core.train import trainer
@@ -93,7 +93,7 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
                min_footprint=0.5, ray_jitter=0.5, random_background=True)
     cfg["densify"].update(start=1, stop=100, every=100)   # gathers every step, refines never
     reads = {5, 10, 12}   # the steps whose records are read
-    decayed, count_pairs = trainer.decayed, gpu.pair_count
+    decayed, count_pairs = trainer.decayed, binning.pair_count
     counted = []
 
     def step_marker(lr, ratio, step, iterations):   # the first thing each step does
@@ -110,7 +110,7 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
             torch.cuda.set_sync_debug_mode(mode)
 
     monkeypatch.setattr(trainer, "decayed", step_marker)
-    monkeypatch.setattr(gpu, "pair_count", allowed_read)
+    monkeypatch.setattr(binning, "pair_count", allowed_read)
     log = []
     make = random_neural if kind == "neural" else random_gaussians
     try:

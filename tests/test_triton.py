@@ -185,7 +185,7 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     in torch, a conditioned kind's primitives of the view, loss, D-SSIM, Adam, the strategy's
     statistics, the rules), 6 steps of 2 views with log_every 3: between the reads of the step
     records (steps 3 and 6) the host reads one number a view, the binning's pair count
-    (gpu.pair_count), and nothing else: no render counter, no visible count (conftest.HostReads;
+    (binning.pair_count), and nothing else: no render counter, no visible count (conftest.HostReads;
     the blocking copies to the device are test_cuda.py's)."""
     from dataclasses import replace
 
@@ -215,7 +215,7 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
                       device=DEVICE, alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append(step))
     assert log == list(range(1, 7))
     per_step = {step: sorted(f"{op} {where}" for s, op, where in reads.seen if s == step) for step in range(1, 7)}
-    pair_counts = ["__int__ radfield.core.backends.gpu.pair_count"] * 2
+    pair_counts = ["__int__ radfield.core.backends.gpu.binning.pair_count"] * 2
     for step, seen in per_step.items():
         if step in (3, 6):
             assert seen == sorted([*pair_counts, "tolist radfield.core.train.trainer.flush"]), (step, seen)
@@ -229,8 +229,8 @@ def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
     counted by a dispatch mode below autograd, so the backward's too; the ops that launch nothing,
     views and detaches, left out, and the interpreter's own copies of the kernels' arguments) are
     the same for 50 and for 400 primitives: nothing is done per primitive or per pair on the host.
-    And they are few: 109 for neural primitives and 106 for Gaussians when this was written (611
-    and 628 with the preparation in torch), besides the 6-7 Triton launches. (The torch twin's ops
+    And they are few: 97 for neural primitives and 94 for Gaussians when this was written (611 and
+    628 with the preparation in torch), besides the 6-7 Triton launches. (The torch twin's ops
     grow with the pairs: one set a chunk.)"""
     import sys
 

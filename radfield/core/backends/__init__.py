@@ -27,8 +27,9 @@ call sites document their twins): sh_color, sh_color_parts (core/render/rasteriz
 neural_accumulate, gaussian_accumulate (core/train/strategy.py), project_nonnegative_
 (core/train/positivity.py), and view.<kind>:
 (prims, frame, colors, t_min) -> (Σ w c, Σ w z, T, counters (evaluated, composited, terminated,
-candidate pairs), the number of visible primitives: an int, or a 0-dim tensor that is read only
-if someone asks, core/render/rasterize.py: RenderCounts).
+candidate pairs: a tensor, or a function that makes it), the number of visible primitives (an
+int, or a 0-dim tensor); the counts are read only if someone asks, core/render/rasterize.py:
+RenderCounts).
 
 One switch forces the twins everywhere: `RADFIELD_KERNELS=torch` (read at every call). `using(name)`
 restricts the choice to one backend within a block (tests and benchmarks compare them).

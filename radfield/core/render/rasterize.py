@@ -132,8 +132,8 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
         # gather is recorded here
         acc_color, acc_depth, transmittance, counters, visible = view_op(prims, frame, colors, t_min)
 
-        def counts():   # read only when someone looks (RenderCounts)
-            evaluated, composited, terminated, candidates = counters.tolist()
+        def counts():   # read only when someone looks (RenderCounts); a backend may make them only then
+            evaluated, composited, terminated, candidates = (counters() if callable(counters) else counters).tolist()
             return [int(visible), evaluated, composited, candidates, terminated]
     else:
         bounds, visible, view = kind.twin_view(prims, frame)

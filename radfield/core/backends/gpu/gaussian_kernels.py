@@ -1,4 +1,4 @@
-"""The Triton kernels of the Gaussian view (core/backends/gpu/__init__.py joins them into one
+"""The Triton kernels of the Gaussian view (core/backends/gpu/views.py joins them into one
 autograd op): per-tile front-to-back compositing and its backward, as 3DGS rasterises on a GPU.
 
 Imported only when a view is drawn on the "triton" backend (it imports triton; with

@@ -1,4 +1,4 @@
-"""The Triton kernels of the neural view (core/backends/gpu/__init__.py joins them into one autograd
+"""The Triton kernels of the neural view (core/backends/gpu/views.py joins them into one autograd
 op): the closed-form line integral of a neural primitive per (pixel, primitive) pair, hard-edged
 or windowed (core/render/kernels.py: neural_optical_depth, windowed_optical_depth), composited per
 16×16 tile front to back, and its backward walking each pixel's list back to front.

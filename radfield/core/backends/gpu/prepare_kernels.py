@@ -1,4 +1,4 @@
-"""The Triton kernels of the per-view, per-primitive preparation (core/backends/gpu/__init__.py
+"""The Triton kernels of the per-view, per-primitive preparation (core/backends/gpu/preparation.py
 wraps them in autograd ops): one lane per primitive, forward and hand-written backward, in place of
 the dozens of small torch ops each of their twins launches.
 

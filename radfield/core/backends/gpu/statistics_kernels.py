@@ -1,4 +1,4 @@
-"""The Triton kernel of a view's population-control statistics (core/backends/gpu/__init__.py
+"""The Triton kernel of a view's population-control statistics (core/backends/gpu/statistics.py
 wraps it as ops "neural_accumulate" and "gaussian_accumulate"; the twin is
 core/train/strategy.py `_Strategy.accumulate`, the fused CPU op csrc/strategy_kernels.cpp): one
 lane per primitive, added into the accumulators in place, in place of some twenty torch ops a view.
