@@ -7,8 +7,9 @@
     sh_color(sh, v, degree) (preparation.py)                      op "sh_color" (core/render/rasterize.py)
     neural_accumulate, gaussian_accumulate (statistics.py)       the statistics ops (core/train/strategy.py)
     bin_tiles(bounds, visible, order, height, width) (binning.py) the per-tile depth-ordered lists
-The kernels themselves: prepare_kernels.py, gaussian_kernels.py and neural_kernels.py (the tile walk
-they share in tiles.py), statistics_kernels.py; what their launchers share: launch.py.
+The kernels themselves: prepare_kernels.py, binning_kernels.py, gaussian_kernels.py and
+neural_kernels.py (the tile walk they share in tiles.py), statistics_kernels.py; what their
+launchers share: launch.py.
 
 Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
 download (the wheel ships its compiler), and `TRITON_INTERPRET=1` runs the very same kernels on
@@ -21,9 +22,10 @@ The design is gsplat's/3DGS's. Per view:
    with the 0.3 px² blur) and the 3σ boxes in one launch; for neural primitives the dual-conic
    boxes, then the ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k and 1/max s ((W2, b2)
    stay torch: an edited model's rest metric scales them);
-2. in torch: the depth order (a stable sort, as the twin) and the tile binning (binning.py): every visible
-   primitive × the 16×16 tiles its box touches, keys (tile, depth rank) sorted by torch.sort,
-   per-tile [start, end) ranges of primitive indices. The host reads the device once a view, for
+2. the depth order (a stable torch sort, as the twin) and the tile binning (binning.py around
+   binning_kernels.py): every visible primitive × the 16×16 tiles its box touches, keys (tile,
+   depth rank) written by one lane per primitive and sorted by torch.sort, per-tile [start, end)
+   ranges of primitive indices. The host reads the device once a view, for
    the number of those pairs (the size of the key array, as 3DGS and gsplat read it): every
    primitive keeps its place in the order, the invisible ones after the visible, so that nothing
    else waits for a count;
