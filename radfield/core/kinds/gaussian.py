@@ -48,16 +48,22 @@ def random_gaussians(num: int, *, sh_degree: int = 0, extent: float = 1.0, scale
 
 # --- the torch twin's per-view preparation and pair kernel ---------------------------------------
 
+def jacobian_clamp(camera) -> tuple[float, float, float, float]:
+    """(lo_x, hi_x, lo_y, hi_y): as 3DGS/gsplat, the EWA Jacobian's point x/z, y/z is clamped to 1.3×
+    the field of view, which keeps the affine approximation of far off-screen splats from exploding."""
+    margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
+    return (-camera.cx / camera.fx - margin_x, (camera.width - camera.cx) / camera.fx + margin_x,
+            -camera.cy / camera.fy - margin_y, (camera.height - camera.cy) / camera.fy + margin_y)
+
+
 def ewa_view(prims: Gaussians, camera, w2c, means_cam, near):
     """EWA splatting (Zwicker et al., as in 3DGS): ((2D mean, conic of J W Σ Wᵀ Jᵀ + 0.3 I,
     opacity), the 2D covariance's entries (a, b, c))."""
     x, y, z = means_cam.unbind(-1)
     zs = torch.where(z > near, z, torch.ones_like(z))
-    # as 3DGS/gsplat: clamp the Jacobian's point to 1.3× the field of view, which keeps the
-    # affine approximation of far off-screen splats from exploding
-    margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
-    tx = zs * torch.clamp(x / zs, -camera.cx / camera.fx - margin_x, (camera.width - camera.cx) / camera.fx + margin_x)
-    ty = zs * torch.clamp(y / zs, -camera.cy / camera.fy - margin_y, (camera.height - camera.cy) / camera.fy + margin_y)
+    lo_x, hi_x, lo_y, hi_y = jacobian_clamp(camera)
+    tx = zs * torch.clamp(x / zs, lo_x, hi_x)
+    ty = zs * torch.clamp(y / zs, lo_y, hi_y)
     zero = torch.zeros_like(zs)
     jac = torch.stack([camera.fx / zs, zero, -camera.fx * tx / zs**2,
                        zero, camera.fy / zs, -camera.fy * ty / zs**2], -1).reshape(-1, 2, 3)

@@ -126,11 +126,10 @@ def gaussian_prep(prims, frame) -> tuple:
     """(bounds, visible, (mean2d, conic, opacity)) of kinds/gaussian.py twin_view (ewa_view and
     splat_bounds) on Triton: one launch, and one for the backward. The clamp of the Jacobian's point
     is the twin's, from the camera's numbers."""
+    from radfield.core.kinds.gaussian import jacobian_clamp
+
     camera = frame.camera
-    margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
-    numbers = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, frame.near,
-                            -camera.cx / camera.fx - margin_x, (camera.width - camera.cx) / camera.fx + margin_x,
-                            -camera.cy / camera.fy - margin_y, (camera.height - camera.cy) / camera.fy + margin_y],
+    numbers = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, frame.near, *jacobian_clamp(camera)],
                            dtype=frame.means_cam.dtype)
     view = torch.cat([frame.w2c[:3, :3].reshape(9), to_device(numbers, frame.means_cam.device)])
     mean2d, conic, _, bounds, visible = _GaussianPrep.apply(frame.means_cam, prims.log_scales, prims.quats, view,
