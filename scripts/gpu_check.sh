@@ -39,9 +39,10 @@ print('  train', {k: t.get(k) for k in ('seconds', 'iterations', 'primitives')},
 
 part_tests() {
     echo "== CUDA tests, the backend comparisons and the blocked-import tests"
-    secs $PY -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_backends.py tests/test_imports.py 2>&1 | tail -5
+    secs $PY -m pytest -q -rfE -p no:cacheprovider tests/test_cuda.py tests/test_backends.py tests/test_imports.py 2>&1 \
+        | tail -25
     echo "== the Triton backend's kernels compiled on CUDA tensors against the torch twin (tests/test_triton.py)"
-    secs env -u TRITON_INTERPRET $PY -m pytest -q -p no:cacheprovider tests/test_triton.py 2>&1 | tail -5
+    secs env -u TRITON_INTERPRET $PY -m pytest -q -rfE -p no:cacheprovider tests/test_triton.py 2>&1 | tail -25
     echo "== a --no-cage reconstruction on the GPU, then render, eval, export"
     scene blobs "$W/blobs" 64
     secs radfield reconstruct "$W/blobs" -o "$W/run" --no-cage --device "$DEVICE" --iterations 300 -q

@@ -24,7 +24,7 @@ if not torch.cuda.is_available():
 from radfield.core import backends, kinds                   # noqa: E402
 from radfield.core.backends import gpu                      # noqa: E402
 from radfield.core.geometry.cameras import Camera, look_at  # noqa: E402
-from radfield.core.kinds import random_gaussians            # noqa: E402
+from radfield.core.kinds import random_gaussians, random_neural   # noqa: E402
 from radfield.core.render.rasterize import render           # noqa: E402
 from radfield.core.train.strategy import make_strategy      # noqa: E402
 
@@ -85,19 +85,24 @@ def render_with_grads(prims, cam, backend):
 def scene_of(name, dtype, render_scene):
     """hard_scene, or conftest.render_scene's (24×20, the backends' common case: for neural primitives
     the camera inside one, one straddling the near plane, one at the α clamp) of a kind; "neural-5":
-    5 hidden units (the kernels pad the units' axis to 8 and mask the rest)."""
+    5 hidden units (the backward sums the units' gradients in groups of 8, the rest masked);
+    "neural-dense": 40 primitives in one tile, a list longer than the forward's CHUNK (it counts
+    the live pixels once a chunk)."""
     if name == "hard_scene":
         return hard_scene(dtype)
     if name == "neural-5":
         prims, cam = render_scene("neural", dtype, hidden=5)
         assert prims.hidden == 5
+    elif name == "neural-dense":
+        prims = random_neural(40, sh_degree=1, scale=0.35, extent=0.3, b2=1.0, w2_amplitude=1.0, seed=5).to(dtype=dtype)
+        cam = Camera(fx=14.0, fy=15.0, cx=8.2, cy=7.9, width=16, height=16, c2w=look_at((0.15, -1.5, 0.25), (0, 0, 0)))
     else:
         prims, cam = render_scene(name, dtype)
     return prims.to(device=DEVICE), cam
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("scene", ["gaussian", "hard_scene", "neural", "neural-window", "neural-5"])
+@pytest.mark.parametrize("scene", ["gaussian", "hard_scene", "neural", "neural-window", "neural-5", "neural-dense"])
 def test_render_matches_the_torch_twin(scene, dtype, render_scene):
     prims, cam = scene_of(scene, dtype, render_scene)
     fast, grads_fast = render_with_grads(prims, cam, backends.TRITON)
@@ -107,6 +112,8 @@ def test_render_matches_the_torch_twin(scene, dtype, render_scene):
         assert slow.meta["terminated_pixels"] > 50
     if scene == "hard_scene":
         assert slow.meta["visible"] < len(prims.means)
+    if scene == "neural-dense":   # one tile, its list longer than a chunk
+        assert cam.width == cam.height == gpu.TILE and slow.meta["visible"] > gpu.tiles.CHUNK.value
     # evaluated pairs differ by design (the kernel skips a pixel as soon as it terminates, the twin
     # only between chunks); every other count is the same
     evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
@@ -356,8 +363,8 @@ import triton
 from triton import knobs
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
-from radfield.core.backends.gpu import (COMPILE_OPTIONS, PREPARE_OPTIONS, binning_kernels, gaussian_kernels,
-                                       neural_kernels, prepare_kernels, statistics_kernels)
+from radfield.core.backends.gpu import (COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, PREPARE_OPTIONS, binning_kernels,
+                                       gaussian_kernels, neural_kernels, prepare_kernels, statistics_kernels)
 
 knobs.nvidia.dump_ptxas_log = True   # ptxas -v's lines, on stdout
 
@@ -372,13 +379,16 @@ def compile_for_sm90(fn, options=COMPILE_OPTIONS, floats="*fp32", **constexprs):
     print("kernel", fn.fn.__name__, floats, sorted(constexprs.items()), flush=True)
     kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=options)
     assert len(kernel.asm["cubin"]) > 0
+    # gradient sums need no memory order: Triton's default atomics (acq_rel) put a fence by each
+    assert "acq_rel" not in kernel.asm["ptx"] and "fence" not in kernel.asm["ptx"], fn.fn.__name__
     return kernel
 
 compile_for_sm90(gaussian_kernels.gaussian_forward, SIDE=16)
 compile_for_sm90(gaussian_kernels.gaussian_backward, SIDE=16)
 for window in (False, True):
-    compile_for_sm90(neural_kernels.neural_forward, SIDE=16, NP=8, WINDOW=window)
-    compile_for_sm90(neural_kernels.neural_backward, SIDE=16, NP=8, WINDOW=window)
+    compile_for_sm90(neural_kernels.neural_forward, SIDE=16, UNITS=8, WINDOW=window)
+    compile_for_sm90(neural_kernels.neural_backward, NEURAL_BACKWARD_OPTIONS[window], SIDE=16, UNITS=8, WINDOW=window)
+compile_for_sm90(neural_kernels.neural_backward, NEURAL_BACKWARD_OPTIONS[False], SIDE=16, UNITS=5, WINDOW=False)
 for kernel in (binning_kernels.tile_counts, binning_kernels.tile_keys):
     compile_for_sm90(kernel, PREPARE_OPTIONS, SIDE=16, BLOCK=binning_kernels.BLOCK)
 for neural in (False, True):
@@ -413,7 +423,7 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 24, done.stdout
+    assert len(kernels) == 25, done.stdout
     assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)

@@ -53,15 +53,15 @@ import importlib.util
 import torch
 
 from radfield.core.backends.gpu.binning import bin_tiles, pair_count
-from radfield.core.backends.gpu.launch import COMPILE_OPTIONS, PREPARE_OPTIONS, TILE, interpreting
+from radfield.core.backends.gpu.launch import COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, PREPARE_OPTIONS, TILE, interpreting
 from radfield.core.backends.gpu.preparation import neural_bounds, sh_color
 from radfield.core.backends.gpu.statistics import gaussian_accumulate, neural_accumulate
 from radfield.core.backends.gpu.views import gaussian_view, neural_view
 
 NAME = "triton"
-__all__ = ["NAME", "TILE", "COMPILE_OPTIONS", "PREPARE_OPTIONS", "runs", "why_not", "interpreting", "bin_tiles",
-           "pair_count", "gaussian_view", "neural_view", "sh_color", "neural_bounds", "neural_accumulate",
-           "gaussian_accumulate"]
+__all__ = ["NAME", "TILE", "COMPILE_OPTIONS", "NEURAL_BACKWARD_OPTIONS", "PREPARE_OPTIONS", "runs", "why_not",
+           "interpreting", "bin_tiles", "pair_count", "gaussian_view", "neural_view", "sh_color", "neural_bounds",
+           "neural_accumulate", "gaussian_accumulate"]
 
 
 @functools.cache

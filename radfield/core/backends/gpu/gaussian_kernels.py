@@ -28,7 +28,8 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
-from radfield.core.backends.gpu.tiles import _composite, _store_tile, _tile_pixels, _uncomposite, _upstream
+from radfield.core.backends.gpu.tiles import (CHUNK, _add_sums, _alive, _composite, _pick, _store_tile, _tile_pixels,
+                                             _uncomposite, _upstream)
 
 SIDE = 16   # tile side in pixels (one program per tile, one lane per pixel)
 
@@ -80,16 +81,19 @@ def gaussian_forward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr, 
     start = tl.load(offsets_ptr + tile)
     end = tl.load(offsets_ptr + tile + 1)
     j = start
-    alive = tl.sum(inside.to(tl.int32))
+    alive = _alive(done)
     while (j < end) & (alive > 0):               # front to back, until every pixel terminated
-        r = tl.load(entries_ptr + j)
-        in_box, dx, dy, power, raw, alpha, hit = _splat(r, px, py, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr,
-                                                        alpha_min, alpha_max)
-        live = in_box & (done == 0)
-        (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive) = _composite(
-            alpha, hit & live, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
-            acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive)
-        j += 1
+        chunk_end = tl.minimum(j + CHUNK, end)
+        while j < chunk_end:
+            r = tl.load(entries_ptr + j)
+            in_box, dx, dy, power, raw, alpha, hit = _splat(r, px, py, bounds_ptr, mean_ptr, conic_ptr, opacity_ptr,
+                                                            alpha_min, alpha_max)
+            live = in_box & (done == 0)
+            (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated) = _composite(
+                alpha, hit & live, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
+                acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated)
+            j += 1
+        alive = _alive(done)
     _store_tile(tile, pix, inside, trans, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated,
                 out_color_ptr, out_depth_ptr, out_trans_ptr, last_ptr, counts_ptr)
 
@@ -106,6 +110,7 @@ def gaussian_backward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr,
     trans, last, g_r, g_g, g_b, g_z, suffix = _upstream(pix, inside, trans_ptr, last_ptr, g_color_ptr, g_depth_ptr,
                                                         g_trans_ptr)
     start = tl.load(offsets_ptr + tile)
+    lane = tl.arange(0, 8)
     steps = tl.max(last)                          # the longest walk of the tile's pixels
     for step in range(0, steps):
         local = steps - 1 - step                  # back to front
@@ -114,18 +119,20 @@ def gaussian_backward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr,
                                                         alpha_min, alpha_max)
         hit = hit & (local < last)                # before `last` every hit was composited
         if tl.sum(hit.to(tl.int32)) > 0:
-            trans, g_alpha, suffix = _uncomposite(alpha, hit, r, trans, suffix, g_r, g_g, g_b, g_z, color_ptr, depth_ptr,
-                                                  d_color_ptr, d_depth_ptr)
+            trans, g_alpha, suffix, g_cr, g_cg, g_cb, g_cz = _uncomposite(alpha, hit, r, trans, suffix, g_r, g_g, g_b,
+                                                                          g_z, color_ptr, depth_ptr)
             # α = min(α_max, o e^power): no gradient through the clamp
             g_raw = tl.where(raw <= alpha_max, g_alpha, 0.0)
             g_power = g_raw * raw
             ca = tl.load(conic_ptr + 3 * r)
             cb = tl.load(conic_ptr + 3 * r + 1)
             cc = tl.load(conic_ptr + 3 * r + 2)
-            tl.atomic_add(d_opacity_ptr + r, tl.sum(g_raw * tl.exp(tl.minimum(power, 0.0))))
-            tl.atomic_add(d_conic_ptr + 3 * r, tl.sum(g_power * (-0.5 * dx * dx)))
-            tl.atomic_add(d_conic_ptr + 3 * r + 1, tl.sum(g_power * (-dx * dy)))
-            tl.atomic_add(d_conic_ptr + 3 * r + 2, tl.sum(g_power * (-0.5 * dy * dy)))
-            # power's derivative by the 2D mean (dx = u − μx)
-            tl.atomic_add(d_mean_ptr + 2 * r, tl.sum(g_power * (ca * dx + cb * dy)))
-            tl.atomic_add(d_mean_ptr + 2 * r + 1, tl.sum(g_power * (cc * dy + cb * dx)))
+            # the splat's ten gradients in two sums of eight: colour, depth, opacity, conic; the 2D mean
+            # (power's derivative by it, dx = u − μx)
+            _add_sums(_pick(lane, d_color_ptr + 3 * r, d_color_ptr + 3 * r + 1, d_color_ptr + 3 * r + 2, d_depth_ptr + r,
+                            d_opacity_ptr + r, d_conic_ptr + 3 * r, d_conic_ptr + 3 * r + 1, d_conic_ptr + 3 * r + 2),
+                      lane < 8, g_cr, g_cg, g_cb, g_cz, g_raw * tl.exp(tl.minimum(power, 0.0)),
+                      g_power * (-0.5 * dx * dx), g_power * (-dx * dy), g_power * (-0.5 * dy * dy))
+            zero = tl.zeros_like(g_power)
+            _add_sums(d_mean_ptr + 2 * r + lane, lane < 2, g_power * (ca * dx + cb * dy), g_power * (cc * dy + cb * dx),
+                      zero, zero, zero, zero, zero, zero)

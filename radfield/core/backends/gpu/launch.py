@@ -12,11 +12,15 @@ TILE = 16   # tile side in pixels (gaussian_kernels.SIDE)
 # The kernels' compile options. No FMA contraction (as the fused CPU build, -ffp-contract=off): the
 # backward recomputes each pair's α exactly as the forward did, whatever instructions the compiler
 # picks in either kernel. 8 warps: one thread per pixel of a 16×16 tile, as 3DGS's rasteriser; with
-# 4 (two pixels a thread) the windowed neural backward needs more than 255 registers and spills
-# 760 bytes a thread, the other neural kernels 192–255 registers; with 8 none spills (ptxas for
-# sm_90: 32 registers for the Gaussian kernels, 121/153 for the neural forward, 188/233 for its
-# backward, hard-edged/windowed; tests/test_triton.py checks that none spills).
+# 4 (two pixels a thread) the windowed neural backward needs more than 255 registers and spills.
+# ptxas for sm_90 with 8 warps: 32/40 registers for the Gaussian forward/backward, 77/103 for the
+# neural forward and 128/214 for its backward, hard-edged/windowed (tests/test_triton.py checks
+# that no float32 kernel spills; scripts/kernel_report.py prints these figures).
 COMPILE_OPTIONS = {"enable_fp_fusion": False, "num_warps": 8}
+# The neural backward's, by WINDOW. Left to itself ptxas fits the hard-edged one in 128 registers
+# (two blocks an SM) by spilling 20 bytes a thread; capped at 160 it fits them without spilling.
+# The windowed one takes 214 (one block an SM) either way.
+NEURAL_BACKWARD_OPTIONS = {False: {**COMPILE_OPTIONS, "maxnreg": 160}, True: COMPILE_OPTIONS}
 # the per-primitive kernels (prepare_kernels.py): 4 warps for their 128 primitives a program; no FMA
 # contraction either, so that the backward's recomputed sums take the forward's clamp
 PREPARE_OPTIONS = {"enable_fp_fusion": False, "num_warps": 4}

@@ -4,8 +4,9 @@ or windowed (core/render/kernels.py: neural_optical_depth, windowed_optical_dept
 16×16 tile front to back, and its backward walking each pixel's list back to front.
 
 The same tile walk as gaussian_kernels.py (tiles.py; gaussian_kernels.py's docstring says the
-compositing rules and the backward's suffix); what differs is the pair: one lane per pixel, and
-the hidden units as a second axis (NP = N padded to a power of two, the padding masked). The maths and its backward are those
+compositing rules and the backward's suffix); what differs is the pair: one lane per pixel, its
+hidden units unrolled (UNITS = N, a constant of the compiled kernel), so that a lane keeps its
+pixel's units in registers and a unit's sum never crosses lanes. The maths and its backward are those
 of the fused CPU kernels (core/backends/csrc/pair_kernels.h: ChordTile), which follow the torch
 twin's autograd (clamps pass the gradient at equality, torch.maximum splits it at a tie).
 Inputs (P, ...), read through the tile lists as the Gaussians' (gaussian_kernels.py): m_cam (P, 9) =
@@ -18,7 +19,8 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
-from radfield.core.backends.gpu.tiles import _composite, _store_tile, _tile_pixels, _uncomposite, _upstream
+from radfield.core.backends.gpu.tiles import (CHUNK, _add_sums, _alive, _composite, _pick, _store_tile, _tile_pixels,
+                                             _uncomposite, _upstream)
 
 
 @triton.jit
@@ -90,41 +92,42 @@ def _window_integral(x, sin_x, cos_x, one):
 
 
 @triton.jit
-def _units(r, k, N, w_ptr, c_ptr, w2_ptr):
-    """The primitive's per-unit rows (masked beyond N: zero weights contribute nothing)."""
-    live = k < N
-    wx = tl.load(w_ptr + (r * N + k) * 3, mask=live, other=0.0)
-    wy = tl.load(w_ptr + (r * N + k) * 3 + 1, mask=live, other=0.0)
-    wz = tl.load(w_ptr + (r * N + k) * 3 + 2, mask=live, other=0.0)
-    c = tl.load(c_ptr + r * N + k, mask=live, other=0.0)
-    w2 = tl.load(w2_ptr + r * N + k, mask=live, other=0.0)
-    return live, wx, wy, wz, c, w2
+def _unit(r, u, d0, d1, d2, delta, tau_m, w_ptr, c_ptr, w2_ptr, UNITS: tl.constexpr):
+    """Hidden unit u of primitive r at the pixels: its W2 weight, a = ω·d̂ (ω = ω0 W1 R_cam's row),
+    the phase a τ_m + c at the chord's middle, x = a Δ/2, and their cosines and sines."""
+    row = r * UNITS + u
+    a = tl.load(w_ptr + 3 * row) * d0 + tl.load(w_ptr + 3 * row + 1) * d1 + tl.load(w_ptr + 3 * row + 2) * d2
+    phase = a * tau_m + tl.load(c_ptr + row)
+    x = 0.5 * a * delta
+    return tl.load(w2_ptr + row), a, tl.cos(phase), tl.sin(phase), x, tl.sin(x), tl.cos(x)
 
 
 @triton.jit
-def _optical_depth(d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW: tl.constexpr):
-    """Step 2: I per pixel (paper eq. 7–8, stable sinc form; or the window's, 1.5 κ [...]), and
-    the (pixel, unit) terms the backward reuses: a, phase, x, cos φ, sin φ, sin x, cos x, sinc x."""
-    a = wx[None, :] * d0[:, None] + wy[None, :] * d1[:, None] + wz[None, :] * d2[:, None]
-    phase = a * tau_m[:, None] + c[None, :]
-    x = 0.5 * a * delta[:, None]
-    cos_p = tl.cos(phase)
-    sin_p = tl.sin(phase)
-    sin_x = tl.sin(x)
-    cos_x = tl.cos(x)
-    sinc_x = _sinc(x, sin_x)
+def _optical_depth(r, d0, d1, d2, delta, tau_m, clip, kappa, b2, w_ptr, c_ptr, w2_ptr, one,
+                   UNITS: tl.constexpr, WINDOW: tl.constexpr):
+    """Step 2: I per pixel (paper eq. 7–8, stable sinc form; or the window's, 1.5 κ [...]), the sum
+    in brackets, and each unit's terms the backward reuses: (W2, a, cos φ, sin φ, x, sin x, cos x,
+    sinc x, the window's W(x) or sinc x). The units are unrolled (UNITS is the kernel's constant):
+    each lane keeps its pixel's units in registers."""
+    inner = tl.zeros_like(delta)
+    terms = ()
+    for u in tl.static_range(UNITS):
+        w2, a, cos_p, sin_p, x, sin_x, cos_x = _unit(r, u, d0, d1, d2, delta, tau_m, w_ptr, c_ptr, w2_ptr, UNITS)
+        sinc_x = _sinc(x, sin_x)
+        if WINDOW:
+            win = _window_integral(x, sin_x, cos_x, one)
+            inner += w2 * (cos_p * (0.25 * delta * delta * delta) * win
+                           + clip * (0.5 * delta * delta) * (cos_p * sinc_x + sin_p * (0.5 * x * win)))
+        else:
+            win = sinc_x
+            inner += w2 * (delta * cos_p * sinc_x)
+        terms = terms + ((w2, a, cos_p, sin_p, x, sin_x, cos_x, sinc_x, win),)
     if WINDOW:
-        w = _window_integral(x, sin_x, cos_x, one)
-        d3 = (0.25 * delta * delta * delta)[:, None]
-        d2h = (0.5 * delta * delta)[:, None]
-        terms = cos_p * d3 * w + clip[:, None] * d2h * (cos_p * sinc_x + sin_p * (0.5 * x * w))
-        inner = tl.sum(w2[None, :] * terms, axis=1) + b2 * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta))
+        inner += b2 * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta))
         integral = 1.5 * kappa * inner
     else:
-        w = sinc_x
-        inner = tl.sum(w2[None, :] * delta[:, None] * cos_p * sinc_x, axis=1)
         integral = inner + b2 * delta
-    return integral, inner, a, phase, x, cos_p, sin_p, sin_x, cos_x, sinc_x, w
+    return integral, inner, terms
 
 
 @triton.jit
@@ -140,12 +143,11 @@ def _expm1_neg(depth):
 @triton.jit
 def neural_forward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, o_ptr, w_ptr, c_ptr, w2_ptr, b2_ptr,
                    inv_smax_ptr, color_ptr, depth_ptr, consts_ptr, out_color_ptr, out_depth_ptr, out_trans_ptr,
-                   last_ptr, counts_ptr, height, width, tiles_x, N,
-                   SIDE: tl.constexpr, NP: tl.constexpr, WINDOW: tl.constexpr):
+                   last_ptr, counts_ptr, height, width, tiles_x,
+                   SIDE: tl.constexpr, UNITS: tl.constexpr, WINDOW: tl.constexpr):
     tile = tl.program_id(0)
     px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
     d0, d1, d2, l_near = _directions(px, py, intrinsics_ptr)
-    k = tl.arange(0, NP)
     t_min = tl.load(consts_ptr)
     alpha_min = tl.load(consts_ptr + 1)
     alpha_max = tl.load(consts_ptr + 2)
@@ -164,36 +166,45 @@ def neural_forward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, 
     start = tl.load(offsets_ptr + tile)
     end = tl.load(offsets_ptr + tile + 1)
     j = start
-    alive = tl.sum(inside.to(tl.int32))
+    alive = _alive(done)
     while (j < end) & (alive > 0):
-        r = tl.load(entries_ptr + j)
-        live = _box(r, px, py, bounds_ptr) & (done == 0)
-        (e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m, clip,
-         kappa) = _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr)
-        live_k, wx, wy, wz, c, w2 = _units(r, k, N, w_ptr, c_ptr, w2_ptr)
-        b2 = tl.load(b2_ptr + r)
-        integral, inner, a, phase, x, cos_p, sin_p, sin_x, cos_x, sinc_x, win = _optical_depth(
-            d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW)
-        alpha = tl.minimum(-_expm1_neg(integral), alpha_max)          # eq. 9 with the 3DGS clamp
-        hit = live & (alpha >= alpha_min) & (delta > 0.0)
-        (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive) = _composite(
-            alpha, hit, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
-            acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated, alive)
-        j += 1
+        chunk_end = tl.minimum(j + CHUNK, end)
+        while j < chunk_end:
+            r = tl.load(entries_ptr + j)
+            live = _box(r, px, py, bounds_ptr) & (done == 0)
+            (e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m,
+             clip, kappa) = _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr)
+            integral, inner, terms = _optical_depth(r, d0, d1, d2, delta, tau_m, clip, kappa, tl.load(b2_ptr + r), w_ptr,
+                                                    c_ptr, w2_ptr, one, UNITS, WINDOW)
+            alpha = tl.minimum(-_expm1_neg(integral), alpha_max)          # eq. 9 with the 3DGS clamp
+            hit = live & (alpha >= alpha_min) & (delta > 0.0)
+            (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated) = _composite(
+                alpha, hit, live, r, j, start, t_min, color_ptr, depth_ptr, trans, done, last,
+                acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated)
+            j += 1
+        alive = _alive(done)
     _store_tile(tile, pix, inside, trans, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated,
                 out_color_ptr, out_depth_ptr, out_trans_ptr, last_ptr, counts_ptr)
+
+
+@triton.jit
+def _unit_sums(ptrs, lane, values, first: tl.constexpr, UNITS: tl.constexpr):
+    """Units first … first + 7 of a per-unit gradient (pixel terms `values`, padded to a multiple of
+    8) summed over the tile and added at ptrs (8,) = the gradient's entries of those units."""
+    _add_sums(ptrs, first + lane < UNITS, values[first], values[first + 1], values[first + 2], values[first + 3],
+              values[first + 4], values[first + 5], values[first + 6], values[first + 7])
 
 
 @triton.jit
 def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, o_ptr, w_ptr, c_ptr, w2_ptr, b2_ptr,
                     inv_smax_ptr, color_ptr, depth_ptr, consts_ptr, trans_ptr, last_ptr, g_color_ptr, g_depth_ptr,
                     g_trans_ptr, d_m_ptr, d_o_ptr, d_w_ptr, d_c_ptr, d_w2_ptr, d_b2_ptr, d_inv_smax_ptr, d_color_ptr,
-                    d_depth_ptr, height, width, tiles_x, N,
-                    SIDE: tl.constexpr, NP: tl.constexpr, WINDOW: tl.constexpr):
+                    d_depth_ptr, height, width, tiles_x,
+                    SIDE: tl.constexpr, UNITS: tl.constexpr, WINDOW: tl.constexpr):
     tile = tl.program_id(0)
     px, py, pix, inside = _tile_pixels(tile, tiles_x, height, width, SIDE)
     d0, d1, d2, l_near = _directions(px, py, intrinsics_ptr)
-    k = tl.arange(0, NP)
+    lane = tl.arange(0, 8)
     alpha_min = tl.load(consts_ptr + 1)
     alpha_max = tl.load(consts_ptr + 2)
     one = tl.load(consts_ptr + 3)
@@ -206,68 +217,93 @@ def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr,
         r = tl.load(entries_ptr + start + local)
         (e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m, clip,
          kappa) = _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr)
-        live_k, wx, wy, wz, c, w2 = _units(r, k, N, w_ptr, c_ptr, w2_ptr)
         b2 = tl.load(b2_ptr + r)
-        integral, inner, a, phase, x, cos_p, sin_p, sin_x, cos_x, sinc_x, win = _optical_depth(
-            d0, d1, d2, delta, tau_m, clip, kappa, wx, wy, wz, c, w2, b2, one, WINDOW)
+        integral, inner, terms = _optical_depth(r, d0, d1, d2, delta, tau_m, clip, kappa, b2, w_ptr, c_ptr, w2_ptr, one,
+                                                UNITS, WINDOW)
         em1 = _expm1_neg(integral)
         alpha = tl.minimum(-em1, alpha_max)
         hit = _box(r, px, py, bounds_ptr) & (alpha >= alpha_min) & (delta > 0.0) & (local < last) & inside
         if tl.sum(hit.to(tl.int32)) > 0:
-            # compositing (tiles.py): T_i by division, ∂L/∂α_i, the suffix S
-            trans, g_alpha, suffix = _uncomposite(alpha, hit, r, trans, suffix, g_r, g_g, g_b, g_z, color_ptr, depth_ptr,
-                                                  d_color_ptr, d_depth_ptr)
+            # compositing (tiles.py): T_i by division, ∂L/∂α_i, the suffix S, the colour's and depth's terms
+            trans, g_alpha, suffix, g_cr, g_cg, g_cb, g_cz = _uncomposite(alpha, hit, r, trans, suffix, g_r, g_g, g_b,
+                                                                          g_z, color_ptr, depth_ptr)
             # eq. 9: ∂α/∂I = e^(−I) = 1 + expm1(−I), unless the 0.99 clamp is active
             g_i = tl.where(hit & (-em1 <= alpha_max), g_alpha * (em1 + 1.0), 0.0)
-            # step 2 backward (pair_kernels.h: optical_depth_backward / windowed_pixel_backward)
+            # step 2 backward, unit by unit (pair_kernels.h: optical_depth_backward / windowed_pixel_backward):
+            # the pixels' ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂clip and each unit's terms of ∂L/∂c, ∂L/∂W2, ∂L/∂a
+            g_tau = tl.zeros_like(g_i)
+            g_c = ()
+            g_w2 = ()
+            g_a = ()
             if WINDOW:
                 gk = g_i * 1.5 * kappa
-                d3 = (0.25 * delta * delta * delta)[:, None]
-                d2h = (0.5 * delta * delta)[:, None]
-                d3_dl = (0.75 * delta * delta)[:, None]
-                x2 = x * x
-                small = tl.abs(x) < 1.0
-                safe = tl.where(small, 1.0, x)
-                series = -x * (2.0 * one / 15.0 - x2 * (one / 105.0 - x2 * (one / 3780.0 - x2 * (
-                    one / 249480.0 - x2 / 25945920.0))))
-                win_slope = tl.where(small, series, 2.0 * sin_x / (safe * safe) - 3.0 * win / safe)
-                gw = gk[:, None] * w2[None, :]
-                cut = clip[:, None]
-                j1 = 0.5 * x * win
-                f2 = 0.5 * (win + x * win_slope)
-                cut_term = cos_p * sinc_x + sin_p * j1
-                f = cos_p * d3 * win + cut * d2h * cut_term
-                f_phase = -sin_p * d3 * win + cut * d2h * (cos_p * j1 - sin_p * sinc_x)
-                f_x = cos_p * d3 * win_slope + cut * d2h * (sin_p * f2 - cos_p * j1)
-                f_dl = cos_p * d3_dl * win + cut * delta[:, None] * cut_term
-                g_phase = gw * f_phase
-                g_x = gw * f_x
-                g_tau = tl.sum(g_phase * a, axis=1)
-                g_delta = gk * b2 * (0.5 * delta * delta + clip * delta) + tl.sum(gw * f_dl + 0.5 * g_x * a, axis=1)
-                g_clip = tl.where(clip == 0.0, 0.0, gk * b2 * (0.5 * delta * delta) + tl.sum(gw * d2h * cut_term, axis=1))
+                d3 = 0.25 * delta * delta * delta
+                d2h = 0.5 * delta * delta
+                d3_dl = 0.75 * delta * delta
+                g_delta = gk * b2 * (0.5 * delta * delta + clip * delta)
+                g_clip = gk * b2 * (0.5 * delta * delta)
                 g_kappa = g_i * 1.5 * inner
-                g_w2 = tl.sum(gk[:, None] * f, axis=0)
-                g_b2 = tl.sum(gk * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta)))
+                g_b2 = gk * (delta * delta * delta / 6.0 + clip * (0.5 * delta * delta))
             else:
-                small = tl.abs(x) < 1e-2
-                safe = tl.where(small, 1.0, x)
-                slope = tl.where(small, x * (x * x / 30.0 - one / 3.0), (cos_x - sinc_x) / safe)
-                gwd = g_i[:, None] * w2[None, :] * delta[:, None]
-                g_phase = -gwd * sin_p * sinc_x
-                g_x = gwd * cos_p * slope
-                g_tau = tl.sum(g_phase * a, axis=1)
-                g_delta = g_i * b2 + tl.sum(g_i[:, None] * w2[None, :] * cos_p * sinc_x + 0.5 * g_x * a, axis=1)
-                g_clip = tl.zeros_like(g_tau)
-                g_kappa = tl.zeros_like(g_tau)
-                g_w2 = tl.sum(g_i[:, None] * delta[:, None] * cos_p * sinc_x, axis=0)
-                g_b2 = tl.sum(g_i * delta)
-            g_a = g_phase * tau_m[:, None] + 0.5 * g_x * delta[:, None]
-            tl.atomic_add(d_c_ptr + r * N + k, tl.sum(g_phase, axis=0), mask=live_k)
-            tl.atomic_add(d_w2_ptr + r * N + k, g_w2, mask=live_k)
-            tl.atomic_add(d_w_ptr + (r * N + k) * 3, tl.sum(g_a * d0[:, None], axis=0), mask=live_k)
-            tl.atomic_add(d_w_ptr + (r * N + k) * 3 + 1, tl.sum(g_a * d1[:, None], axis=0), mask=live_k)
-            tl.atomic_add(d_w_ptr + (r * N + k) * 3 + 2, tl.sum(g_a * d2[:, None], axis=0), mask=live_k)
-            tl.atomic_add(d_b2_ptr + r, g_b2)
+                g_delta = g_i * b2
+                g_clip = tl.zeros_like(g_i)
+                g_kappa = tl.zeros_like(g_i)
+                g_b2 = g_i * delta
+            for u in tl.static_range(UNITS):
+                w2, a, cos_p, sin_p, x, sin_x, cos_x, sinc_x, win = terms[u]
+                if WINDOW:
+                    x2 = x * x
+                    small = tl.abs(x) < 1.0
+                    safe = tl.where(small, 1.0, x)
+                    series = -x * (2.0 * one / 15.0 - x2 * (one / 105.0 - x2 * (one / 3780.0 - x2 * (
+                        one / 249480.0 - x2 / 25945920.0))))
+                    win_slope = tl.where(small, series, 2.0 * sin_x / (safe * safe) - 3.0 * win / safe)
+                    gw = gk * w2
+                    j1 = 0.5 * x * win
+                    f2 = 0.5 * (win + x * win_slope)
+                    cut_term = cos_p * sinc_x + sin_p * j1
+                    f = cos_p * d3 * win + clip * d2h * cut_term
+                    f_phase = -sin_p * d3 * win + clip * d2h * (cos_p * j1 - sin_p * sinc_x)
+                    f_x = cos_p * d3 * win_slope + clip * d2h * (sin_p * f2 - cos_p * j1)
+                    f_dl = cos_p * d3_dl * win + clip * delta * cut_term
+                    g_phase = gw * f_phase
+                    g_x = gw * f_x
+                    g_delta += gw * f_dl + 0.5 * g_x * a
+                    g_clip += gw * d2h * cut_term
+                    g_w2 = g_w2 + (gk * f,)
+                else:
+                    small = tl.abs(x) < 1e-2
+                    safe = tl.where(small, 1.0, x)
+                    slope = tl.where(small, x * (x * x / 30.0 - one / 3.0), (cos_x - sinc_x) / safe)
+                    gwd = g_i * w2 * delta
+                    g_phase = -gwd * sin_p * sinc_x
+                    g_x = gwd * cos_p * slope
+                    g_delta += g_i * w2 * cos_p * sinc_x + 0.5 * g_x * a
+                    g_w2 = g_w2 + (g_i * delta * cos_p * sinc_x,)
+                g_tau += g_phase * a
+                g_c = g_c + (g_phase,)
+                g_a = g_a + (g_phase * tau_m + 0.5 * g_x * delta,)
+            if WINDOW:
+                g_clip = tl.where(clip == 0.0, 0.0, g_clip)
+            zero = tl.zeros_like(g_i)
+            for u in tl.static_range(UNITS, -(-UNITS // 8) * 8):    # the units' terms padded to groups of 8
+                g_c = g_c + (zero,)
+                g_w2 = g_w2 + (zero,)
+                g_a = g_a + (zero,)
+            g_ax = ()
+            g_ay = ()
+            g_az = ()
+            for u in tl.static_range(len(g_a)):                    # ∂L/∂ω = ∂L/∂a d̂
+                g_ax = g_ax + (g_a[u] * d0,)
+                g_ay = g_ay + (g_a[u] * d1,)
+                g_az = g_az + (g_a[u] * d2,)
+            for first in tl.static_range(0, len(g_a), 8):
+                row = r * UNITS + first + lane
+                _unit_sums(d_c_ptr + row, lane, g_c, first, UNITS)
+                _unit_sums(d_w2_ptr + row, lane, g_w2, first, UNITS)
+                _unit_sums(d_w_ptr + 3 * row, lane, g_ax, first, UNITS)
+                _unit_sums(d_w_ptr + 3 * row + 1, lane, g_ay, first, UNITS)
+                _unit_sums(d_w_ptr + 3 * row + 2, lane, g_az, first, UNITS)
             # step 1 backward (pair_kernels.h: chords_backward)
             inv2 = inv_smax * inv_smax
             g_inv = g_delta * (l_out - l_in) + g_tau * 0.5 * (l_in + l_out)
@@ -290,16 +326,13 @@ def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr,
             g_e0 = tl.where(hit, l_mid * g_p0 - g_mid * o0 + 2.0 * g_big_a * e0, 0.0)
             g_e1 = tl.where(hit, l_mid * g_p1 - g_mid * o1 + 2.0 * g_big_a * e1, 0.0)
             g_e2 = tl.where(hit, l_mid * g_p2 - g_mid * o2 + 2.0 * g_big_a * e2, 0.0)
-            tl.atomic_add(d_inv_smax_ptr + r, tl.sum(tl.where(hit, g_inv, 0.0)))
-            tl.atomic_add(d_m_ptr + 9 * r, tl.sum(g_e0 * d0))
-            tl.atomic_add(d_m_ptr + 9 * r + 1, tl.sum(g_e0 * d1))
-            tl.atomic_add(d_m_ptr + 9 * r + 2, tl.sum(g_e0 * d2))
-            tl.atomic_add(d_m_ptr + 9 * r + 3, tl.sum(g_e1 * d0))
-            tl.atomic_add(d_m_ptr + 9 * r + 4, tl.sum(g_e1 * d1))
-            tl.atomic_add(d_m_ptr + 9 * r + 5, tl.sum(g_e1 * d2))
-            tl.atomic_add(d_m_ptr + 9 * r + 6, tl.sum(g_e2 * d0))
-            tl.atomic_add(d_m_ptr + 9 * r + 7, tl.sum(g_e2 * d1))
-            tl.atomic_add(d_m_ptr + 9 * r + 8, tl.sum(g_e2 * d2))
-            tl.atomic_add(d_o_ptr + 3 * r, tl.sum(tl.where(hit, g_p0 - g_mid * e0, 0.0)))
-            tl.atomic_add(d_o_ptr + 3 * r + 1, tl.sum(tl.where(hit, g_p1 - g_mid * e1, 0.0)))
-            tl.atomic_add(d_o_ptr + 3 * r + 2, tl.sum(tl.where(hit, g_p2 - g_mid * e2, 0.0)))
+            # the primitive's 18 gradients in three sums of eight: colour, depth, b2, 1/max s, o′; M (d_m = g_e d̂ᵀ)
+            _add_sums(_pick(lane, d_color_ptr + 3 * r, d_color_ptr + 3 * r + 1, d_color_ptr + 3 * r + 2, d_depth_ptr + r,
+                            d_b2_ptr + r, d_inv_smax_ptr + r, d_o_ptr + 3 * r, d_o_ptr + 3 * r + 1),
+                      lane < 8, g_cr, g_cg, g_cb, g_cz, g_b2, tl.where(hit, g_inv, 0.0),
+                      tl.where(hit, g_p0 - g_mid * e0, 0.0), tl.where(hit, g_p1 - g_mid * e1, 0.0))
+            _add_sums(_pick(lane, d_o_ptr + 3 * r + 2, d_m_ptr + 9 * r, d_m_ptr + 9 * r + 1, d_m_ptr + 9 * r + 2,
+                            d_m_ptr + 9 * r + 3, d_m_ptr + 9 * r + 4, d_m_ptr + 9 * r + 5, d_m_ptr + 9 * r + 6),
+                      lane < 8, tl.where(hit, g_p2 - g_mid * e2, 0.0), g_e0 * d0, g_e0 * d1, g_e0 * d2, g_e1 * d0,
+                      g_e1 * d1, g_e1 * d2, g_e2 * d0)
+            _add_sums(d_m_ptr + 9 * r + 7 + lane, lane < 2, g_e2 * d1, g_e2 * d2, zero, zero, zero, zero, zero, zero)

@@ -12,7 +12,7 @@ import functools
 import torch
 
 from radfield.core.backends.gpu.binning import bin_tiles
-from radfield.core.backends.gpu.launch import COMPILE_OPTIONS, TILE, launching, padded
+from radfield.core.backends.gpu.launch import COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, TILE, launching
 from radfield.core.backends.gpu.preparation import gaussian_prep, neural_bounds, neural_prep
 from radfield.util.transfer import to_device
 
@@ -117,7 +117,7 @@ class _NeuralView(torch.autograd.Function):
         acc_color, acc_depth, trans, last, counts = outputs
         with launching():
             K.neural_forward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, acc_color, acc_depth, trans,
-                                       last, counts, height, width, tiles_x, units, SIDE=TILE, NP=padded(units),
+                                       last, counts, height, width, tiles_x, SIDE=TILE, UNITS=units,
                                        WINDOW=bool(window), **COMPILE_OPTIONS)
         ctx.sizes = (height, width, tiles_x, tiles, units, bool(window))
         ctx.save_for_backward(offsets, entries, bounds, intrinsics, *inputs, consts, trans, last)
@@ -135,8 +135,8 @@ class _NeuralView(torch.autograd.Function):
         grads = [torch.zeros_like(t) for t in inputs]   # m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth
         with launching():
             K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
-                                        *grads, height, width, tiles_x, units, SIDE=TILE, NP=padded(units),
-                                        WINDOW=window, **COMPILE_OPTIONS)
+                                        *grads, height, width, tiles_x, SIDE=TILE, UNITS=units, WINDOW=window,
+                                        **NEURAL_BACKWARD_OPTIONS[window])
         return None, None, None, None, None, None, None, None, *grads
 
 
