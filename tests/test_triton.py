@@ -272,6 +272,33 @@ def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", [(2, 13, 21, 3), (1, 4, 6, 3)])
+def test_photometric_loss_matches_the_torch_twin(shape, dtype):
+    """Op "photometric" on Triton ((1 − λ) L1 + λ D-SSIM in two launches) against the twin
+    (losses._photometric): the value and the image gradient, for two images of odd sizes and for
+    one smaller than the 11×11 window (every window crosses the zero padding), with pixels where
+    the images tie (L1's gradient 0) and an upstream gradient other than 1."""
+    from radfield.core.train import losses
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(shape, generator=g, dtype=dtype).to(DEVICE)
+    y = torch.rand(shape, generator=g, dtype=dtype).to(DEVICE)
+    y[0, 1, 2:4] = x[0, 1, 2:4]
+    results = []
+    for backend in (backends.TRITON, backends.TORCH):
+        img = x.clone().requires_grad_(True)
+        with backends.using(backend):
+            assert (backends.kernel("photometric", DEVICE, dtype) is not None) == (backend == backends.TRITON)
+            value = losses.photometric(img, y, 0.3)
+        (2.5 * value).backward()
+        results.append((value.detach(), img.grad))
+    (fast, g_fast), (slow, g_slow) = results
+    torch.testing.assert_close(fast, slow, **TOL[dtype])
+    assert g_slow.abs().max() > 0 and (g_slow[0, 1, 2:4].abs() < g_slow.abs().max()).all()
+    torch.testing.assert_close(g_fast / g_slow.abs().max(), g_slow / g_slow.abs().max(), **TOL[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_sh_colour_matches_the_torch_twin(degree, dtype):
     """Op "sh_color" on Triton (prepare_kernels.py) against sh_to_color(sh, normalize(v)): the colours
@@ -364,13 +391,14 @@ from triton import knobs
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
 from radfield.core.backends.gpu import (COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, PREPARE_OPTIONS, binning_kernels,
-                                       gaussian_kernels, neural_kernels, prepare_kernels, statistics_kernels)
+                                       gaussian_kernels, loss_kernels, neural_kernels, prepare_kernels,
+                                       statistics_kernels)
 
 knobs.nvidia.dump_ptxas_log = True   # ptxas -v's lines, on stdout
 
 def compile_for_sm90(fn, options=COMPILE_OPTIONS, floats="*fp32", **constexprs):
     names = list(inspect.signature(fn.fn).parameters)
-    ints = {"height", "width", "tiles_x", "N", "P", "K"}
+    ints = {"height", "width", "tiles_x", "N", "P", "K", "total", "channels"}
     ints32 = {"offsets_ptr", "entries_ptr", "bounds_ptr", "last_ptr", "counts_ptr"}
     ints64 = {"order_ptr", "place_ptr", "touched_ptr", "ends_ptr", "keys_ptr"}   # the binning's
     signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32
@@ -404,6 +432,9 @@ for floats in ("*fp32", "*fp64"):   # (float64: the tests' dtype, which takes ot
     for kernel in (prepare_kernels.gaussian_prep_forward, prepare_kernels.gaussian_prep_backward,
                    prepare_kernels.neural_bounds):
         compile_for_sm90(kernel, PREPARE_OPTIONS, floats, BLOCK=prepare_kernels.BLOCK)
+    for kernel in (loss_kernels.ssim_rows, loss_kernels.ssim_columns, loss_kernels.adjoint_rows,
+                   loss_kernels.adjoint_columns):
+        compile_for_sm90(kernel, PREPARE_OPTIONS, floats, BLOCK=loss_kernels.BLOCK)
 # a float literal held in a plain local is made a float32 scalar: a float64 kernel's SH constants
 # must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/render/sh.py, 64-bit hex)
 ptx = ptx["sh_color_backward", "*fp64"]
@@ -423,7 +454,7 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 25, done.stdout
+    assert len(kernels) == 33, done.stdout
     assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)
