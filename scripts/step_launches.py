@@ -5,7 +5,9 @@ population-control statistics gathered every step (never refined); ops counted b
 (the backward's too), without those that launch nothing (views, detaches, allocations) and the
 interpreter's own copies of the kernels' arguments, as tests/test_triton.py counts a view's.
 Steps 4 and 5 are the steady state (3 and 6 also read the step records). Each kind twice: with
-the loss's Triton op ("photometric", core/backends/gpu/loss.py) and with its torch twin.
+the Triton ops of the loss ("photometric", core/backends/gpu/loss.py) and of the non-negative
+density projection ("project_nonnegative_", gpu/positivity.py; neural only), and with their
+torch twins.
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/step_launches.py"""
 
@@ -77,18 +79,18 @@ def main() -> None:
                    c2w=look_at((3 * math.cos(i), 3 * math.sin(i), 0.5), (0, 0, 0))) for i in range(3)]
     with torch.no_grad():
         images = torch.stack([render(random_neural(30, seed=1), c).color.clamp(0, 1) for c in cams])
-    loss_op = backends._OPS["photometric"]
+    ops = ("photometric", "project_nonnegative_")
     print("torch ops a training step (steps 4, 5), Triton path")
     for kind in ("neural", "gaussian"):
-        for with_op in (True, False):
-            saved = None if with_op else loss_op.pop(backends.TRITON)
+        for with_ops in (True, False):
+            saved = {} if with_ops else {op: backends._OPS[op].pop(backends.TRITON) for op in ops}
             try:
                 per_step = count(kind, cams, images)
             finally:
-                if saved is not None:
-                    loss_op[backends.TRITON] = saved
-            label = "loss on Triton" if with_op else "loss on the torch twin"
-            print(f"  {kind:8s} {label:24s} {per_step[4]:4d} {per_step[5]:4d}")
+                for op, fn in saved.items():
+                    backends.implement(op, backends.TRITON, fn)
+            label = "loss, projection on Triton" if with_ops else "on their torch twins"
+            print(f"  {kind:8s} {label:28s} {per_step[4]:4d} {per_step[5]:4d}")
 
 
 if __name__ == "__main__":

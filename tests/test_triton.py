@@ -299,6 +299,35 @@ def test_photometric_loss_matches_the_torch_twin(shape, dtype):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_nonnegative_projection_matches_the_torch_twin(dtype):
+    """Op "project_nonnegative_" on Triton (one lane per primitive) against the twin
+    (core/train/positivity.py: project_nonnegative): rows inside the cone, ties, the polar cone,
+    zeros, widths 1-16; only the masked rows change, and they land in the cone."""
+    from radfield.core.train.positivity import project_nonnegative
+
+    g = torch.Generator().manual_seed(5)
+    for width in (1, 3, 8, 16):
+        w2 = (torch.randn(300, width, generator=g) * 0.4).to(dtype)
+        b2 = (torch.randn(300, generator=g) * 0.3).to(dtype)
+        w2[:20] = 0.25                                # ties
+        b2[20:40] = w2[20:40].abs().sum(-1) + 0.1     # inside the cone
+        b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1   # the polar cone
+        w2[60:70], b2[60:70] = 0.0, 0.0
+        mask = torch.rand(300, generator=g) < 0.8
+        expect_w2, expect_b2 = project_nonnegative(w2, b2)
+        fast_w2, fast_b2 = w2.clone().to(DEVICE), b2.clone().to(DEVICE)
+        with backends.using(backends.TRITON):
+            backends.kernel("project_nonnegative_", DEVICE, dtype)(fast_w2, fast_b2, mask.to(DEVICE))
+        fast_w2, fast_b2 = fast_w2.cpu(), fast_b2.cpu()
+        tol = dict(rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+        torch.testing.assert_close(fast_w2[mask], expect_w2[mask], **tol)
+        torch.testing.assert_close(fast_b2[mask], expect_b2[mask], **tol)
+        assert torch.equal(fast_w2[~mask], w2[~mask]) and torch.equal(fast_b2[~mask], b2[~mask])
+        assert bool((fast_w2[mask].abs().sum(-1) <= fast_b2[mask] + 1e-5).all())
+        assert not torch.equal(fast_w2[mask], w2[mask]) and (fast_b2[40:60][mask[40:60]] == 0).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_sh_colour_matches_the_torch_twin(degree, dtype):
     """Op "sh_color" on Triton (prepare_kernels.py) against sh_to_color(sh, normalize(v)): the colours
@@ -391,18 +420,18 @@ from triton import knobs
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
 from radfield.core.backends.gpu import (COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, PREPARE_OPTIONS, binning_kernels,
-                                       gaussian_kernels, loss_kernels, neural_kernels, prepare_kernels,
-                                       statistics_kernels)
+                                       gaussian_kernels, loss_kernels, neural_kernels, positivity_kernels,
+                                       prepare_kernels, statistics_kernels)
 
 knobs.nvidia.dump_ptxas_log = True   # ptxas -v's lines, on stdout
 
 def compile_for_sm90(fn, options=COMPILE_OPTIONS, floats="*fp32", **constexprs):
     names = list(inspect.signature(fn.fn).parameters)
-    ints = {"height", "width", "tiles_x", "N", "P", "K", "total", "channels"}
+    ints = {"height", "width", "tiles_x", "N", "P", "K", "total", "channels", "count"}
     ints32 = {"offsets_ptr", "entries_ptr", "bounds_ptr", "last_ptr", "counts_ptr"}
     ints64 = {"order_ptr", "place_ptr", "touched_ptr", "ends_ptr", "keys_ptr"}   # the binning's
     signature = {n: "constexpr" if n in constexprs else "i32" if n in ints else "*i32" if n in ints32
-                 else "*i64" if n in ints64 else "*i8" if n == "visible_ptr" else floats for n in names}
+                 else "*i64" if n in ints64 else "*i8" if n in ("visible_ptr", "mask_ptr") else floats for n in names}
     source = ASTSource(fn, signature, constexprs={(names.index(k),): v for k, v in constexprs.items()})
     print("kernel", fn.fn.__name__, floats, sorted(constexprs.items()), flush=True)
     kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options=options)
@@ -435,6 +464,8 @@ for floats in ("*fp32", "*fp64"):   # (float64: the tests' dtype, which takes ot
     for kernel in (loss_kernels.ssim_rows, loss_kernels.ssim_columns, loss_kernels.adjoint_rows,
                    loss_kernels.adjoint_columns):
         compile_for_sm90(kernel, PREPARE_OPTIONS, floats, BLOCK=loss_kernels.BLOCK)
+    compile_for_sm90(positivity_kernels.project_nonnegative, PREPARE_OPTIONS, floats, UNITS=8,
+                     BLOCK=positivity_kernels.BLOCK)
 # a float literal held in a plain local is made a float32 scalar: a float64 kernel's SH constants
 # must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/render/sh.py, 64-bit hex)
 ptx = ptx["sh_color_backward", "*fp64"]
@@ -454,7 +485,7 @@ def test_the_kernels_compile_for_a_gpu_without_one(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     # per kernel: its name, then ptxas's lines ("Used N registers", "B bytes spill stores, B bytes spill loads")
     kernels = done.stdout.split("kernel ")[1:]
-    assert len(kernels) == 33, done.stdout
+    assert len(kernels) == 35, done.stdout
     assert "float64 constants: True" in done.stdout, done.stdout
     for log in kernels:
         spills = re.findall(r"(\d+) bytes spill stores, (\d+) bytes spill loads", log)

@@ -179,6 +179,6 @@ del _op
 from radfield.core.backends import gpu  # noqa: E402
 
 register(Backend(TRITON, gpu.runs, gpu.why_not))
-for _op in ("sh_color", "neural_accumulate", "gaussian_accumulate", "photometric"):
+for _op in ("sh_color", "neural_accumulate", "gaussian_accumulate", "photometric", "project_nonnegative_"):
     implement(_op, TRITON, getattr(gpu, _op))
 del _op

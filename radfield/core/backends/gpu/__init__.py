@@ -6,11 +6,12 @@
         the counters (4,), the visible count (0-dim))
     sh_color(sh, v, degree) (preparation.py)                      op "sh_color" (core/render/rasterize.py)
     photometric(x, y, taps, λ, C1, C2) (loss.py)                   op "photometric" (core/train/losses.py)
+    project_nonnegative_(w2, b2, mask) (positivity.py)           op "project_nonnegative_" (core/train/positivity.py)
     neural_accumulate, gaussian_accumulate (statistics.py)       the statistics ops (core/train/strategy.py)
     bin_tiles(bounds, visible, order, height, width) (binning.py) the per-tile depth-ordered lists
 The kernels themselves: prepare_kernels.py, binning_kernels.py, gaussian_kernels.py and
-neural_kernels.py (the tile walk they share in tiles.py), statistics_kernels.py, loss_kernels.py;
-what their launchers share: launch.py.
+neural_kernels.py (the tile walk they share in tiles.py), statistics_kernels.py, loss_kernels.py,
+positivity_kernels.py; what their launchers share: launch.py.
 
 Why Triton: its JIT compiles the kernels on a user's first GPU run with no nvcc and nothing to
 download (the wheel ships its compiler), and `TRITON_INTERPRET=1` runs the very same kernels on
@@ -39,7 +40,8 @@ The design is gsplat's/3DGS's. Per view:
 The population-control statistics come out of autograd as on every path: the means' gradient
 (Gaussians) and the MLP's gradients (neural) are what the strategies read (core/train/strategy.py),
 one more launch a view (statistics.py around statistics_kernels.py). The step's image loss,
-(1 − λ) L1 + λ D-SSIM, is two more (loss.py around loss_kernels.py), forward and backward.
+(1 − λ) L1 + λ D-SSIM, is four more (loss.py around loss_kernels.py, two each way); the
+neural kind's non-negative density projection after Adam one (positivity.py).
 
 Where it runs: CUDA tensors (float32, float64) when triton is installed and a GPU is present; CPU
 tensors only with the interpreter on (TRITON_INTERPRET=1 before triton is imported) AND the backend
@@ -58,6 +60,7 @@ from radfield.core.backends.gpu.binning import bin_tiles, pair_count
 from radfield.core.backends.gpu.launch import (COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, PREPARE_OPTIONS, TILE,
                                                interpreting)
 from radfield.core.backends.gpu.loss import photometric
+from radfield.core.backends.gpu.positivity import project_nonnegative_
 from radfield.core.backends.gpu.preparation import neural_bounds, sh_color
 from radfield.core.backends.gpu.statistics import gaussian_accumulate, neural_accumulate
 from radfield.core.backends.gpu.views import gaussian_view, neural_view
@@ -65,7 +68,7 @@ from radfield.core.backends.gpu.views import gaussian_view, neural_view
 NAME = "triton"
 __all__ = ["NAME", "TILE", "COMPILE_OPTIONS", "NEURAL_BACKWARD_OPTIONS", "PREPARE_OPTIONS", "runs", "why_not",
            "interpreting", "bin_tiles", "pair_count", "gaussian_view", "neural_view", "sh_color", "neural_bounds",
-           "neural_accumulate", "gaussian_accumulate", "photometric"]
+           "neural_accumulate", "gaussian_accumulate", "photometric", "project_nonnegative_"]
 
 
 @functools.cache
