@@ -186,6 +186,37 @@ def test_an_empty_view_renders_the_background():
     assert all(torch.count_nonzero(g) == 0 for g in grads.values())
 
 
+@pytest.mark.parametrize("scene", ["hard_scene", "neural"])
+def test_the_forward_writes_every_output_it_allocates(scene, monkeypatch, render_scene):
+    """The forward's outputs are allocated, not filled (gpu/views.py: _outputs): with them filled
+    by garbage first (NaN, −7) the render, its counts and its gradients are still the twin's, the
+    empty view (every tile's list empty) still the background."""
+    from radfield.core.backends.gpu import views
+
+    allocate = views._outputs
+
+    def garbage(*args):
+        outputs = allocate(*args)
+        for t in outputs:
+            t.fill_(float("nan") if t.is_floating_point() else -7)
+        return outputs
+
+    monkeypatch.setattr(views, "_outputs", garbage)
+    prims, cam = scene_of(scene, torch.float64, render_scene)
+    fast, grads_fast = render_with_grads(prims, cam, backends.TRITON)
+    slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
+    fast.meta.pop("pairs"), slow.meta.pop("pairs")
+    assert fast.meta == slow.meta
+    for name in ("color", "alpha", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **TOL[torch.float64])
+    for name, gs in grads_slow.items():
+        torch.testing.assert_close(grads_fast[name], gs, **TOL[torch.float64])
+    prims.means = prims.means + 10.0 * (torch.as_tensor(cam.center, dtype=prims.means.dtype, device=DEVICE)
+                                        - prims.means.mean(0))   # all far behind the eye
+    out, _ = render_with_grads(prims, cam, backends.TRITON)
+    assert out.meta["visible"] == 0 and bool(torch.isfinite(out.color).all()) and bool((out.alpha == 0).all())
+
+
 @pytest.mark.parametrize("kind", ["neural", "gaussian", "neural-dynamic", "gaussian-relight"])
 def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     """trainer.train on the Triton path (the code a GPU runs: the kernels, the per-view preparation
@@ -236,7 +267,7 @@ def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
     counted by a dispatch mode below autograd, so the backward's too; the ops that launch nothing,
     views and detaches, left out, and the interpreter's own copies of the kernels' arguments) are
     the same for 50 and for 400 primitives: nothing is done per primitive or per pair on the host.
-    And they are few: 66 for neural primitives and 63 for Gaussians when this was written (611 and
+    And they are few: 53 for neural primitives and 54 for Gaussians when this was written (611 and
     628 with the preparation and the binning in torch), besides the 8-9 Triton launches. (The torch twin's ops
     grow with the pairs: one set a chunk.)"""
     import sys

@@ -23,10 +23,19 @@ def _sizes(height: int, width: int) -> tuple[int, int]:
 
 def _outputs(like: torch.Tensor, height: int, width: int, tiles: int):
     """Σ w c, Σ w z, T, last (the list position after each pixel's last composited pair) and the
-    per-tile counts (evaluated, composited, terminated)."""
-    return (like.new_zeros(height, width, 3), like.new_zeros(height, width), like.new_ones(height, width),
-            torch.zeros(height, width, dtype=torch.int32, device=like.device),
-            torch.zeros(tiles, 3, dtype=torch.int32, device=like.device))
+    per-tile counts (evaluated, composited, terminated): allocated, not filled, since the forward
+    writes every pixel of every tile (tiles.py: _store_tile), an empty list's too."""
+    return (like.new_empty(height, width, 3), like.new_empty(height, width), like.new_empty(height, width),
+            torch.empty(height, width, dtype=torch.int32, device=like.device),
+            torch.empty(tiles, 3, dtype=torch.int32, device=like.device))
+
+
+def _zero_grads(inputs: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Zeroed gradients shaped as the inputs (one dtype), for the backward's atomic adds: views of
+    one buffer, so one fill launches where one a tensor would."""
+    sizes = [t.numel() for t in inputs]
+    flat = inputs[0].new_zeros(sum(sizes))
+    return [chunk.view(t.shape) for chunk, t in zip(flat.split(sizes), inputs)]
 
 
 def _counters(counts: torch.Tensor, bounds: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
@@ -94,7 +103,7 @@ class _GaussianView(torch.autograd.Function):
         offsets, entries, bounds, *inputs, consts, trans, last = ctx.saved_tensors
         height, width, tiles_x, tiles = ctx.sizes
         upstream = _upstream(inputs[0], height, width, g_color, g_depth, g_trans)
-        grads = [torch.zeros_like(t) for t in inputs]   # mean2d, conic, opacity, colors, depth
+        grads = _zero_grads(inputs)   # mean2d, conic, opacity, colors, depth
         with launching():
             K.gaussian_backward[(tiles,)](offsets, entries, bounds, *inputs, consts, trans, last, *upstream, *grads,
                                           height, width, tiles_x, SIDE=TILE, **COMPILE_OPTIONS)
@@ -132,7 +141,7 @@ class _NeuralView(torch.autograd.Function):
         offsets, entries, bounds, intrinsics, *inputs, consts, trans, last = ctx.saved_tensors
         height, width, tiles_x, tiles, units, window = ctx.sizes
         upstream = _upstream(inputs[0], height, width, g_color, g_depth, g_trans)
-        grads = [torch.zeros_like(t) for t in inputs]   # m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth
+        grads = _zero_grads(inputs)   # m_cam, o_ell, w_cam, c, w2, b2, inv_smax, colors, depth
         with launching():
             K.neural_backward[(tiles,)](offsets, entries, bounds, intrinsics, *inputs, consts, trans, last, *upstream,
                                         *grads, height, width, tiles_x, SIDE=TILE, UNITS=units, WINDOW=window,
