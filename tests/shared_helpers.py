@@ -86,3 +86,18 @@ def refine_everything(prims, kind: str, densify: dict) -> tuple[dict, dict, dict
     report = strategy.refine(acc, params, optimizer, densify["every"], torch.Generator().manual_seed(0))
     assert report["cloned"] + report["split"] > 0 and len(params["means"]) > len(prims)
     return params, before, report
+
+
+# --- the non-negative density projection ---------------------------------------------------------
+
+def projection_rows(width: int, dtype, generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(W2 (300, width), b2 (300,), mask (300,)) for the projection's kernels against the twin: ties
+    (rows 0-19), rows inside the cone (20-39), the polar cone (40-59), zeros (60-69), random rest;
+    the mask sets about 80 % of the rows."""
+    w2 = (torch.randn(300, width, generator=generator) * 0.4).to(dtype)
+    b2 = (torch.randn(300, generator=generator) * 0.3).to(dtype)
+    w2[:20] = 0.25                                # ties
+    b2[20:40] = w2[20:40].abs().sum(-1) + 0.1     # inside the cone
+    b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1   # the polar cone
+    w2[60:70], b2[60:70] = 0.0, 0.0
+    return w2, b2, torch.rand(300, generator=generator) < 0.8

@@ -19,6 +19,7 @@ from radfield.core.train.strategy import in_frustum
 from radfield.core.train.trainer import train
 from radfield.pipeline.config import load_defaults
 from radfield.stages.init import check_config
+from shared_helpers import projection_rows
 
 BG = (1.0, 1.0, 1.0)
 
@@ -201,13 +202,7 @@ def test_fused_projection_matches_the_torch_twin(dtype):
     cone, zeros, widths 1-16; only the masked rows change."""
     g = torch.Generator().manual_seed(5)
     for width in (1, 3, 8, 16):
-        w2 = (torch.randn(300, width, generator=g) * 0.4).to(dtype)
-        b2 = (torch.randn(300, generator=g) * 0.3).to(dtype)
-        w2[:20] = 0.25                                # ties
-        b2[20:40] = w2[20:40].abs().sum(-1) + 0.1     # inside the cone
-        b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1   # the polar cone
-        w2[60:70], b2[60:70] = 0.0, 0.0
-        mask = torch.rand(300, generator=g) < 0.8
+        w2, b2, mask = projection_rows(width, dtype, g)
         expect_w2, expect_b2 = project_nonnegative(w2, b2)
         fused_w2, fused_b2 = w2.clone(), b2.clone()
         fused.project_nonnegative_(fused_w2, fused_b2, mask)

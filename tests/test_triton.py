@@ -27,6 +27,7 @@ from radfield.core.geometry.cameras import Camera, look_at  # noqa: E402
 from radfield.core.kinds import random_gaussians, random_neural   # noqa: E402
 from radfield.core.render.rasterize import render           # noqa: E402
 from radfield.core.train.strategy import make_strategy      # noqa: E402
+from shared_helpers import projection_rows                  # noqa: E402
 
 IN_CI = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")   # conftest.in_ci()
 INSTALLED = importlib.util.find_spec("triton") is not None
@@ -338,13 +339,7 @@ def test_nonnegative_projection_matches_the_torch_twin(dtype):
 
     g = torch.Generator().manual_seed(5)
     for width in (1, 3, 8, 16):
-        w2 = (torch.randn(300, width, generator=g) * 0.4).to(dtype)
-        b2 = (torch.randn(300, generator=g) * 0.3).to(dtype)
-        w2[:20] = 0.25                                # ties
-        b2[20:40] = w2[20:40].abs().sum(-1) + 0.1     # inside the cone
-        b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1   # the polar cone
-        w2[60:70], b2[60:70] = 0.0, 0.0
-        mask = torch.rand(300, generator=g) < 0.8
+        w2, b2, mask = projection_rows(width, dtype, g)
         expect_w2, expect_b2 = project_nonnegative(w2, b2)
         fast_w2, fast_b2 = w2.clone().to(DEVICE), b2.clone().to(DEVICE)
         with backends.using(backends.TRITON):

@@ -116,16 +116,24 @@ def ssim_columns(x_ptr, y_ptr, taps_ptr, consts_ptr, rows_ptr, abk_ptr, sums_ptr
 
 
 @triton.jit
-def adjoint_rows(taps_ptr, abk_ptr, rows_ptr, total, height, width, channels, BLOCK: tl.constexpr):
-    e, live, b, i, j, c = _elements(tl.program_id(0), total, height, width, channels, BLOCK)
-    sa = tl.zeros([BLOCK], abk_ptr.dtype.element_ty)
+def _sums_of_three(maps_ptr, taps_ptr, b, i, j, c, live, total, height, width, channels, BLOCK: tl.constexpr,
+                   ALONG_ROW: tl.constexpr):
+    """The window's pass along the row or the column over three maps (maps[0:n], [n:2n], [2n:3n])."""
+    sa = tl.zeros([BLOCK], maps_ptr.dtype.element_ty)
     sb = tl.zeros_like(sa)
     sk = tl.zeros_like(sa)
     for k in range(0, TAPS):
-        w, p, inside = _tap(taps_ptr, k, b, i, j, c, live, height, width, channels, True)
-        sa += w * tl.load(abk_ptr + p, mask=inside, other=0.0)
-        sb += w * tl.load(abk_ptr + total + p, mask=inside, other=0.0)
-        sk += w * tl.load(abk_ptr + 2 * total + p, mask=inside, other=0.0)
+        w, p, inside = _tap(taps_ptr, k, b, i, j, c, live, height, width, channels, ALONG_ROW)
+        sa += w * tl.load(maps_ptr + p, mask=inside, other=0.0)
+        sb += w * tl.load(maps_ptr + total + p, mask=inside, other=0.0)
+        sk += w * tl.load(maps_ptr + 2 * total + p, mask=inside, other=0.0)
+    return sa, sb, sk
+
+
+@triton.jit
+def adjoint_rows(taps_ptr, abk_ptr, rows_ptr, total, height, width, channels, BLOCK: tl.constexpr):
+    e, live, b, i, j, c = _elements(tl.program_id(0), total, height, width, channels, BLOCK)
+    sa, sb, sk = _sums_of_three(abk_ptr, taps_ptr, b, i, j, c, live, total, height, width, channels, BLOCK, True)
     tl.store(rows_ptr + e, sa, mask=live)
     tl.store(rows_ptr + total + e, sb, mask=live)
     tl.store(rows_ptr + 2 * total + e, sk, mask=live)
@@ -135,14 +143,7 @@ def adjoint_rows(taps_ptr, abk_ptr, rows_ptr, total, height, width, channels, BL
 def adjoint_columns(x_ptr, y_ptr, taps_ptr, consts_ptr, rows_ptr, g_ptr, out_ptr, total, height, width, channels,
                     BLOCK: tl.constexpr):
     e, live, b, i, j, c = _elements(tl.program_id(0), total, height, width, channels, BLOCK)
-    sa = tl.zeros([BLOCK], x_ptr.dtype.element_ty)
-    sb = tl.zeros_like(sa)
-    sk = tl.zeros_like(sa)
-    for k in range(0, TAPS):
-        w, p, inside = _tap(taps_ptr, k, b, i, j, c, live, height, width, channels, False)
-        sa += w * tl.load(rows_ptr + p, mask=inside, other=0.0)
-        sb += w * tl.load(rows_ptr + total + p, mask=inside, other=0.0)
-        sk += w * tl.load(rows_ptr + 2 * total + p, mask=inside, other=0.0)
+    sa, sb, sk = _sums_of_three(rows_ptr, taps_ptr, b, i, j, c, live, total, height, width, channels, BLOCK, False)
     x = tl.load(x_ptr + e, mask=live, other=0.0)
     y = tl.load(y_ptr + e, mask=live, other=0.0)
     d = x - y
