@@ -130,8 +130,9 @@ def gaussian_backward(offsets_ptr, entries_ptr, bounds_ptr, mean_ptr, conic_ptr,
             cc = tl.load(conic_ptr + 3 * r + 2)
             # the splat's ten gradients in two sums of eight: colour, depth, opacity, conic; the 2D mean
             # (power's derivative by it, dx = u − μx)
-            _add_sums(_pick(lane, d_color_ptr + 3 * r, d_color_ptr + 3 * r + 1, d_color_ptr + 3 * r + 2, d_depth_ptr + r,
-                            d_opacity_ptr + r, d_conic_ptr + 3 * r, d_conic_ptr + 3 * r + 1, d_conic_ptr + 3 * r + 2),
+            _add_sums(_pick(lane, d_color_ptr + 3 * r, d_color_ptr + 3 * r + 1, d_color_ptr + 3 * r + 2,
+                            d_depth_ptr + r, d_opacity_ptr + r, d_conic_ptr + 3 * r, d_conic_ptr + 3 * r + 1,
+                            d_conic_ptr + 3 * r + 2),
                       lane < 8, g_cr, g_cg, g_cb, g_cz, g_raw * tl.exp(tl.minimum(power, 0.0)),
                       g_power * (-0.5 * dx * dx), g_power * (-dx * dy), g_power * (-0.5 * dy * dy))
             zero = tl.zeros_like(g_power)

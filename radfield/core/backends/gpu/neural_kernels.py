@@ -174,8 +174,8 @@ def neural_forward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr, 
             live = _box(r, px, py, bounds_ptr) & (done == 0)
             (e0, e1, e2, o0, o1, o2, inv_smax, big_a, l_mid, p0, p1, p2, half, l_in_raw, l_in, l_out, delta, tau_m,
              clip, kappa) = _chord(r, d0, d1, d2, l_near, m_ptr, o_ptr, inv_smax_ptr)
-            integral, inner, terms = _optical_depth(r, d0, d1, d2, delta, tau_m, clip, kappa, tl.load(b2_ptr + r), w_ptr,
-                                                    c_ptr, w2_ptr, one, UNITS, WINDOW)
+            integral, inner, terms = _optical_depth(r, d0, d1, d2, delta, tau_m, clip, kappa, tl.load(b2_ptr + r),
+                                                    w_ptr, c_ptr, w2_ptr, one, UNITS, WINDOW)
             alpha = tl.minimum(-_expm1_neg(integral), alpha_max)          # eq. 9 with the 3DGS clamp
             hit = live & (alpha >= alpha_min) & (delta > 0.0)
             (trans, done, last, acc_r, acc_g, acc_b, acc_z, n_pairs, n_composited, n_terminated) = _composite(
@@ -327,8 +327,8 @@ def neural_backward(offsets_ptr, entries_ptr, bounds_ptr, intrinsics_ptr, m_ptr,
             g_e1 = tl.where(hit, l_mid * g_p1 - g_mid * o1 + 2.0 * g_big_a * e1, 0.0)
             g_e2 = tl.where(hit, l_mid * g_p2 - g_mid * o2 + 2.0 * g_big_a * e2, 0.0)
             # the primitive's 18 gradients in three sums of eight: colour, depth, b2, 1/max s, o′; M (d_m = g_e d̂ᵀ)
-            _add_sums(_pick(lane, d_color_ptr + 3 * r, d_color_ptr + 3 * r + 1, d_color_ptr + 3 * r + 2, d_depth_ptr + r,
-                            d_b2_ptr + r, d_inv_smax_ptr + r, d_o_ptr + 3 * r, d_o_ptr + 3 * r + 1),
+            _add_sums(_pick(lane, d_color_ptr + 3 * r, d_color_ptr + 3 * r + 1, d_color_ptr + 3 * r + 2,
+                            d_depth_ptr + r, d_b2_ptr + r, d_inv_smax_ptr + r, d_o_ptr + 3 * r, d_o_ptr + 3 * r + 1),
                       lane < 8, g_cr, g_cg, g_cb, g_cz, g_b2, tl.where(hit, g_inv, 0.0),
                       tl.where(hit, g_p0 - g_mid * e0, 0.0), tl.where(hit, g_p1 - g_mid * e1, 0.0))
             _add_sums(_pick(lane, d_o_ptr + 3 * r + 2, d_m_ptr + 9 * r, d_m_ptr + 9 * r + 1, d_m_ptr + 9 * r + 2,
