@@ -263,6 +263,38 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
 
 
 @pytest.mark.parametrize("kind", ["neural", "gaussian"])
+def test_training_on_the_triton_path_is_the_twins(kind):
+    """trainer.train, 4 steps of 2 views each, on the Triton path (the views, the loss, the
+    projection, the statistics: gradients of two views summed into one buffer's views) and on the
+    torch twins: the same parameters after the last step, to float32 rounding."""
+    from radfield.core.kinds import random_neural
+    from radfield.core.train import trainer
+    from radfield.pipeline.config import load_defaults
+
+    cams = [Camera(fx=20.8, fy=20.8, cx=8, cy=8, width=16, height=16, name=f"v{i}",
+                   c2w=look_at((3 * math.cos(i), 3 * math.sin(i), 0.5), (0, 0, 0))) for i in range(3)]
+    with torch.no_grad():
+        images = torch.stack([render(random_neural(30, seed=1), c).color.clamp(0, 1) for c in cams])
+    states = []
+    for backend in (backends.TRITON, backends.TORCH):
+        cfg = load_defaults()["train"]
+        cfg.update(iterations=4, batch_views=2, log_every=100, checkpoint_every=100, eval_every=0, sh_degree=1,
+                   nonnegative_density=180.0)
+        cfg["densify"].update(start=1, stop=100, every=100)
+        start = (random_neural if kind == "neural" else random_gaussians)(20, seed=2, sh_degree=1)
+        geometry = {name: getattr(start, name) for name in ("means", "log_scales", "quats", "sh")}
+        start = kinds.get(kind).from_points(geometry, kinds.get(kind).init_settings(load_defaults()), seed=0)
+        with backends.using(backend):
+            states.append(trainer.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
+                                        device=DEVICE))
+    fast, slow = states
+    assert fast.step == slow.step == 4 and fast.params.keys() == slow.params.keys()
+    for name, theirs in slow.params.items():
+        torch.testing.assert_close(fast.params[name].cpu(), theirs.cpu(), rtol=1e-4, atol=2e-5, msg=name)
+    assert not torch.equal(slow.params["log_scales"].cpu(), start.tensors()["log_scales"])   # training moved them
+
+
+@pytest.mark.parametrize("kind", ["neural", "gaussian"])
 def test_the_launches_of_a_view_do_not_grow_with_the_primitives(kind):
     """The torch ops of one forward + backward on the Triton path (each a kernel launch on a GPU,
     counted by a dispatch mode below autograd, so the backward's too; the ops that launch nothing,
