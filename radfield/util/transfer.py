@@ -10,6 +10,8 @@ core/render/rasterize.py: RenderCounts).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 
@@ -17,3 +19,12 @@ def to_device(host: torch.Tensor, device: torch.device | str, dtype: torch.dtype
     """`host` on `device` in `dtype` (default: its own), queued behind the device's work instead of
     waiting for it; the tensor itself when nothing changes (on the CPU: no copy at all)."""
     return host.to(device=device, dtype=dtype, non_blocking=True)
+
+
+@functools.lru_cache(maxsize=1024)
+def device_constants(values: tuple[float, ...], dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+    """Numbers a kernel reads, as a (len(values),) tensor of `dtype` on `device`, made once per
+    (values, dtype, device) rather than copied every launch (callers never write to it). Made
+    outside inference mode: a cached inference tensor could not be saved for a backward."""
+    with torch.inference_mode(False):
+        return to_device(torch.tensor(values, dtype=dtype), device)

@@ -46,7 +46,7 @@ from radfield.core.kinds.gaussian import Gaussians, GaussianKind
 from radfield.core.kinds.neural import NeuralKind, NeuralPrimitives
 from radfield.core.render.sh import join_sh, sh_parts
 from radfield.errors import RadfieldError
-from radfield.util.transfer import to_device
+from radfield.util.transfer import device_constants, to_device
 
 DEGREE = 4                       # n = l = 4 (eq. 10-12): ξ^1..ξ^4, cos/sin(i ω ξ) for i = 1..4
 TEMPORAL_TERMS = 3 * DEGREE      # a_1..a_4, b_1..b_4, c_1..c_4
@@ -78,11 +78,9 @@ def temporal_offset(coeffs: torch.Tensor, xi: float, frequency: float) -> torch.
 # basis is built once per (ξ, ω, dtype, device) and the temporal term is one matrix product with
 # the coefficients as they are stored (a view, no copy), fused with the addition of the static term.
 
-@functools.lru_cache(maxsize=1024)
 def basis_vector(xi: float, frequency: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """φ(ξ) (12,), for o + opacity_t φ(ξ) as one matrix-vector product (callers never write to it)."""
-    with torch.inference_mode(False):   # a cached inference tensor could not be saved for a backward
-        return to_device(torch.tensor(temporal_basis(xi, frequency), dtype=dtype), device)
+    """φ(ξ) (12,), for o + opacity_t φ(ξ) as one matrix-vector product (cached; callers never write to it)."""
+    return device_constants(temporal_basis(xi, frequency), dtype, device)
 
 
 @functools.lru_cache(maxsize=1024)

@@ -5,19 +5,10 @@ fused CPU op's signature."""
 
 from __future__ import annotations
 
-import functools
-
 import torch
 
 from radfield.core.backends.gpu.launch import PREPARE_OPTIONS, launching
-from radfield.util.transfer import to_device
-
-
-@functools.lru_cache(maxsize=16)
-def _constants(c1: float, c2: float, lambda_dssim: float, total: int, dtype: torch.dtype,
-               device: torch.device) -> torch.Tensor:
-    """(C1, C2, (1 − λ)/n, λ/n) in the images' dtype: made once per size, not every step."""
-    return to_device(torch.tensor([c1, c2, (1.0 - lambda_dssim) / total, lambda_dssim / total], dtype=dtype), device)
+from radfield.util.transfer import device_constants
 
 
 class _Photometric(torch.autograd.Function):
@@ -28,15 +19,17 @@ class _Photometric(torch.autograd.Function):
         x, y, taps = x.contiguous(), y.detach().contiguous(), taps.detach().contiguous()
         _, height, width, channels = x.shape
         total = x.numel()
-        consts = _constants(c1, c2, lambda_dssim, total, x.dtype, x.device)
-        programs = -(-total // K.BLOCK)
+        # (C1, C2, (1 − λ)/n, λ/n) in the images' dtype, made once per size, not every step
+        consts = device_constants((c1, c2, (1.0 - lambda_dssim) / total, lambda_dssim / total), x.dtype, x.device)
+        grid = (-(-total // K.BLOCK),)
         rows = x.new_empty(5 * total)           # the rows pass's sums of x, y, x², y², xy
         abk = x.new_empty(3 * total)            # the map's derivatives A, B, K (loss_kernels.py)
-        sums = x.new_empty(programs, 2)         # each program's Σ S and Σ |x − y|
+        sums = x.new_empty(grid[0], 2)          # each program's Σ S and Σ |x − y|
         sizes = (total, height, width, channels)
+        ctx.grid = grid, sizes
         with launching():
-            K.ssim_rows[(programs,)](x, y, taps, rows, *sizes, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
-            K.ssim_columns[(programs,)](x, y, taps, consts, rows, abk, sums, *sizes, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+            K.ssim_rows[grid](x, y, taps, rows, *sizes, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+            K.ssim_columns[grid](x, y, taps, consts, rows, abk, sums, *sizes, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
         ctx.save_for_backward(x, y, taps, consts, abk)
         ssim_sum, l1_sum = sums.sum(0).unbind()
         return (1.0 - lambda_dssim) / total * l1_sum + lambda_dssim * (1.0 - ssim_sum / total)
@@ -47,16 +40,13 @@ class _Photometric(torch.autograd.Function):
         from radfield.core.backends.gpu import loss_kernels as K
 
         x, y, taps, consts, abk = ctx.saved_tensors
-        _, height, width, channels = x.shape
-        total = x.numel()
-        programs = -(-total // K.BLOCK)
-        rows = x.new_empty(3 * total)           # the rows pass's sums of A, B, K
+        grid, sizes = ctx.grid
+        rows = x.new_empty(3 * x.numel())       # the rows pass's sums of A, B, K
         out = torch.empty_like(x)
-        sizes = (total, height, width, channels)
         with launching():
-            K.adjoint_rows[(programs,)](taps, abk, rows, *sizes, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
-            K.adjoint_columns[(programs,)](x, y, taps, consts, rows, grad.contiguous(), out, *sizes, BLOCK=K.BLOCK,
-                                           **PREPARE_OPTIONS)
+            K.adjoint_rows[grid](taps, abk, rows, *sizes, BLOCK=K.BLOCK, **PREPARE_OPTIONS)
+            K.adjoint_columns[grid](x, y, taps, consts, rows, grad.contiguous(), out, *sizes, BLOCK=K.BLOCK,
+                                    **PREPARE_OPTIONS)
         return out, None, None, None, None, None
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from radfield.core.backends.gpu.launch import PREPARE_OPTIONS, launching, padded
-from radfield.util.transfer import to_device
+from radfield.util.transfer import device_constants
 
 
 def neural_accumulate(grad_acc, count_acc, means, log_scales, g_w1, g_b1, g_w2, g_b2, w2c, normals,
@@ -32,8 +32,7 @@ def _accumulate(grad_acc, count_acc, means, log_scales, grad_means, mlp_grads, w
     count = means.shape[0]
     if count == 0:
         return
-    frame = torch.cat([w2c.reshape(12), normals.reshape(12), to_device(torch.tensor(numbers, dtype=means.dtype),
-                                                                       means.device)])
+    frame = torch.cat([w2c.reshape(12), normals.reshape(12), device_constants(numbers, means.dtype, means.device)])
     neural = mlp_grads is not None
     g_w1, g_b1, g_w2, g_b2 = (t.contiguous() for t in mlp_grads) if neural else (means,) * 4
     units = g_b1.shape[1] if neural else 1

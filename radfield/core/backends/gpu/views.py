@@ -14,7 +14,7 @@ import torch
 from radfield.core.backends.gpu.binning import bin_tiles
 from radfield.core.backends.gpu.launch import COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, TILE, launching
 from radfield.core.backends.gpu.preparation import gaussian_prep, neural_bounds, neural_prep
-from radfield.util.transfer import to_device
+from radfield.util.transfer import device_constants
 
 
 def _sizes(height: int, width: int) -> tuple[int, int]:
@@ -64,15 +64,9 @@ def _prepared(tensors, bounds: torch.Tensor, visible: torch.Tensor, order: torch
 
 def _constants(like: torch.Tensor, t_min: float) -> torch.Tensor:
     """(t_min, α_min, α_max, 1) in the inputs' dtype (the kernels' thresholds are the twin's)."""
-    return _constants_on(t_min, like.dtype, like.device)
-
-
-@functools.lru_cache(maxsize=16)
-def _constants_on(t_min: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """Made once per (t_min, dtype, device), not every view."""
     from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
 
-    return to_device(torch.tensor([t_min, ALPHA_MIN, ALPHA_MAX, 1.0], dtype=dtype), device)
+    return device_constants((float(t_min), ALPHA_MIN, ALPHA_MAX, 1.0), like.dtype, like.device)
 
 
 class _GaussianView(torch.autograd.Function):
