@@ -1,0 +1,99 @@
+"""scripts/gpu_check.sh runs only on a lent GPU machine, with a few minutes of device time a session
+and rarely a second try, so what can be checked without one is checked here: the shell parses,
+every `radfield` command it runs parses (each option exists, each value has its type), and the
+Python its helpers call takes the arguments they pass."""
+
+from __future__ import annotations
+
+import inspect
+import re
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import typer
+
+from radfield.cli.main import _click_exceptions, app
+
+UsageError = _click_exceptions().UsageError
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "gpu_check.sh"
+# the script's variables, as a run would set them ($W, its work folder, becomes a test's tmp_path)
+VALUES = {"$W": "/tmp/w", "$DEVICE": "cuda", "$steps": "30000", "$1": "/tmp/w/run"}
+COMMAND = re.compile(r"(?:^|\s)radfield\s+([a-z][a-z0-9-]*)\s(.*)")
+
+
+def script_commands() -> list[tuple[int, list[str]]]:
+    """(line number, argv after `radfield`) of every radfield command of the script."""
+    found, lines = [], SCRIPT.read_text(encoding="utf-8").splitlines()
+    for number, line in enumerate(lines, 1):
+        following = number
+        while line.endswith("\\") and following < len(lines):   # a command continued on the next line
+            line, following = line[:-1] + lines[following], following + 1
+        code = line.split(" #", 1)[0]
+        match = COMMAND.search(code)
+        if match is None or code.lstrip().startswith(("#", "radfield()")):
+            continue
+        text = " ".join(match.groups()).split("|", 1)[0]
+        for name, value in VALUES.items():
+            text = text.replace("${" + name[1:] + "}", value).replace(name, value)
+        found.append((number, shlex.split(text)))
+    return found
+
+
+def test_the_script_parses():
+    assert shutil.which("bash"), "bash is needed to check scripts/gpu_check.sh"
+    result = subprocess.run(["bash", "-n", str(SCRIPT)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+
+
+def test_the_script_runs_every_benchmark_and_stage_it_reports():
+    names = {argv[0] for _, argv in script_commands()}
+    assert {"bench-render", "bench-train", "reconstruct", "render", "eval", "export", "info"} <= names
+
+
+def parse(argv: list[str], folder: Path) -> None:
+    """Parse `radfield ARGV` as the command would, short of running it (Click's make_context: a
+    UsageError for an unknown command or option, a missing or extra value, a value of the wrong
+    type); the folders it reads are made, empty, under `folder` first."""
+    argv = [arg.replace(VALUES["$W"], str(folder)) for arg in argv]
+    for before, arg in zip(argv, argv[1:]):
+        if arg.startswith(str(folder)) and not before.startswith("-"):   # an input folder, not an output
+            Path(arg).mkdir(parents=True, exist_ok=True)
+    group = typer.main.get_command(app)
+    with group.make_context("radfield", [], resilient_parsing=True) as parent:
+        command = group.get_command(parent, argv[0])
+        if command is None:
+            raise UsageError(f"no command {argv[0]!r}")
+        command.make_context(argv[0], argv[1:], parent=parent)
+
+
+@pytest.mark.parametrize("number, argv", script_commands(), ids=lambda v: str(v) if isinstance(v, int) else v[0])
+def test_every_radfield_command_of_the_script_parses(number, argv, tmp_path):
+    try:
+        parse(argv, tmp_path)
+    except UsageError as error:
+        pytest.fail(f"gpu_check.sh:{number}: radfield {shlex.join(argv)}: {error.format_message()}")
+
+
+@pytest.mark.parametrize("argv", [["bench-render", "--primitive", "10"], ["bench-train", "--steps", "ten"],
+                                  ["render", "/tmp/w/run", "extra", "-o", "frames"], ["bench-rendr"],
+                                  ["eval", "/tmp/w/run", "-o"], ["reconstruct", "--no-cage"]])
+def test_a_mistake_in_a_command_would_be_caught(argv, tmp_path):
+    # the check above is a real parse: each of these fails it
+    with pytest.raises(UsageError):
+        parse(argv, tmp_path)
+
+
+def test_the_scene_helper_calls_generate_scene_as_it_is():
+    from radfield.datasets.synthetic import SCENES, generate_scene
+
+    text = SCRIPT.read_text(encoding="utf-8")
+    call = re.search(r"generate_scene as g; g\('\$1', '\$2', (.*?)\)\"", text)
+    assert call is not None, "the scene() helper no longer calls generate_scene"
+    keywords = dict(part.strip().split("=") for part in call.group(1).split(","))
+    inspect.signature(generate_scene).bind("studio", "/tmp/w", **keywords)
+    for name in re.findall(r"\bscene (\w+) ", text):
+        assert name in SCENES, f"gpu_check.sh generates an unknown scene {name!r}"
