@@ -12,6 +12,10 @@
 #   scripts/gpu_check.sh e2e800 [STEPS]  glossy at 800x800 (100 + 20 views), STEPS steps (default
 #                                        30000) within the time left: ms per step and PSNR
 #
+# Under the device tool ($OUT set) the whole output is also kept in $OUT/gpu_check.log, and the
+# profiler's tables (where a 100k-primitive 800x800 view spends host and GPU time) go to
+# $OUT/profile-100k-800.txt rather than the output.
+#
 # The machine has a CUDA torch and Triton but not the geometry and SfM libraries (pymeshlab,
 # pyvista, pycolmap, pytetwild, fast-simplification), so everything runs `--no-cage`. Wheels it
 # lacks travel in .whl/ (run(carry=[".whl"])):
@@ -19,6 +23,10 @@
 #     --platform manylinux_2_28_x86_64 -d .whl OpenImageIO==3.2.2.0 plyfile==1.1.5
 set -uo pipefail
 cd "$(dirname "$0")/.."
+# on the device tool, $OUT comes back but only the last 12,000 characters of the output do: keep it all
+if [ -n "${OUT:-}" ] && [ -d "$OUT" ]; then
+    exec > >(tee -a "$OUT/gpu_check.log") 2>&1
+fi
 PY=${PYTHON:-python3}
 if compgen -G ".whl/*.whl" >/dev/null && ! $PY -c "import OpenImageIO, plyfile" 2>/dev/null; then
     $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
@@ -65,6 +73,13 @@ part_bench() {
     secs radfield bench-render --device "$DEVICE" --primitives 100000 --width 800 --height 800 --views 4 --repeats 3
     echo "== targets: bench-train, neural and Gaussians, 100k primitives, 256 / 800 (neural at 800: <= 25 ms a step)"
     secs radfield bench-train --device "$DEVICE" --kinds neural,gaussian --primitives 100000 --sizes 256,800 --steps 10 -q
+    echo "== where the time goes: one forward+backward, 100k primitives, 800x800 (torch profiler, by host and device time)"
+    local profile=${OUT:-$W}/profile-100k-800.txt
+    radfield bench-render --device "$DEVICE" --primitives 100000 --width 800 --height 800 --views 1 --repeats 1 \
+        --profile >"$profile" 2>&1
+    echo "  (exit $?)"
+    if [ -n "${OUT:-}" ]; then grep "kernel launches" "$profile"; echo "  (the tables: \$OUT/profile-100k-800.txt)"
+    else cat "$profile"; fi
 }
 
 part_e2e64() {

@@ -16,6 +16,15 @@ def test_bench_render_prints_each_kind_and_the_ratio(cli):
     assert code == 1 and err.startswith("radfield: error:")
 
 
+def test_bench_render_profile_prints_each_kinds_top_costs(cli):
+    code, out, err = cli("bench-render", "--primitives", "100", "--width", "16", "--height", "16", "--views", "1",
+                         "--repeats", "1", "--profile")
+    assert code == 0, err
+    for kind in ("neural", "neural-hard", "gaussian"):
+        assert f"top costs, {kind}, one forward+backward, by host time:" in out
+    assert "by device time" not in out and "kernel launches" not in out   # the CPU has neither
+
+
 def test_bench_train_prints_every_part(cli):
     code, out, err = cli("bench-train", "--primitives", "300", "--sizes", "32", "--steps", "1", "--quiet", "--baseline")
     assert code == 0, err

@@ -120,3 +120,14 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
         torch.cuda.set_sync_debug_mode("default")
     assert [s for s, _ in log] == list(range(1, 13)) and all(math.isfinite(i["loss"]) for _, i in log)
     assert counted == ["cuda"] * 24   # the Triton renderer drew every view (12 steps of 2)
+
+
+@needs_cuda
+def test_bench_render_profile_shows_where_the_gpu_time_goes(cli):
+    code, out, err = cli("bench-render", "--primitives", "300", "--width", "64", "--height", "64", "--views", "1",
+                         "--repeats", "1", "--device", "cuda", "--profile")
+    assert code == 0, err
+    for kind in ("neural", "neural-hard", "gaussian"):
+        assert f"top costs, {kind}, one forward+backward, by device time" in out
+        launches = [line for line in out.splitlines() if line.startswith(f"  kernel launches, {kind},")]
+        assert len(launches) == 1 and int(launches[0].split()[-1]) > 0, out

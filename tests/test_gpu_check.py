@@ -36,7 +36,7 @@ def script_commands() -> list[tuple[int, list[str]]]:
         match = COMMAND.search(code)
         if match is None or code.lstrip().startswith(("#", "radfield()")):
             continue
-        text = " ".join(match.groups()).split("|", 1)[0]
+        text = re.split(r"\||\s\d*>", " ".join(match.groups()), maxsplit=1)[0]   # up to a pipe or redirection
         for name, value in VALUES.items():
             text = text.replace("${" + name[1:] + "}", value).replace(name, value)
         found.append((number, shlex.split(text)))

@@ -160,9 +160,11 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
             with torch_profile(activities=activities) as prof:
                 render(params, cams[0]).color.sum().backward()
             costs = prof.key_averages()
-            echo(f"\n  top costs, {name}, one forward+backward:")
+            echo(f"\n  top costs, {name}, one forward+backward, by host time:")
             echo(costs.table(sort_by="self_cpu_time_total", row_limit=12))
             if len(activities) > 1:   # torch's launches and Triton's (the driver API's)
+                echo(f"\n  top costs, {name}, one forward+backward, by device time (where the GPU's time goes):")
+                echo(costs.table(sort_by="self_device_time_total", row_limit=12))
                 launches = sum(e.count for e in costs if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cuLaunchKernelEx",
                                                                   "cudaLaunchKernelExC"))
                 echo(f"  kernel launches, {name}, one forward+backward: {launches}")
