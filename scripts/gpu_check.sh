@@ -11,6 +11,12 @@
 #                                        method: DEVICE=cpu scripts/gpu_check.sh e2e64)
 #   scripts/gpu_check.sh e2e800 [STEPS]  glossy at 800x800 (100 + 20 views), STEPS steps (default
 #                                        30000) within the time left: ms per step and PSNR
+#   scripts/gpu_check.sh kernels         Nsight Compute on the tile kernels of one 100k-primitive
+#                                        800x800 forward+backward of each kind (duration, throughput,
+#                                        occupancy, warp stalls): what to tune, in $OUT/ncu-kernels.txt
+#   scripts/gpu_check.sh sanitize        compute-sanitizer memcheck over tests/test_triton.py (renders,
+#                                        gradients, statistics, loss, projection, training): reads and
+#                                        writes out of bounds, which Triton's interpreter cannot see
 #
 # Under the device tool ($OUT set) the whole output is also kept in $OUT/gpu_check.log, and the
 # profiler's tables (where a 100k-primitive 800x800 view spends host and GPU time) go to
@@ -23,10 +29,6 @@
 #     --platform manylinux_2_28_x86_64 -d .whl OpenImageIO==3.2.2.0 plyfile==1.1.5
 set -uo pipefail
 cd "$(dirname "$0")/.."
-# on the device tool, $OUT comes back but only the last 12,000 characters of the output do: keep it all
-if [ -n "${OUT:-}" ] && [ -d "$OUT" ]; then
-    exec > >(tee -a "$OUT/gpu_check.log") 2>&1
-fi
 PY=${PYTHON:-python3}
 if compgen -G ".whl/*.whl" >/dev/null && ! $PY -c "import OpenImageIO, plyfile" 2>/dev/null; then
     $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
@@ -97,15 +99,54 @@ part_e2e800() {
     summary "$W/glossy800-run"
 }
 
-if [ "$DEVICE" = cuda ]; then
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-    $PY -c "import torch, triton; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(), 'triton', triton.__version__)"
+part_kernels() {
+    echo "== Nsight Compute: the tile kernels of one forward+backward, 100k primitives, 800x800, each kind"
+    local report=${OUT:-$W}/ncu-kernels.txt
+    secs ncu --clock-control none -k "regex:^(neural|gaussian)_(forward|backward)" \
+        --section SpeedOfLight --section Occupancy --section LaunchStats --section WarpStateStats \
+        $PY -c "import torch
+from radfield.bench.render import bench_cameras, bench_models
+from radfield.core.render.rasterize import render
+camera = bench_cameras(1, 800, 800)[0]
+for name, prims in bench_models(100000).items():
+    print(name, flush=True)
+    params = prims.to('cuda').map(lambda t: t.clone().requires_grad_(True))
+    render(params, camera).color.sum().backward()
+torch.cuda.synchronize()" >"$report" 2>&1
+    grep -E "^  [a-z_]+_(forward|backward)|^[a-z-]+$|Duration|Registers Per|Achieved Occupancy|Compute \(SM\) Thr|Memory Thr" \
+        "$report" | head -80
+    [ -n "${OUT:-}" ] && echo "  (the whole report: \$OUT/ncu-kernels.txt)"
+}
+
+part_sanitize() {
+    echo "== compute-sanitizer memcheck: the Triton kernels of tests/test_triton.py on tiny views"
+    # one cudaMalloc a tensor, so that a read or write past a tensor's end lands outside any allocation
+    secs env -u TRITON_INTERPRET PYTORCH_NO_CUDA_MEMORY_CACHING=1 compute-sanitizer --tool memcheck \
+        --target-processes all --print-limit 20 --error-exitcode 9 $PY -m pytest -q -x -rfE -p no:cacheprovider \
+        tests/test_triton.py -k "not compile and not reads_the_device and not launches" 2>&1 \
+        | tail -30
+}
+
+main() {
+    if [ "$DEVICE" = cuda ]; then
+        nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+        $PY -c "import torch, triton; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(), 'triton', triton.__version__)"
+    fi
+    case "${1:-default}" in
+        default) part_tests; part_bench; part_e2e64 ;;
+        tests) part_tests ;;
+        bench) part_bench ;;
+        e2e64) part_e2e64 ;;
+        e2e800) part_e2e800 "${2:-30000}" ;;
+        kernels) part_kernels ;;
+        sanitize) part_sanitize ;;
+        *) echo "usage: scripts/gpu_check.sh [tests|bench|e2e64|e2e800 [STEPS]|kernels|sanitize]" >&2; exit 2 ;;
+    esac
+}
+
+# on the device tool, $OUT comes back but only the last 12,000 characters of the output do: keep it all
+if [ -n "${OUT:-}" ] && [ -d "$OUT" ]; then
+    main "$@" 2>&1 | tee -a "$OUT/gpu_check.log"
+    exit "${PIPESTATUS[0]}"
 fi
-case "${1:-default}" in
-    default) part_tests; part_bench; part_e2e64 ;;
-    tests) part_tests ;;
-    bench) part_bench ;;
-    e2e64) part_e2e64 ;;
-    e2e800) part_e2e800 "${2:-30000}" ;;
-    *) echo "usage: scripts/gpu_check.sh [tests|bench|e2e64|e2e800 [STEPS]]" >&2; exit 2 ;;
-esac
+main "$@"
