@@ -95,8 +95,27 @@ part_e2e800() {
     local steps=${1:-30000}
     echo "== target: reconstruct of glossy at 800x800 (100 + 20 views), $steps steps, --no-cage, GPU (<= 10 min for 30k)"
     secs scene glossy "$W/glossy800" 800
-    secs radfield reconstruct "$W/glossy800" -o "$W/glossy800-run" --no-cage --device "$DEVICE" --iterations "$steps" -q
+    # in the background, its progress printed each minute: a run cut off by the call's time limit
+    # still tells its ms per step
+    secs radfield reconstruct "$W/glossy800" -o "$W/glossy800-run" --no-cage --device "$DEVICE" --iterations "$steps" \
+        -q &
+    local job=$! polls=0
+    while kill -0 "$job" 2>/dev/null; do
+        sleep 2; polls=$((polls + 1))
+        if [ $((polls % 30)) = 0 ]; then progress "$W/glossy800-run/train/log.jsonl"; fi
+    done
+    wait "$job"
     summary "$W/glossy800-run"
+}
+
+progress() {   # the last record of a training log: step, seconds, ms per step
+    tail -n 1 "$1" 2>/dev/null | $PY -c "import json, sys
+try:
+    r = json.loads(sys.stdin.read())
+except ValueError:   # no log yet, or a line being written
+    r = None
+print('  training: not started' if r is None else
+      f\"  training: step {r['step']} at {r['seconds']:.0f} s ({1e3 * r['seconds'] / r['step']:.1f} ms a step)\")"
 }
 
 part_kernels() {

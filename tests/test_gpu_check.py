@@ -36,7 +36,8 @@ def script_commands() -> list[tuple[int, list[str]]]:
         match = COMMAND.search(code)
         if match is None or code.lstrip().startswith(("#", "radfield()")):
             continue
-        text = re.split(r"\||\s\d*>", " ".join(match.groups()), maxsplit=1)[0]   # up to a pipe or redirection
+        # up to a pipe, a redirection or a background job's &
+        text = re.split(r"\||\s\d*>|\s&(?:\s|$)", " ".join(match.groups()), maxsplit=1)[0]
         for name, value in VALUES.items():
             text = text.replace("${" + name[1:] + "}", value).replace(name, value)
         found.append((number, shlex.split(text)))
