@@ -11,9 +11,10 @@
 #                                        method: DEVICE=cpu scripts/gpu_check.sh e2e64)
 #   scripts/gpu_check.sh e2e800 [STEPS]  glossy at 800x800 (100 + 20 views), STEPS steps (default
 #                                        30000) within the time left: ms per step and PSNR
-#   scripts/gpu_check.sh kernels         Nsight Compute on the tile kernels of one 100k-primitive
-#                                        800x800 forward+backward of each kind (duration, throughput,
-#                                        occupancy, warp stalls): what to tune, in $OUT/ncu-kernels.txt
+#   scripts/gpu_check.sh kernels         what to tune: the launch options timed against their
+#                                        alternatives (scripts/tune_kernels.py), then Nsight Compute on
+#                                        the tile kernels of one 100k-primitive 800x800 forward+backward
+#                                        of each kind (duration, throughput, occupancy, warp stalls)
 #   scripts/gpu_check.sh sanitize        compute-sanitizer memcheck over tests/test_triton.py (renders,
 #                                        gradients, statistics, loss, projection, training): reads and
 #                                        writes out of bounds, which Triton's interpreter cannot see
@@ -119,6 +120,8 @@ print('  training: not started' if r is None else
 }
 
 part_kernels() {
+    echo "== launch options against their alternatives, 100k primitives, 800x800 (scripts/tune_kernels.py)"
+    secs $PY scripts/tune_kernels.py --device "$DEVICE" --primitives 100000 --size 800
     echo "== Nsight Compute: the tile kernels of one forward+backward, 100k primitives, 800x800, each kind"
     local report=${OUT:-$W}/ncu-kernels.txt
     secs ncu --clock-control none -k "regex:^(neural|gaussian)_(forward|backward)" \

@@ -1,15 +1,19 @@
 """scripts/gpu_check.sh runs only on a lent GPU machine, with a few minutes of device time a session
 and rarely a second try, so what can be checked without one is checked here: the shell parses,
-every `radfield` command it runs parses (each option exists, each value has its type), and the
-Python its helpers call takes the arguments they pass."""
+every `radfield` command it runs parses (each option exists, each value has its type), the
+Python its helpers call takes the arguments they pass, and its tuning script runs (in Triton's
+interpreter)."""
 
 from __future__ import annotations
 
+import importlib.util
 import inspect
+import os
 import re
 import shlex
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,6 +22,7 @@ import typer
 from radfield.cli.main import _click_exceptions, app
 
 UsageError = _click_exceptions().UsageError
+IN_CI = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")   # conftest.in_ci()
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "gpu_check.sh"
 # the script's variables, as a run would set them ($W, its work folder, becomes a test's tmp_path)
@@ -98,3 +103,18 @@ def test_the_scene_helper_calls_generate_scene_as_it_is():
     inspect.signature(generate_scene).bind("studio", "/tmp/w", **keywords)
     for name in re.findall(r"\bscene (\w+) ", text):
         assert name in SCENES, f"gpu_check.sh generates an unknown scene {name!r}"
+
+
+def test_the_tuning_script_times_every_variant_of_every_kind(tmp_path):
+    # in Triton's interpreter on a 16x16 view: the script's mechanics, not the options' effect
+    if not IN_CI and importlib.util.find_spec("triton") is None:   # in CI it runs (and fails) regardless
+        pytest.skip("triton is not installed (pip install triton; Linux x86-64)")
+    env = {**os.environ, "TRITON_INTERPRET": "1", "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([sys.executable, str(SCRIPT.parent / "tune_kernels.py"), "--device", "cpu",
+                             "--primitives", "20", "--size", "16", "--views", "1", "--repeats", "1"],
+                            capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    rows = [line.split() for line in result.stdout.splitlines() if line.startswith("  ") and "variant" not in line]
+    kinds = {row[-5] for row in rows}
+    assert kinds == {"neural", "neural-hard", "gaussian"} and len(rows) == 6 * len(kinds), result.stdout
+    assert all(float(value) >= 0 for row in rows for value in row[-4:]), result.stdout
