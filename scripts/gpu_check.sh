@@ -137,7 +137,7 @@ for name, prims in bench_models(100000).items():
 torch.cuda.synchronize()" >"$report" 2>&1
     grep -E "^  [a-z_]+_(forward|backward)|^[a-z-]+$|Duration|Registers Per|Achieved Occupancy|Compute \(SM\) Thr|Memory Thr" \
         "$report" | head -80
-    [ -n "${OUT:-}" ] && echo "  (the whole report: \$OUT/ncu-kernels.txt)"
+    if [ -n "${OUT:-}" ]; then echo "  (the whole report: \$OUT/ncu-kernels.txt)"; fi
 }
 
 part_sanitize() {
