@@ -42,6 +42,18 @@ def test_help_and_version_still_exit_0(cli):
     assert code == 0 and "reconstruct" in out
 
 
+def test_a_click_without_no_args_is_help_error_still_gives_one_line(cli, monkeypatch):
+    # Click < 8.2 (with Typer < 0.20, which pyproject allows) has no NoArgsIsHelpError: the entry
+    # point's `except` must not fail on it when another error passes (an AttributeError there, once)
+    from radfield.cli.main import _click_exceptions
+
+    real = _click_exceptions()
+    monkeypatch.delattr(real, "NoArgsIsHelpError")
+    assert issubclass(_click_exceptions().NoArgsIsHelpError, Exception)
+    code, out, err = cli("reconstruct", "data", "-o", "run", "--frobnicate")
+    assert code == 1 and out == "" and err.startswith("radfield: error: No such option: --frobnicate"), err
+
+
 @pytest.mark.parametrize("tensor, row, value, message", [
     ("log_scales", 3, 100.0, "tensor 'log_scales' is out of range at primitive 3"),
     ("means", 1, float("inf"), "tensor 'means' holds 3 NaN/Inf values (first at primitive 1)"),

@@ -9,6 +9,7 @@ becomes one line on stderr and exit code 1; anything else is a bug and keeps its
 from __future__ import annotations
 
 import sys
+import types
 from typing import Annotated
 
 import typer
@@ -69,7 +70,7 @@ def main() -> None:
     click = _click_exceptions()
     try:
         code = app(standalone_mode=False)
-    except click.NoArgsIsHelpError as e:  # bare `radfield` or a group without a command
+    except click.NoArgsIsHelpError as e:  # bare `radfield` or a group without a command (Click ≥ 8.2)
         typer.echo(e.ctx.get_help())
         code = 0
     except click.UsageError as e:
@@ -91,11 +92,16 @@ def main() -> None:
 
 
 def _click_exceptions():
-    """Click's exception classes: Typer ≥ 0.20 vendors Click as typer._click, older Typer uses Click."""
+    """Click's exception classes: Typer ≥ 0.20 vendors Click as typer._click, older Typer uses Click.
+    Click < 8.2 has no NoArgsIsHelpError (it prints the help and exits 0 itself): a class nothing
+    raises stands in for it there."""
     try:
         from typer._click import exceptions
     except ImportError:
         from click import exceptions
+    if not hasattr(exceptions, "NoArgsIsHelpError"):
+        never_raised = type("NoArgsIsHelpError", (Exception,), {})
+        exceptions = types.SimpleNamespace(**vars(exceptions), NoArgsIsHelpError=never_raised)
     return exceptions
 
 
