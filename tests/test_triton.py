@@ -51,6 +51,29 @@ def test_triton_is_installed_and_runs_here():
         assert backends.select(DEVICE, torch.float16, kind="gaussian") == backends.TORCH
 
 
+@pytest.mark.parametrize("version, why", [((3, 3), "triton 3.3 is older than 3.4"), (None, "triton is not installed")])
+def test_a_missing_or_too_old_triton_is_refused_and_cuda_says_so(monkeypatch, capsys, version, why):
+    # Triton 3.3 cannot compile the kernels (nested tuples from a jit function): the backend must not
+    # run there, and --device cuda, which then runs the torch twins, says why in one line
+    from radfield.cli.common import resolve_device
+
+    monkeypatch.setattr(gpu, "_version", lambda: version)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert backends.why_not(backends.TRITON).startswith(why)
+    assert not gpu.runs("cuda", torch.float32) and backends.select("cuda", torch.float32, kind="neural") == "torch"
+    assert resolve_device("cuda") == torch.device("cuda")
+    err = capsys.readouterr().err
+    assert err.startswith(f"radfield: warning: --device cuda: {why}") and "torch 2.8 and later bring Triton 3.4" in err
+    assert err.count("\n") == 1
+    monkeypatch.setenv("RADFIELD_KERNELS", "torch")   # the user chose the twins: nothing to say
+    resolve_device("cuda")
+    assert capsys.readouterr().err == ""
+
+
+def test_the_installed_triton_is_one_the_kernels_compile_with():
+    assert gpu._version() >= gpu.MIN_TRITON, gpu._version()
+
+
 def hard_scene(dtype):
     """48 Gaussians on a 37×21 view (tiles cut by both image edges): a dense, nearly opaque cluster
     (pixels terminate early, many splats per tile), splats behind the camera and straddling the

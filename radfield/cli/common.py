@@ -49,7 +49,25 @@ def resolve_device(name: str):
         raise RadfieldError(f"--device must be cpu or cuda[:N], got {name!r}")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise RadfieldError(f"--device {name}: this torch build sees no CUDA device (use --device cpu)")
+    if name.startswith("cuda"):
+        _warn_without_gpu_kernels(name)
     return torch.device(name)
+
+
+def _warn_without_gpu_kernels(name: str) -> None:
+    """One line on stderr when CUDA work cannot have the Triton kernels (not installed, too old) and
+    falls back to the readable torch kernels, which are correct but many times slower; nothing when
+    the user forced those (RADFIELD_KERNELS=torch)."""
+    import sys
+
+    from radfield.core import backends
+
+    reason = backends.why_not(backends.TRITON)
+    if reason is not None and not backends.forced_torch():
+        oldest = ".".join(map(str, backends.gpu.MIN_TRITON))
+        print(f"radfield: warning: --device {name}: {reason}, so CUDA runs the readable torch kernels, many "
+              f"times slower (CUDA builds of torch 2.8 and later bring Triton {oldest} or newer)",
+              file=sys.stderr, flush=True)
 
 
 def resolve_model(path: Path) -> Path:

@@ -43,7 +43,8 @@ one more launch a view (statistics.py around statistics_kernels.py). The step's 
 (1 − λ) L1 + λ D-SSIM, is four more (loss.py around loss_kernels.py, two each way); the
 neural kind's non-negative density projection after Adam one (positivity.py).
 
-Where it runs: CUDA tensors (float32, float64) when triton is installed and a GPU is present; CPU
+Where it runs: CUDA tensors (float32, float64) when Triton ≥ MIN_TRITON is installed and a GPU is
+present (otherwise CUDA runs the torch twins, and `--device cuda` warns: cli/common.py); CPU
 tensors only with the interpreter on (TRITON_INTERPRET=1 before triton is imported) AND the backend
 chosen explicitly with `backends.using("triton")`, so that the CPU path never changes by itself.
 Triton is imported at the first view drawn here, never at start-up.
@@ -53,6 +54,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import re
 
 import torch
 
@@ -71,9 +73,28 @@ __all__ = ["NAME", "TILE", "COMPILE_OPTIONS", "NEURAL_BACKWARD_OPTIONS", "PREPAR
            "neural_accumulate", "gaussian_accumulate", "photometric", "project_nonnegative_"]
 
 
+# the oldest Triton the kernels compile with (3.3 cannot return nested tuples from a jit function:
+# neural_kernels.py's per-unit terms); checked against 3.4.0, 3.5.1, 3.6.0, 3.7.1 and 3.9.0
+MIN_TRITON = (3, 4)
+
+
 @functools.cache
+def _version() -> tuple[int, ...] | None:
+    """The installed Triton's (major, minor), from its metadata (triton is not imported), or None."""
+    import importlib.metadata
+
+    if importlib.util.find_spec("triton") is None:
+        return None
+    try:
+        release = importlib.metadata.version("triton")
+    except importlib.metadata.PackageNotFoundError:   # importable but not installed by pip: trust it
+        return MIN_TRITON
+    return tuple(int(part) for part in re.findall(r"\d+", release)[:2])
+
+
 def _installed() -> bool:
-    return importlib.util.find_spec("triton") is not None
+    version = _version()
+    return version is not None and version >= MIN_TRITON
 
 
 def _chosen() -> bool:
@@ -99,8 +120,12 @@ def runs(device: torch.device | str | None = None, dtype: torch.dtype | None = N
 
 def why_not() -> str | None:
     """Why the backend cannot run at all here, or None."""
-    if not _installed():
+    version = _version()
+    if version is None:
         return "triton is not installed"
+    if version < MIN_TRITON:
+        return (f"triton {'.'.join(map(str, version))} is older than {'.'.join(map(str, MIN_TRITON))}, "
+                "the oldest the kernels compile with")
     if not torch.cuda.is_available() and not interpreting():
         return "no CUDA GPU (and TRITON_INTERPRET is not set)"
     return None
