@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from radfield.core import backends
-from radfield.util.transfer import to_device
+from radfield.util.transfer import device_constants
 
 SSIM_WINDOW = 11    # taps of the Gaussian window (standard SSIM, Wang et al. 2004)
 SSIM_SIGMA = 1.5
@@ -165,12 +165,16 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tenso
     return (values * weight).sum() / weight.sum()
 
 
-@functools.lru_cache(maxsize=8)
+@functools.cache
+def _gaussian_taps() -> tuple[float, ...]:
+    """Normalised 1D Gaussian taps (11,), the same as scipy's gaussian_filter(sigma=1.5, truncate=3.5)."""
+    x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
+    taps = torch.exp(-x * x / (2 * SSIM_SIGMA**2))
+    return tuple((taps / taps.sum()).tolist())
+
+
 def _gaussian_window(dtype, device) -> torch.Tensor:
-    """Normalised 1D Gaussian taps (11,), the same as scipy's gaussian_filter(sigma=1.5, truncate=3.5).
-    Cached per (dtype, device): building it is five small ops a training step (callers never write to it)."""
-    with torch.inference_mode(False):   # a cached inference tensor could not be saved for a backward
-        x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
-        taps = torch.exp(-x * x / (2 * SSIM_SIGMA**2))
-        return to_device(taps / taps.sum(), device, dtype)
+    """The taps as a tensor, made once per (dtype, device), not each training step (callers never
+    write to it)."""
+    return device_constants(_gaussian_taps(), dtype, device)
 
