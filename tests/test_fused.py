@@ -278,6 +278,36 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch, render_scene):
     assert fused.build_error() == "RuntimeError: Error building extension 'radfield_kernels'"
 
 
+# torch.utils.cpp_extension imported as a CUDA build of torch does on a machine with a CUDA toolkit
+# (CUDA_HOME) but no visible GPU: torch 2.4 prints a line there, later versions log it
+AS_CUDA_BUILD = """
+import sys, torch
+torch.cuda._is_compiled = lambda: True
+torch.cuda.is_available = lambda: False
+torch.version.cuda = "12.1"
+if sys.argv[1] == "radfield":
+    from radfield.core.backends import fused
+    fused._cpp_extension()
+else:
+    from torch.utils import cpp_extension
+"""
+
+
+def test_the_build_adds_no_line_of_torch_about_a_cuda_runtime(tmp_path):
+    """A CUDA build of torch without a GPU says "No CUDA runtime is found, using CUDA_HOME=…" when
+    cpp_extension is imported; the fused kernels are CPU-only, and the line stood before every
+    command's output, a one-line error included (found with torch 2.4.1's CUDA wheel)."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "CUDA_HOME": str(tmp_path)}
+    torch_says, ours = (subprocess.run([sys.executable, "-c", AS_CUDA_BUILD, who], env=env, capture_output=True,
+                                       text=True, timeout=120) for who in ("torch", "radfield"))
+    assert torch_says.returncode == ours.returncode == 0, torch_says.stderr + ours.stderr
+    assert "No CUDA runtime is found" in torch_says.stderr   # the condition is reproduced
+    assert ours.stderr == ""
+
+
 # --- per-view preparation ops (core/backends/csrc/prepare_kernels.cpp) against their torch twins ----------
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])

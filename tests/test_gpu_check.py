@@ -6,7 +6,6 @@ interpreter)."""
 
 from __future__ import annotations
 
-import importlib.util
 import inspect
 import os
 import re
@@ -107,8 +106,10 @@ def test_the_scene_helper_calls_generate_scene_as_it_is():
 
 def test_the_tuning_script_times_every_variant_of_every_kind(tmp_path):
     # in Triton's interpreter on a 16x16 view: the script's mechanics, not the options' effect
-    if not IN_CI and importlib.util.find_spec("triton") is None:   # in CI it runs (and fails) regardless
-        pytest.skip("triton is not installed (pip install triton; Linux x86-64)")
+    from radfield.core.backends import gpu
+
+    if not IN_CI and not gpu._installed():   # in CI it runs (and fails) regardless
+        pytest.skip(f"no Triton the kernels compile with ({gpu.why_not()})")
     env = {**os.environ, "TRITON_INTERPRET": "1", "OMP_NUM_THREADS": "1"}
     result = subprocess.run([sys.executable, str(SCRIPT.parent / "tune_kernels.py"), "--device", "cpu",
                              "--primitives", "20", "--size", "16", "--views", "1", "--repeats", "1"],

@@ -9,7 +9,6 @@ backend inside `backends.using("triton")`. With a GPU (scripts/gpu_check.sh) the
 compiled kernels on CUDA tensors instead. The views are tiny: the interpreter is slow.
 """
 
-import importlib.util
 import itertools
 import math
 import os
@@ -30,18 +29,20 @@ from radfield.core.train.strategy import make_strategy      # noqa: E402
 from shared_helpers import projection_rows                  # noqa: E402
 
 IN_CI = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")   # conftest.in_ci()
-INSTALLED = importlib.util.find_spec("triton") is not None
+INSTALLED = gpu._installed()   # a Triton the kernels compile with (>= gpu.MIN_TRITON)
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
-# outside CI a machine without triton skips these tests; in CI they run (and fail) regardless
+# outside CI a machine without such a Triton (none, or the older one a CUDA torch before 2.8 pins)
+# skips these tests; in CI they run (and fail) regardless
 pytestmark = pytest.mark.skipif(not IN_CI and not INSTALLED,
-                                reason="triton is not installed (pip install triton; Linux x86-64)")
+                                reason=f"triton >= {'.'.join(map(str, gpu.MIN_TRITON))} is not installed (Linux x86-64; "
+                                       "CUDA builds of torch 2.8 and later bring one)")
 TOL = {torch.float64: dict(rtol=1e-9, atol=1e-10), torch.float32: dict(rtol=1e-3, atol=1e-4)}
 
 
 def test_triton_is_installed_and_runs_here():
     """CI fails here when triton is missing; the backend runs CUDA tensors with a GPU, or CPU tensors
     in the interpreter, but the CPU never takes it unless it is chosen."""
-    assert INSTALLED, "triton is not installed: the test extra installs it on Linux x86-64"
+    assert INSTALLED, f"triton >= 3.4 is not installed ({gpu.why_not()}): the test extra installs it on Linux x86-64"
     assert backends.why_not(backends.TRITON) is None
     assert backends.TRITON not in backends.available("cpu", torch.float32)   # the CPU path is unchanged
     with backends.using(backends.TRITON):

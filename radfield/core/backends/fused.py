@@ -28,6 +28,9 @@ if the build fails, one warning says so and the torch path is used (tests/test_f
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import time
 import warnings
 from pathlib import Path
@@ -64,9 +67,30 @@ def _simd_flags() -> list[str]:
     return ["-DCPU_CAPABILITY=DEFAULT"]   # portable Vectorized<T>: scalar libm calls
 
 
+class _NoCudaRuntimeLine(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "No CUDA runtime is found" not in record.getMessage()
+
+
+def _cpp_extension():
+    """torch.utils.cpp_extension, imported without the line a CUDA build of torch writes at that
+    import on a machine with a CUDA toolkit but no visible GPU ("No CUDA runtime is found, using
+    CUDA_HOME=…": a print in torch 2.4, a logger warning later). These kernels are CPU-only, and the
+    line would stand before every command's output, its one-line errors included, once a process."""
+    logger = logging.getLogger("torch.utils.cpp_extension")
+    quiet = _NoCudaRuntimeLine()
+    logger.addFilter(quiet)
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):
+            from torch.utils import cpp_extension
+    finally:
+        logger.removeFilter(quiet)
+    return cpp_extension
+
+
 def _build():
     """Compile (or load the cached build of) the extension; returns torch.ops.radfield."""
-    from torch.utils import cpp_extension
+    cpp_extension = _cpp_extension()
 
     # torch waits forever on the lock file of a build that was killed midway: clear a stale one
     try:

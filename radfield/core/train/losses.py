@@ -18,8 +18,6 @@ tensors' device and dtype (radfield.core.backends: the fused CPU ops of core/bac
 
 from __future__ import annotations
 
-import functools
-
 import torch
 import torch.nn.functional as F
 
@@ -165,7 +163,6 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tenso
     return (values * weight).sum() / weight.sum()
 
 
-@functools.cache
 def _gaussian_taps() -> tuple[float, ...]:
     """Normalised 1D Gaussian taps (11,), the same as scipy's gaussian_filter(sigma=1.5, truncate=3.5)."""
     x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
@@ -173,8 +170,13 @@ def _gaussian_taps() -> tuple[float, ...]:
     return tuple((taps / taps.sum()).tolist())
 
 
+# made at import, so that no training step reads them off a tensor (a host read in the step's
+# count, tests/test_triton.py: test_a_training_step_reads_the_device_once_a_view)
+GAUSSIAN_TAPS = _gaussian_taps()
+
+
 def _gaussian_window(dtype, device) -> torch.Tensor:
     """The taps as a tensor, made once per (dtype, device), not each training step (callers never
     write to it)."""
-    return device_constants(_gaussian_taps(), dtype, device)
+    return device_constants(GAUSSIAN_TAPS, dtype, device)
 
