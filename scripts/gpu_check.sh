@@ -18,6 +18,9 @@
 #   scripts/gpu_check.sh sanitize        compute-sanitizer memcheck over tests/test_triton.py (renders,
 #                                        gradients, statistics, loss, projection, training): reads and
 #                                        writes out of bounds, which Triton's interpreter cannot see
+#   DRY_RUN=1 scripts/gpu_check.sh PART  PART here, on the CPU, without the packages the GPU machine
+#                                        lacks: what would fail there for a reason other than the GPU
+#                                        (before a lease: `tests` takes 4 minutes, `e2e64` 2)
 #
 # Under the device tool ($OUT set) the whole output is also kept in $OUT/gpu_check.log, and the
 # profiler's tables (where a 100k-primitive 800x800 view spends host and GPU time) go to
@@ -36,9 +39,24 @@ if compgen -G ".whl/*.whl" >/dev/null && ! $PY -c "import OpenImageIO, plyfile" 
     export PYTHONPATH=/tmp/site
 fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+W=$(mktemp -d); trap 'rm -rf "$W"' EXIT
+# DRY_RUN=1: a part on this machine's CPU as the GPU machine would run it, the packages that machine
+# lacks (its image's list, KINDS.md of the device tool) failing to import in every Python process
+MISSING=pymeshlab,pyvista,vtk,pycolmap,pytetwild,fast_simplification,viser,meshio,imageio_ffmpeg,trimesh,lpips
+if [ "${DRY_RUN:-0}" = 1 ]; then
+    WITHOUT=$MISSING DEVICE=${DEVICE:-cpu}
+    mkdir -p "$W/without" && cat >"$W/without/sitecustomize.py" <<EOF
+import importlib.abc, sys
+class Missing(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.partition(".")[0] in set("$WITHOUT".split(",")):
+            raise ImportError(f"No module named {name!r} (gpu_check.sh WITHOUT)", name=name)
+sys.meta_path.insert(0, Missing())
+EOF
+    export PYTHONPATH="$W/without:$PYTHONPATH"
+fi
 radfield() { $PY -m radfield "$@"; }
 secs() { local t0; t0=$(date +%s%N); "$@"; local rc=$?; echo "  ($(( ($(date +%s%N) - t0) / 1000000 )) ms, exit $rc)"; }
-W=$(mktemp -d); trap 'rm -rf "$W"' EXIT
 CORES=$(nproc)
 DEVICE=${DEVICE:-cuda}   # DEVICE=cpu runs a part on the CPU (its figures for the same-method comparisons)
 scene() { $PY -c "from radfield.datasets.synthetic import generate_scene as g; g('$1', '$2', size=$3, mesh=False, workers=$CORES)"; }

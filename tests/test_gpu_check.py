@@ -119,3 +119,19 @@ def test_the_tuning_script_times_every_variant_of_every_kind(tmp_path):
     kinds = {row[-5] for row in rows}
     assert kinds == {"neural", "neural-hard", "gaussian"} and len(rows) == 6 * len(kinds), result.stdout
     assert all(float(value) >= 0 for row in rows for value in row[-4:]), result.stdout
+
+
+def test_a_dry_run_blocks_the_packages_the_gpu_machine_lacks(tmp_path):
+    """DRY_RUN=1: the script's own lines set PYTHONPATH so that every Python it starts fails to import
+    the GPU machine's missing packages (here: pyvista, installed) and imports the others."""
+    text = SCRIPT.read_text()
+    block = text[text.index("MISSING="):text.index("\nfi\n", text.index("MISSING=")) + 4]
+    probe = ("import importlib, sys\nfor name in sys.argv[1:]:\n    try:\n        importlib.import_module(name)\n"
+             "        print(name, 'imports')\n    except ImportError as error:\n        print(name, error)\n")
+    done = subprocess.run(["bash", "-c", f'set -u; W={shlex.quote(str(tmp_path))}; PYTHONPATH=; DRY_RUN=1\n{block}\n'
+                           f'echo "device $DEVICE"; {shlex.quote(sys.executable)} -c {shlex.quote(probe)} pyvista numpy'],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "device cpu" in done.stdout
+    assert "pyvista No module named 'pyvista' (gpu_check.sh WITHOUT)" in done.stdout, done.stdout
+    assert "numpy imports" in done.stdout, done.stdout
