@@ -128,9 +128,9 @@ def test_a_dry_run_blocks_the_packages_the_gpu_machine_lacks(tmp_path):
     block = text[text.index("MISSING="):text.index("\nfi\n", text.index("MISSING=")) + 4]
     probe = ("import importlib, sys\nfor name in sys.argv[1:]:\n    try:\n        importlib.import_module(name)\n"
              "        print(name, 'imports')\n    except ImportError as error:\n        print(name, error)\n")
+    python = f"{shlex.quote(sys.executable)} -c {shlex.quote(probe)}"
     done = subprocess.run(["bash", "-c", f'set -u; W={shlex.quote(str(tmp_path))}; PYTHONPATH=; DRY_RUN=1\n{block}\n'
-                           f'echo "device $DEVICE"; {shlex.quote(sys.executable)} -c {shlex.quote(probe)} pyvista numpy'],
-                          capture_output=True, text=True, timeout=120)
+                           f'echo "device $DEVICE"; {python} pyvista numpy'], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "device cpu" in done.stdout
     assert "pyvista No module named 'pyvista' (gpu_check.sh WITHOUT)" in done.stdout, done.stdout

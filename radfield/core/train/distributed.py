@@ -95,12 +95,23 @@ def connect(timeout: float = DEFAULT_TIMEOUT, check_every: int = DEFAULT_CHECK_E
     return _current
 
 
+# The tensors of the last message sent or received, kept until the group is destroyed. A tensor
+# whose Python object is dropped while gloo's worker thread still holds it is freed by that
+# thread, which must take the GIL to do so; destroying the group joins that thread while holding
+# the GIL. Both wait forever (with torch 2.4.1 rank 0 hung in destroy_process_group after its last
+# message in 2 of 11 runs of tests/test_distributed.py: the worker in PyObjectSlot's decref, the
+# main thread in ~ProcessGroupGloo's join; none in 14 with the tensors kept). Kept here, their last
+# reference is dropped by this thread, after the join.
+_last_message: tuple[torch.Tensor, ...] = ()
+
+
 def disconnect() -> None:
     """Leave the process group (after the last message); the world is a single process again."""
-    global _current
+    global _current, _last_message
     if dist.is_initialized():
         with contextlib.suppress(RuntimeError, ValueError):
             dist.destroy_process_group()
+    _last_message = ()
     _current = World()
 
 
@@ -126,15 +137,18 @@ def send(kind: str, meta: dict | None = None, tensors: dict[str, torch.Tensor] |
     header = json.dumps({"kind": kind, "meta": meta or {}, "tensors": layout}).encode()
     blob = torch.cat([t.reshape(-1).view(torch.uint8) for t in tensors.values()]) if tensors \
         else torch.empty(0, dtype=torch.uint8)
+    global _last_message
+    _last_message = (torch.tensor([len(header), blob.numel()], dtype=torch.int64),
+                     torch.frombuffer(bytearray(header), dtype=torch.uint8), blob)
     with _collective(_current, f"sending '{kind}' to the other ranks", None):
-        dist.broadcast(torch.tensor([len(header), blob.numel()], dtype=torch.int64), 0)
-        dist.broadcast(torch.frombuffer(bytearray(header), dtype=torch.uint8), 0)
-        if blob.numel():
-            dist.broadcast(blob, 0)
+        for part in _last_message:
+            if part.numel():   # the sizes and the header never empty; the tensors' bytes may be
+                dist.broadcast(part, 0)
 
 
 def receive() -> tuple[str, dict, dict[str, torch.Tensor]]:
     """The other ranks: wait for rank 0's next message; (kind, meta, tensors)."""
+    global _last_message
     sizes = torch.empty(2, dtype=torch.int64)
     with _collective(_current, "waiting for rank 0", None):
         dist.broadcast(sizes, 0)
@@ -143,6 +157,7 @@ def receive() -> tuple[str, dict, dict[str, torch.Tensor]]:
         blob = torch.empty(int(sizes[1]), dtype=torch.uint8)
         if blob.numel():
             dist.broadcast(blob, 0)
+    _last_message = (sizes, header_bytes, blob)
     header = json.loads(bytes(header_bytes.tolist()).decode())
     tensors = {name: blob[offset:offset + nbytes].clone().view(getattr(torch, dtype)).reshape(shape)
                for name, dtype, shape, offset, nbytes in header["tensors"]}
