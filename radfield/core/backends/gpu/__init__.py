@@ -128,4 +128,18 @@ def why_not() -> str | None:
                 "the oldest the kernels compile with")
     if not torch.cuda.is_available() and not interpreting():
         return "no CUDA GPU (and TRITON_INTERPRET is not set)"
+    if not torch.cuda.is_available() and version < INTERPRETER_WITH_NUMPY_2_5 and _numpy_version() >= (2, 5):
+        return (f"the interpreter of triton {'.'.join(map(str, version))} cannot run the kernels with numpy "
+                f"{'.'.join(map(str, _numpy_version()))} (Triton 3.8 can, as can numpy before 2.5)")
     return None
+
+
+# Triton's interpreter before 3.8 takes a one-element reduction used as a loop bound through
+# int(array), which numpy 2.5 refuses (3.8 squeezes the array first): the tests' CPU mode only
+INTERPRETER_WITH_NUMPY_2_5 = (3, 8)
+
+
+def _numpy_version() -> tuple[int, ...]:
+    import numpy
+
+    return tuple(int(part) for part in re.findall(r"\d+", numpy.__version__)[:2])
