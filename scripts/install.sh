@@ -9,8 +9,8 @@ cd "$(dirname "$0")/.."
 .venv/bin/python -m pip show torch >/dev/null 2>&1 || .venv/bin/python -m pip install --quiet torch==2.13.0
 # The torch in .venv stays (pinned while radfield installs). CUDA builds of torch before 2.9 pin a
 # Triton older than the test extra's (>= 3.5, for tests/test_triton.py), which would make pip replace
-# that torch: with one of those the tests install without Triton (its tests skip, and --device cuda
-# says it runs the torch kernels).
+# that torch: with one of those the tests install without Triton (the Triton tests skip; below
+# Triton 3.4, --device cuda also says that it runs the torch kernels).
 pins=$(mktemp) && trap 'rm -f "$pins"' EXIT
 .venv/bin/python -c "from importlib.metadata import version; print('torch==' + version('torch'))" >"$pins"
 old_triton=$(.venv/bin/python - <<'PY'

@@ -128,6 +128,7 @@ def start_training(world: World, device: torch.device) -> None:
 
 def send(kind: str, meta: dict | None = None, tensors: dict[str, torch.Tensor] | None = None) -> None:
     """Rank 0: broadcast a message {kind, meta (JSON), tensors} to every other rank."""
+    global _last_message
     tensors = {name: t.detach().cpu().contiguous() for name, t in (tensors or {}).items()}
     layout, offset = [], 0
     for name, t in tensors.items():
@@ -137,7 +138,6 @@ def send(kind: str, meta: dict | None = None, tensors: dict[str, torch.Tensor] |
     header = json.dumps({"kind": kind, "meta": meta or {}, "tensors": layout}).encode()
     blob = torch.cat([t.reshape(-1).view(torch.uint8) for t in tensors.values()]) if tensors \
         else torch.empty(0, dtype=torch.uint8)
-    global _last_message
     _last_message = (torch.tensor([len(header), blob.numel()], dtype=torch.int64),
                      torch.frombuffer(bytearray(header), dtype=torch.uint8), blob)
     with _collective(_current, f"sending '{kind}' to the other ranks", None):
