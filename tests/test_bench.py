@@ -23,6 +23,7 @@ def test_bench_render_profile_prints_each_kinds_top_costs(cli):
     for kind in ("neural", "neural-hard", "gaussian"):
         assert f"top costs, {kind}, one forward+backward, by host time:" in out
     assert "by device time" not in out and "kernel launches" not in out   # the CPU has neither
+    assert "Profiler clears events" not in err   # torch 2.11's warning about cycles (there is one)
 
 
 def test_bench_train_prints_every_part(cli):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -157,8 +158,11 @@ def run_bench(num: int = 10_000, width: int = 256, height: int = 256, views: int
         activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if str(device).startswith("cuda") else [])
         for name, prims in models.items():
             params = prims.to(device).map(lambda t: t.clone().requires_grad_(True))
-            with torch_profile(activities=activities) as prof:
-                render(params, cams[0]).color.sum().backward()
+            with warnings.catch_warnings():
+                # one cycle: torch 2.11's note that events of earlier cycles are cleared says nothing
+                warnings.filterwarnings("ignore", message=".*Profiler clears events")
+                with torch_profile(activities=activities) as prof:
+                    render(params, cams[0]).color.sum().backward()
             costs = prof.key_averages()
             echo(f"\n  top costs, {name}, one forward+backward, by host time:")
             echo(costs.table(sort_by="self_cpu_time_total", row_limit=12))
