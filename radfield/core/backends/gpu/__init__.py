@@ -89,7 +89,16 @@ def _version() -> tuple[int, ...] | None:
         release = importlib.metadata.version("triton")
     except importlib.metadata.PackageNotFoundError:   # importable but not installed by pip: trust it
         return MIN_TRITON
-    return tuple(int(part) for part in re.findall(r"\d+", release)[:2])
+    return _release(release)
+
+
+def _release(text: str) -> tuple[int, ...]:
+    """(major, minor) of a version string such as "3.6.0" or "2.5.2.dev0"."""
+    return tuple(int(part) for part in re.findall(r"\d+", text)[:2])
+
+
+def _dotted(version: tuple[int, ...]) -> str:
+    return ".".join(map(str, version))
 
 
 def _installed() -> bool:
@@ -124,13 +133,15 @@ def why_not() -> str | None:
     if version is None:
         return "triton is not installed"
     if version < MIN_TRITON:
-        return (f"triton {'.'.join(map(str, version))} is older than {'.'.join(map(str, MIN_TRITON))}, "
-                "the oldest the kernels compile with")
-    if not torch.cuda.is_available() and not interpreting():
+        return f"triton {_dotted(version)} is older than {_dotted(MIN_TRITON)}, the oldest the kernels compile with"
+    if torch.cuda.is_available():
+        return None
+    if not interpreting():
         return "no CUDA GPU (and TRITON_INTERPRET is not set)"
-    if not torch.cuda.is_available() and version < INTERPRETER_WITH_NUMPY_2_5 and _numpy_version() >= (2, 5):
-        return (f"the interpreter of triton {'.'.join(map(str, version))} cannot run the kernels with numpy "
-                f"{'.'.join(map(str, _numpy_version()))} (Triton 3.8 can, as can numpy before 2.5)")
+    numpy = _numpy_version()
+    if version < INTERPRETER_WITH_NUMPY_2_5 and numpy >= (2, 5):
+        return (f"the interpreter of triton {_dotted(version)} cannot run the kernels with numpy {_dotted(numpy)} "
+                "(Triton 3.8 can, as can numpy before 2.5)")
     return None
 
 
@@ -142,4 +153,4 @@ INTERPRETER_WITH_NUMPY_2_5 = (3, 8)
 def _numpy_version() -> tuple[int, ...]:
     import numpy
 
-    return tuple(int(part) for part in re.findall(r"\d+", numpy.__version__)[:2])
+    return _release(numpy.__version__)
