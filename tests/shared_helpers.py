@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.core import kinds
+from radfield.core import backends, kinds
 from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives
 from radfield.core.kinds.relight import init_network
 from radfield.core.render.antialias import render_model
+from radfield.core.render.rasterize import render
 from radfield.core.train.strategy import make_strategy
 from radfield.core.train.trainer import initial_state, make_optimizer
 from radfield.pipeline.config import load_config
@@ -86,6 +87,68 @@ def refine_everything(prims, kind: str, densify: dict) -> tuple[dict, dict, dict
     report = strategy.refine(acc, params, optimizer, densify["every"], torch.Generator().manual_seed(0))
     assert report["cloned"] + report["split"] > 0 and len(params["means"]) > len(prims)
     return params, before, report
+
+
+# --- whole renders and their gradients, compared between backends ---------------------------------
+
+# float32 against float64 on the same (float32-rounded) inputs: colour, alpha and depth absolute,
+# gradients relative to the view's largest (they are sums over the view)
+TOL32 = dict(rtol=1e-3, atol=1e-4)
+
+
+def render_with_grads(prims, cam, backend: str):
+    """The render on `backend` alone (as kernels of its own: the seam must choose it), and the
+    gradients of a fixed random weighting of its image, alpha and depth w.r.t. every tensor of prims."""
+    with backends.using(backend):
+        assert backends.select(prims.means.device, prims.means.dtype, kinds.of(prims).name) == backend
+        params = prims.map(lambda t: t.clone().requires_grad_(True))
+        out = render(params, cam, background=(0.2, 0.3, 0.4), near=0.05)
+        g = torch.Generator().manual_seed(0)
+        weights = [torch.randn(t.shape, generator=g, dtype=torch.float64).to(t) for t in (out.color, out.alpha, out.depth)]
+        loss = sum((w * t).sum() for w, t in zip(weights, (out.color, out.alpha, out.depth)))
+        names = list(params.tensors())
+        grads = torch.autograd.grad(loss, [params.tensors()[n] for n in names])
+    return out, dict(zip(names, grads))
+
+
+def assert_renders_close(out, grads, reference, reference_grads, tol, what: str = "") -> None:
+    """Images and every gradient of one render within `tol` of another's (gradients relative to the
+    reference's largest, at least 1)."""
+    for name in ("color", "alpha", "depth"):
+        torch.testing.assert_close(getattr(out, name).to(getattr(reference, name)), getattr(reference, name), **tol,
+                                   msg=lambda m: f"{what}{name}: {m}")
+    assert grads.keys() == reference_grads.keys()
+    for name, ref in reference_grads.items():
+        scale = ref.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(grads[name].to(ref) / scale, ref / scale, **tol, msg=lambda m: f"{what}d/d{name}: {m}")
+
+
+def float64_twin(prims, cam):
+    """The reference of a float32 render: the torch twin in float64 on the same float32-rounded
+    inputs. A float32 path is compared with it, not with another float32 path: two float32
+    paths round differently (and differently on AVX-512 and AVX2 CPUs, whose MKL and Sleef
+    round some functions to another last bit), so their difference says little about either."""
+    return render_with_grads(prims.to(dtype=torch.float64), cam, backends.TORCH)
+
+
+def float32_sensitivity(prims, cam, ulps: float = 4.0, draws: int = 4) -> float:
+    """How far the float64 twin's image and gradients move (absolute; gradients relative to the
+    largest, at least 1) when every parameter moves by up to `ulps` float32 ulps: what any float32
+    evaluation of the scene may be off by in the worst case, whatever its care. A scene with a
+    kink of the gradient at one of its pairs (an entry exactly at the near plane, a sphere's tied
+    max(s), α at the clamp) has a sensitivity near 1: no float32 bound can hold there on every CPU."""
+    base, base_grads = float64_twin(prims, cam)
+    worst = 0.0
+    for draw in range(draws):
+        g = torch.Generator().manual_seed(100 + draw)
+        moved = prims.to(dtype=torch.float64).map(
+            lambda t: t * (1 + ulps * 2.0**-24 * (2 * torch.rand(t.shape, generator=g, dtype=t.dtype) - 1).to(t.device)))
+        out, grads = render_with_grads(moved, cam, backends.TORCH)
+        for name in ("color", "alpha", "depth"):
+            worst = max(worst, float((getattr(out, name) - getattr(base, name)).detach().abs().max()))
+        for name, ref in base_grads.items():
+            worst = max(worst, float((grads[name] - ref).abs().max() / ref.abs().max().clamp_min(1.0)))
+    return worst
 
 
 # --- the non-negative density projection ---------------------------------------------------------

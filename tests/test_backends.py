@@ -11,13 +11,14 @@ import os
 import pytest
 import torch
 
-from radfield.core import backends, kinds
+from radfield.core import backends
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.render.rasterize import render
 from radfield.core.train import losses
 from radfield.core.train.positivity import NonNegativeDensity
 from radfield.core.train.strategy import make_strategy
+from shared_helpers import TOL32, assert_renders_close, float64_twin, render_with_grads
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 
@@ -40,45 +41,34 @@ def test_fused_cpu_backend_is_available():
     assert backends.available("meta", torch.float32) == [backends.TORCH]
 
 
-def render_with_grads(prims, cam, backend):
-    """The render on `backend` alone, and the gradient of a random weighting of its image, alpha
-    and depth w.r.t. every tensor of prims."""
-    with backends.using(backend):
-        assert backends.select(prims.means.device, prims.means.dtype, kinds.of(prims).name) == backend
-        params = prims.map(lambda t: t.clone().requires_grad_(True))
-        out = render(params, cam, background=(0.2, 0.3, 0.4), near=0.05)
-        g = torch.Generator().manual_seed(0)
-        weights = [torch.randn(t.shape, generator=g, dtype=torch.float64).to(t.dtype) for t in (out.color, out.alpha, out.depth)]
-        loss = sum((w * t).sum() for w, t in zip(weights, (out.color, out.alpha, out.depth)))
-        names = list(params.tensors())
-        grads = torch.autograd.grad(loss, [params.tensors()[n] for n in names])
-    return out, dict(zip(names, grads))
-
-
-def assert_renders_match(fast, grads_fast, slow, grads_slow, tol):
+def assert_renders_match(fast, grads_fast, slow, grads_slow, tol, scene=None):
+    """The same counts, and images and gradients within `tol`: of each other in float64; in float32
+    each within `tol` of the twin in float64 on the same rounded inputs of `scene` (prims, camera;
+    shared_helpers.float64_twin)."""
     assert slow.meta["contributing_pairs"] > 100
     # evaluated pairs differ by design (the fused kernel skips a pixel as soon as it terminates,
     # the torch twin only between chunks); everything else is the same count
     evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
     assert fast.meta == slow.meta and evaluated[0] <= evaluated[1]
-    for name in ("color", "alpha", "depth"):
-        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **tol)
-    assert grads_fast.keys() == grads_slow.keys()
-    for name, gs in grads_slow.items():
-        scale = gs.abs().max().clamp_min(1.0)   # sums over the view: tolerance relative to the largest
-        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **tol, msg=lambda m: f"d/d{name}: {m}")
+    if fast.color.dtype == torch.float64:
+        assert_renders_close(fast, grads_fast, slow, grads_slow, tol)
+        return
+    exact, grads_exact = float64_twin(*scene)
+    assert_renders_close(fast, grads_fast, exact, grads_exact, tol, "fast float32: ")
+    assert_renders_close(slow, grads_slow, exact, grads_exact, tol, "torch float32: ")
 
 
 @pytest.mark.parametrize("backend", cpu_backends())
 @pytest.mark.parametrize("kind", ["neural", "neural-window", "gaussian"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_render_matches_the_torch_twin(backend, kind, dtype, render_scene):
-    """The scene: conftest.render_scene (the fused kernels' hard cases)."""
+    """The scene: conftest.render_scene (the fused kernels' hard cases; well posed in float32:
+    tests/test_triton.py, test_the_float32_scenes_are_well_posed)."""
     prims, cam = render_scene(kind, dtype)
     fast, grads_fast = render_with_grads(prims, cam, backend)
     slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
-    tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else dict(rtol=1e-3, atol=1e-4)
-    assert_renders_match(fast, grads_fast, slow, grads_slow, tol)
+    tol = dict(rtol=1e-9, atol=1e-10) if dtype == torch.float64 else TOL32
+    assert_renders_match(fast, grads_fast, slow, grads_slow, tol, scene=(prims, cam))
 
 
 @pytest.mark.parametrize("backend", cpu_backends())

@@ -79,3 +79,57 @@ def test_a_model_with_values_out_of_range_is_one_line_on_every_reader(cli, tmp_p
         assert code == 1 and err.startswith("radfield: error: ") and err.count("\n") == 1, err
         assert message in err and str(model) in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.safetensors"]   # nothing written
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, run_radfield):
+    """A dataset and a finished run of it, both tiny."""
+    from radfield.datasets.synthetic import generate_scene
+
+    root = tmp_path_factory.mktemp("tiny")
+    data = generate_scene("blobs", root / "blobs", n_train=4, n_test=1, size=16, seed=0)
+    assert run_radfield("reconstruct", data, "-o", root / "run", "-q", "--iterations", "5", "--no-cage",
+                        "--set", "init.num_points=50") == 0
+    return data, root / "run"
+
+
+# Out-of-range numbers of every verb's own options (the pipeline's keys: tests/test_stages.py).
+BAD_NUMBERS = [
+    ("render", "--downscale", "0"), ("render", "--near", "0"), ("render", "--near", "nan"), ("render", "--orbit", "-2"),
+    ("render", "--elevation", "95"), ("render", "--elevation", "inf"), ("render", "--fps", "0"), ("render", "--time", "2"),
+    ("render", "--light-intensity", "-1"), ("render", "--light-orbit", "-1"), ("render", "--camera", "-1"),
+    ("eval", "--downscale", "0"),
+    ("bake", "--min-weight", "1.5"), ("bake", "--downscale", "-1"),
+    ("animate", "--elevation", "-91"), ("animate", "--downscale", "0"),
+    ("animate", "--fps", "-3"), ("animate", "--split-threshold", "-1"), ("animate", "--split-threshold", "nan"),
+    ("edit", "--scale", "0"), ("edit", "--scale", "-2"), ("edit", "--scale", "inf"), ("edit", "--split-threshold", "-0.5"),
+    ("edit", "--seed", "-1"),
+    ("export", "--components", "0"), ("export", "--refine", "-1"), ("export", "--time", "-0.1"),
+    ("export", "--light-intensity", "0"),
+    ("view", "--port", "-1"), ("view", "--port", "70000"), ("view", "--resolution", "8"), ("view", "--moving-downscale", "0"),
+    ("view", "--time", "1.5"),
+    ("demo-scene", "--size", "0"), ("demo-scene", "--train-views", "0"), ("demo-scene", "--test-views", "-1"),
+    ("demo-scene", "--seed", "-1"), ("demo-scene", "--times", "0"), ("demo-scene", "--lights", "0"),
+    ("bench-render", "--primitives", "0"), ("bench-train", "--steps", "0"), ("bench-quality", "--iterations", "0"),
+    ("bench-dist", "--size", "0"), ("bench-startup", "--repeats", "0"),
+]
+
+
+def _verb_args(verb, data, run, out):
+    return {"render": ["render", run, "-o", out], "eval": ["eval", run, "-o", out], "bake": ["bake", run, "-o", out / "b.safetensors"],
+            "animate": ["animate", run, "-o", out, "--simulate", out.parent / "sim.yaml"], "edit": ["edit", run, "-o", out, "--rotate", "0,0,10"],
+            "export": ["export", run, "-f", "ply-3dgs", "-o", out / "m.ply"], "view": ["view", run],
+            "demo-scene": ["demo-scene", "blobs", "-o", out], "bench-render": ["bench-render"],
+            "bench-train": ["bench-train"], "bench-quality": ["bench-quality", data, "-o", out],
+            "bench-dist": ["bench-dist"], "bench-startup": ["bench-startup"]}[verb]
+
+
+@pytest.mark.parametrize("verb, option, value", BAD_NUMBERS, ids=[" ".join(case) for case in BAD_NUMBERS])
+def test_an_out_of_range_number_is_one_line_before_any_work(cli, tiny_run, tmp_path, verb, option, value):
+    data, run = tiny_run
+    out = tmp_path / "out"
+    before = sorted(p.name for p in run.rglob("*"))
+    code, stdout, err = cli(*_verb_args(verb, data, run, out), option, value)
+    assert code == 1 and stdout == "" and err.startswith("radfield: error: ") and err.count("\n") == 1, err
+    assert option in err, err
+    assert not out.exists() and sorted(p.name for p in run.rglob("*")) == before

@@ -58,16 +58,19 @@ def smoke(tmp_path_factory, run_radfield):
     return root
 
 
-def test_render_time_draws_that_moment(cli, smoke, tmp_path):
+def test_render_time_draws_that_moment_once_a_camera(cli, smoke, tmp_path):
     model = load_model(smoke / "dynamic.safetensors")
     cameras = load_split(smoke / "smoke", "test", load_config(None)["data"]).cameras
+    assert [c.name for c in cameras] == ["r_000_t000", "r_000_t001", "r_000_t002", "r_001_t000", "r_001_t001", "r_001_t002"]
     images = {}
     for t in (0.2, 0.8):
         out = tmp_path / f"t{t}"
         code, stdout, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", out, "--time", t, "-q")
         assert code == 0, err
-        assert "at 1 moment" in stdout
-        images[t] = read_image(out / f"{cameras[0].name}.png")[..., :3]
+        # one image a camera, not one per recorded moment of it (6 images, 3 of them the same, before)
+        assert stdout.startswith("rendered 2 views at 1 moment (16x16"), stdout
+        assert sorted(p.name for p in out.iterdir()) == ["r_000.png", "r_001.png"]
+        images[t] = read_image(out / "r_000.png")[..., :3]
         static = kinds.of(model).at_time(model, t)    # the static model of that moment
         assert np.abs(images[t] - drawn(static, cameras[0])).max() <= 0.5 / 255 + 1e-6
     assert np.abs(images[0.2] - images[0.8]).max() > 0.1   # the moments differ
@@ -78,23 +81,28 @@ def test_render_time_draws_that_moment(cli, smoke, tmp_path):
     code, _, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "one",
                        "--time", "1", "--camera", own.name, "-q")
     assert code == 0, err
-    assert [p.name for p in (tmp_path / "one").iterdir()] == [f"{own.name}.png"]
-    assert np.array_equal(read_image(tmp_path / "own" / f"{own.name}.png"), read_image(tmp_path / "one" / f"{own.name}.png"))
+    camera = own.name.rpartition("_")[0]   # r_000_t002: the camera r_000, named once
+    assert [p.name for p in (tmp_path / "one").iterdir()] == [f"{camera}.png"]
+    assert np.array_equal(read_image(tmp_path / "own" / f"{own.name}.png"), read_image(tmp_path / "one" / f"{camera}.png"))
+    code, stdout, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "all", "-q")
+    assert code == 0 and stdout.startswith("rendered 6 images: 2 views at 3 moments (16x16"), stdout
 
 
-def test_render_times_writes_every_view_at_every_moment(cli, smoke, tmp_path):
+def test_render_times_writes_every_camera_at_every_moment(cli, smoke, tmp_path):
     code, stdout, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "many",
                             "--times", "0:1:3", "-q")
     assert code == 0, err
     names = sorted(p.name for p in (tmp_path / "many").iterdir())
-    views = sorted(c.name for c in load_split(smoke / "smoke", "test", load_config(None)["data"]).cameras)
-    assert names == sorted(f"{v}_t{k:04d}.png" for v in views for k in range(3))
-    assert "18 views at 3 moments" in stdout
+    assert names == [f"r_00{v}_t{k:04d}.png" for v in range(2) for k in range(3)]   # the moment named once
+    assert stdout.startswith("rendered 6 images: 2 views at 3 moments"), stdout
     code, _, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "half",
-                       "--time", "0.5", "--camera", views[0], "-q")
+                       "--time", "0.5", "--camera", "r_000", "-q")
     assert code == 0, err
-    assert np.array_equal(read_image(tmp_path / "many" / f"{views[0]}_t0001.png"),
-                          read_image(tmp_path / "half" / f"{views[0]}.png"))
+    assert np.array_equal(read_image(tmp_path / "many" / "r_000_t0001.png"), read_image(tmp_path / "half" / "r_000.png"))
+    code, stdout, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "lapse",
+                            "--camera", "r_001_t002", "--times", "0:1:4", "-q")
+    assert code == 0 and stdout.startswith("rendered 4 images: 1 view at 4 moments"), stdout
+    assert sorted(p.name for p in (tmp_path / "lapse").iterdir()) == [f"r_001_t{k:04d}.png" for k in range(4)]
 
 
 def test_time_lapse_videos(cli, smoke, tmp_path):
@@ -220,7 +228,8 @@ def test_refined_export_of_a_run_refines_against_that_moment(smoke):
                for split, split_views in views.items()}
     static = Content(model=kinds.of(model).at_time(model, 0.3), views=untimed, **settings)
     made = [gaussians_for(content, "ply-3dgs", 1, 20) for content in (dynamic, static)]
-    assert made[0].fidelity == made[1].fidelity and made[0].fidelity[1:] == (6, "test")
+    # measured once a camera (2 test cameras × 3 moments: 2 views, not the 6 duplicates)
+    assert made[0].fidelity == made[1].fidelity and made[0].fidelity[1:] == (2, "test")
     for name in ("means", "log_scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(dynamic.model, name), getattr(static.model, name)), name
     # and that moment's model is not any moment's: the Gaussians of T = 0.3 are not those of T = 0.9

@@ -17,6 +17,7 @@ from radfield.core.geometry.camera_path import orbit
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.delivery.io import load_model
 from radfield.datasets.images import read_image
+from radfield.datasets.readers import load_dataset
 from radfield.edit.field import box_cage
 
 
@@ -133,8 +134,23 @@ def test_spec_errors_are_one_line_and_leave_nothing(cli, scene, tmp_path, ops, m
     assert err.startswith("radfield: error: ") and err.count("\n") == 1, err
     import re
     assert re.search(message, err), err
+    assert err.startswith(f"radfield: error: {spec}: "), err   # every error of a spec names its file first
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml", "other.npz"]
+
+
+def test_a_yaml_mistake_in_any_file_says_where(cli, scene, tmp_path):
+    """A syntax error in an edit spec, an animation spec or a pipeline config: the file, the line and
+    the column, in one line."""
+    root, run, data, v, t = scene
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("operations:\n  - transform: {scale: [1, 2\n")
+    for args in (["edit", run, "--spec", bad, "-o", tmp_path / "out"], ["animate", run, "--spec", bad, "-o", tmp_path / "out"],
+                 ["reconstruct", data, "-o", tmp_path / "out", "--config", bad]):
+        code, _, err = cli(*args)
+        assert code == 1 and err == (f"radfield: error: {bad}: not valid YAML: expected ',' or ']', but got "
+                                     "'<stream end>' (line 3, column 1)\n"), err
+        assert not (tmp_path / "out").exists()
 
 
 def test_edit_refuses_an_existing_output_and_needs_something_to_do(cli, scene, tmp_path):
@@ -241,6 +257,12 @@ def test_animate_from_a_spec_file(cli, scene, tmp_path):
     assert code == 0, err
     for i in range(3):                                  # the spec says what the options say
         assert np.array_equal(read_image(tmp_path / "a" / f"frame_{i:04d}.png"), read_image(tmp_path / "b" / f"frame_{i:04d}.png"))
+    # --camera takes the view's frame name as render's does, or its index
+    name = load_dataset(data, "test").names[1]
+    code, _, err = cli("animate", run_dir, "--cages", frames_dir, "--camera", name, "--fps", "12", "--split-threshold", "0",
+                       "-o", tmp_path / "named", "-q")
+    assert code == 0, err
+    assert np.array_equal(read_image(tmp_path / "named" / "frame_0002.png"), read_image(tmp_path / "b" / "frame_0002.png"))
     assert json.loads((tmp_path / "a" / "animation.json").read_text())["fps"] == 12
     # a simulation with render settings
     sim = tmp_path / "sim.yaml"
@@ -253,7 +275,7 @@ def test_animate_from_a_spec_file(cli, scene, tmp_path):
     for text, message in (("animate: {cages: frames}\nsimulate: {}\n", "exactly one pose source"),
                           ("animate: {cages: frames, fps: -1}\n", "animate.fps"),
                           ("animate: {cages: frames, zoom: 2}\n", "unknown arguments"),
-                          ("animate: {cages: frames, camera: 99}\n", "--camera 99")):
+                          ("animate: {cages: frames, camera: 99}\n", "animate.camera '99': no view of that name (or index)")):
         bad = tmp_path / "spec_dir" / "bad.yaml"
         bad.write_text(text)
         code, _, err = cli("animate", run_dir, "--spec", bad, "-o", tmp_path / "bad_out")

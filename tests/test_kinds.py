@@ -109,6 +109,46 @@ def test_the_registry_knows_the_built_in_kinds_and_refuses_others():
         kinds.register(type(kinds.get("neural"))())
 
 
+def test_the_declared_kinds_are_the_registered_ones(cli):
+    """pyproject.toml's entry points (group radfield.kinds) declare every built-in kind, each the
+    registered object, so `reconstruct --help` lists what the registry holds without importing it."""
+    from importlib.metadata import entry_points
+
+    from radfield.cli.common import kind_names
+
+    points = {point.name: point for point in entry_points(group="radfield.kinds")}
+    assert set(points) == set(kinds.names())
+    assert all(points[name].load() is kinds.get(name) for name in points)
+    code, out, _ = cli("reconstruct", "--help")
+    assert code == 0 and f"Registered kinds: {', '.join(kind_names())}." in " ".join(out.split())
+
+
+def test_a_kind_another_package_declares_is_loaded(monkeypatch, tmp_path):
+    """An installed package's kind (its entry point) is registered when radfield's kinds load; one
+    that fails to import is one warning, not a broken radfield."""
+    import importlib.metadata
+    import sys
+
+    module = tmp_path / "plugin_kind.py"
+    module.write_text("from radfield.core.kinds import NeuralPrimitives, register\n"
+                      "from radfield.core.kinds.neural import NeuralKind\n"
+                      "class PluginPrimitives(NeuralPrimitives):\n    kind = 'plugin-neural'\n"
+                      "class PluginKind(NeuralKind):\n    name, primitives = 'plugin-neural', PluginPrimitives\n"
+                      "KIND = register(PluginKind())\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    declared = [importlib.metadata.EntryPoint("plugin-neural", "plugin_kind:KIND", "radfield.kinds"),
+                importlib.metadata.EntryPoint("broken", "no_such_module:KIND", "radfield.kinds")]
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group=None: declared if group == "radfield.kinds" else [])
+    try:
+        with pytest.warns(RuntimeWarning, match="the primitive kind 'broken' .* failed to load"):
+            kinds._load_declared_kinds()
+        assert "plugin-neural" in kinds.names() and "broken" not in kinds.names()
+    finally:
+        if "plugin-neural" in kinds.names():
+            kinds.unregister("plugin-neural")
+        sys.modules.pop("plugin_kind", None)
+
+
 def test_a_new_kind_renders_through_the_torch_twin(ellipsoid):
     prims, cam = ellipsoids(), cameras(1)[0]
     assert "ellipsoid" in kinds.names() and kinds.of(prims) is ellipsoid

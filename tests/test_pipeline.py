@@ -345,7 +345,8 @@ def test_info_json_shape(toy: Toy, tmp_path: Path, dataset: Path) -> None:
     run(toy, run_dir, dataset, until_stage="train")
     info = run_info(run_dir)
     json.dumps(info)  # plain JSON
-    assert set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages", "edited_from", "edit"}
+    assert set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages", "edited_from", "edit",
+                         "artifacts"}
     assert info["pending_checkpoint"] is None
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve()) and info["normalization"] is None
     assert list(info["stages"]) == ORDER
@@ -440,7 +441,7 @@ def test_bad_config_file_names_file_and_key(tmp_path: Path) -> None:
     with pytest.raises(RadfieldError, match="train is a section"):
         load_config(path)
     path.write_text("train: {iterations: [\n")
-    with pytest.raises(RadfieldError, match="is not valid YAML"):
+    with pytest.raises(RadfieldError, match=rf"^{path}: not valid YAML: expected .* \(line 2, column 1\)$"):
         load_config(path)
     with pytest.raises(RadfieldError, match="not found"):
         load_config(tmp_path / "missing.yaml")

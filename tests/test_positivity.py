@@ -17,8 +17,7 @@ from radfield.core.kinds import random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train.strategy import in_frustum
 from radfield.core.train.trainer import train
-from radfield.pipeline.config import load_defaults
-from radfield.stages.init import check_config
+from radfield.pipeline.config import load_config, load_defaults
 from shared_helpers import projection_rows
 
 BG = (1.0, 1.0, 1.0)
@@ -188,10 +187,8 @@ def test_the_absolute_frequency_bound_holds_after_training():
 @pytest.mark.parametrize("key, value", [("frequency_bound", -1.0), ("nonnegative_density", -1.0),
                                         ("nonnegative_density", 181.0)])
 def test_bad_values_are_one_line_errors(key, value):
-    config = load_defaults()
-    config["train"][key] = value
     with pytest.raises(RadfieldError, match=f"train.{key}"):
-        check_config(config, {}, posed=False)
+        load_config(None, [f"train.{key}={value}"])
 
 
 @pytest.mark.skipif(os.environ.get("CI", "").strip().lower() != "true" and not fused.available(),

@@ -63,21 +63,24 @@ def close(png, expected) -> bool:
 def test_render_light_draws_the_model_under_that_light(cli, olat, tmp_path):
     model = load_model(olat / "relight.safetensors")
     camera = split_cameras(olat)[0]
+    assert [c.name for c in split_cameras(olat)] == ["r_000_l00", "r_000_l01", "r_001_l00", "r_001_l01"]
     images = {}
     for light in (LIGHT_A, LIGHT_B):
         out = tmp_path / f"{light}"
         code, stdout, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", out,
                                 "--light", ",".join(map(str, light)), "--light-intensity", "9", "-q")
         assert code == 0, err
-        assert "4 views under 1 light" in stdout
-        images[light] = read_image(out / f"{camera.name}.png")[..., :3]
-        assert close(out / f"{camera.name}.png", drawn(model, replace(camera, light=Light(position=light, intensity=9.0))))
+        # one image a camera, not one per light it was photographed under
+        assert stdout.startswith("rendered 2 views under 1 light (16x16"), stdout
+        assert sorted(p.name for p in out.iterdir()) == ["r_000.png", "r_001.png"]
+        images[light] = read_image(out / "r_000.png")[..., :3]
+        assert close(out / "r_000.png", drawn(model, replace(camera, light=Light(position=light, intensity=9.0))))
     assert np.abs(images[LIGHT_A] - images[LIGHT_B]).max() > 0.1   # the lights differ
     # a directional light
     code, _, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "sun",
                        "--light-dir", "0,0,-1", "--camera", camera.name, "-q")
     assert code == 0, err
-    assert close(tmp_path / "sun" / f"{camera.name}.png", drawn(model, replace(camera, light=Light(direction=(0, 0, -1)))))
+    assert close(tmp_path / "sun" / "r_000.png", drawn(model, replace(camera, light=Light(direction=(0, 0, -1)))))
 
 
 def test_dataset_views_render_under_their_own_lights(cli, olat, tmp_path):
@@ -86,7 +89,7 @@ def test_dataset_views_render_under_their_own_lights(cli, olat, tmp_path):
     assert len({c.light for c in cameras}) == 4 and all(c.light.position is not None for c in cameras)
     code, stdout, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "own", "-q")
     assert code == 0, err
-    assert "4 views under 4 lights" in stdout
+    assert stdout.startswith("rendered 4 images: 2 views under 4 lights"), stdout
     for camera in cameras:
         assert close(tmp_path / "own" / f"{camera.name}.png", drawn(model, camera))
     # the two lights of one camera give two images
@@ -100,9 +103,9 @@ def test_light_orbit_circles_the_object_at_the_dataset_lights_distance(cli, olat
     code, stdout, err = cli("render", olat / "relight.safetensors", "-d", olat / "olat", "-o", tmp_path / "orbit",
                             "--camera", camera.name, "--light-orbit", "5", "--video", tmp_path / "orbit.mp4", "-q")
     assert code == 0, err
-    assert "5 views under 5 lights" in stdout
+    assert stdout.startswith("rendered 5 images: 1 view under 5 lights"), stdout
     pngs = sorted((tmp_path / "orbit").glob("*.png"))
-    assert [p.name for p in pngs] == [f"{camera.name}_l{k:04d}.png" for k in range(5)]
+    assert [p.name for p in pngs] == [f"r_000_l{k:04d}.png" for k in range(5)]   # the light named once
     reader = imageio.get_reader(tmp_path / "orbit.mp4", "ffmpeg")
     frames = [frame for frame in reader]
     reader.close()
@@ -151,9 +154,9 @@ def test_a_run_takes_its_dataset_lights_intensity(cli, olat, relight_run, tmp_pa
     for name, args in (("own", []), ("given", ["--light-intensity", mean]), ("one", ["--light-intensity", 1])):
         code, _, err = cli("render", relight_run, "-o", tmp_path / name, "--light", "3,0,1", "-q", *args)
         assert code == 0, err
-    default = read_image(tmp_path / "own" / f"{cameras[0].name}.png")
-    assert np.array_equal(default, read_image(tmp_path / "given" / f"{cameras[0].name}.png"))
-    assert np.abs(default - read_image(tmp_path / "one" / f"{cameras[0].name}.png")).max() > 0.05
+    default = read_image(tmp_path / "own" / "r_000.png")
+    assert np.array_equal(default, read_image(tmp_path / "given" / "r_000.png"))
+    assert np.abs(default - read_image(tmp_path / "one" / "r_000.png")).max() > 0.05
     code, stdout, err = cli("export", relight_run, "-f", "ply-3dgs", "-o", tmp_path / "run.ply", "--light", "3,0,1",
                             "--refine", "0")
     assert code == 0 and "light 3,0,1, light intensity 7.5625" in stdout, err
@@ -219,7 +222,7 @@ def test_the_light_plot_places_each_light_about_the_object():
     (["--light", "3,0,0", "--light-intensity", "0"], "--light-intensity must be a positive number"),
     (["--light-intensity", "2"], "--light-intensity is the intensity of --light, --light-dir or --light-orbit"),
     (["--light", "3,0,0", "--light-orbit", "3"], "--light and --light-orbit exclude each other"),
-    (["--light-orbit", "-1"], "--light-orbit takes a frame count >= 1"),
+    (["--light-orbit", "-1"], "--light-orbit must be at least 0, got -1"),
     (["--light", "0,0,0.1"], "--light 0,0,0.1 is inside the object's bounds (the box"),
     (["--orbit", "3"], "this model is relightable (neural-relight): give a light for the orbit (--light X,Y,Z"),
     (["--orbit", "3", "--light-orbit", "4"], "--light-orbit gives 4 lights but the orbit has 3 frames"),

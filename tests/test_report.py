@@ -12,7 +12,7 @@ import pytest
 
 from radfield.delivery import lpips as lpips_metric
 from radfield.delivery.io import save_model
-from radfield.delivery.report import GAP, LABEL_HEIGHT, error_map
+from radfield.delivery.report import BAR_STRIP, BAR_WIDTH, GAP, LABEL_HEIGHT, error_map
 from radfield.datasets.images import read_image
 from radfield.datasets.synthetic import generate_scene
 from radfield.datasets import scene as data
@@ -61,9 +61,14 @@ def test_eval_writes_report_grids_and_lpips(scene_dir, models, tmp_path, cli):
     for v in metrics["per_view"]:
         assert f"| {v['name']} | {v['psnr']:.2f} | {v['ssim']:.4f} |" in text
         grid = read_image(out / "grids" / f"{v['name']}.png")
-        assert grid.shape[:2] == (SIZE, 3 * SIZE + 2 * GAP)
+        # captioned panels (truth | render | |error|) and the error map's colour bar
+        assert grid.shape[:2] == (LABEL_HEIGHT + SIZE, 3 * SIZE + BAR_WIDTH + 3 * GAP)
         render = read_image(out / "renders" / f"{v['name']}.png")[..., :3]
-        np.testing.assert_allclose(grid[:, SIZE + GAP : 2 * SIZE + GAP, :3], render, atol=1 / 255)
+        np.testing.assert_allclose(grid[LABEL_HEIGHT:, SIZE + GAP : 2 * SIZE + GAP, :3], render, atol=1 / 255)
+        assert grid[:LABEL_HEIGHT, :SIZE].min() < 0.5                      # a caption is written
+        bar = grid[LABEL_HEIGHT:, 3 * SIZE + 3 * GAP:3 * SIZE + 3 * GAP + BAR_STRIP, :3]
+        np.testing.assert_allclose(bar[-1], np.broadcast_to(error_map(np.zeros((1, 1, 3)), np.zeros((1, 1, 3)))[0], bar[-1].shape), atol=0.02)   # 0: black
+        assert bar[0].mean() > 0.8 and bar[0].mean() > bar[SIZE // 2].mean() > bar[-1].mean()   # ERROR_SCALE on top
     assert f"**{metrics['psnr']:.2f}**" in text and f"| primitives | {metrics['num_primitives']} |" in text
     assert f"| parameters | {metrics['num_params']} |" in text and f"{metrics['fps']:.2f}" in text
     if _lpips_required():
@@ -116,3 +121,17 @@ def test_bench_quality_tiny(scene_dir, tmp_path, cli):
     assert (out / "psnr_vs_params.png").stat().st_size > 1000
     table = (out / "bench.md").read_text()
     assert table.count("\n| ") == 4 and f"{rows[0]['psnr']:.2f}" in table  # header, rule, two rows
+
+
+def test_the_time_plot_legend_hides_no_point():
+    """In the corner the legend hid the last moment's point (issue 44): it is below the axes."""
+    from radfield.delivery.report import time_figure
+
+    per_time = [{"time": k / 23, "psnr": 40.0 - 3.0 * (k == 23), "views": 4} for k in range(24)]
+    figure = time_figure(per_time)
+    figure.canvas.draw()
+    axes = figure.axes[0]
+    legend = (figure.legends or [axes.get_legend()])[0].get_window_extent()
+    points = axes.transData.transform([(t["time"], t["psnr"]) for t in per_time])
+    assert not any(legend.contains(x, y) for x, y in points)
+    assert not legend.overlaps(axes.get_window_extent())

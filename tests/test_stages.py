@@ -184,21 +184,45 @@ def test_dataset_errors_fail_first_and_leave_the_run_alone(scene_copy, tmp_path,
     assert snapshot(run_dir) == before
 
 
-@pytest.mark.parametrize("args, key", [
+@pytest.mark.parametrize("args, named", [
     (["--set", "train.iteratons=5"], "train.iterations"),  # with a suggestion
     (["--set", "init.source=bogus"], "init.source"),
     (["--set", "init.neural_radius=-1"], "init.neural_radius"),
-    (["--max-primitives", "0"], "train.max_primitives"),
-    (["--primitive", "splat"], "train.primitive"),
+    (["--max-primitives", "0"], "--max-primitives must be at least 1, got 0"),   # a flag names itself
+    (["--primitive", "splat"], "--primitive must be one of neural, gaussian"),
     (["--set", "data.test_every=1"], "data.test_every"),
-    (["--downscale", "0"], "data.downscale"),
+    (["--downscale", "0"], "--downscale must be at least 1, got 0"),
     (["--set", "init.source=points"], "init.source"),  # the scene has no SfM points
     (["--set", "eval.split=val"], "eval.split"),  # nor a val split
 ])
-def test_config_errors_name_the_key(scene_dir, tmp_path, cli, args, key):
+def test_config_errors_name_the_key_or_the_flag(scene_dir, tmp_path, cli, args, named):
     code, out, err = cli("reconstruct", scene_dir, "-o", tmp_path / "run", *args)
-    assert code == 1 and len(err.strip().splitlines()) == 1 and key in err, err
+    assert code == 1 and len(err.strip().splitlines()) == 1 and named in err, err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.fixture(scope="module")
+def finished_run(scene_dir, tmp_path_factory, run_radfield) -> Path:
+    run_dir = tmp_path_factory.mktemp("finished") / "run"
+    assert run_radfield("reconstruct", scene_dir, "-o", run_dir, "-q", "--iterations", "30",
+                        "--set", "init.num_points=200", "--set", "envelope.target_faces=200") == 0
+    return run_dir
+
+
+@pytest.mark.parametrize("args", [
+    ["--iterations", "-5"], ["--iterations", "0"], ["--set", "train.iterations=-5"], ["--max-primitives", "-1"],
+    ["--set", "train.lr.means=-1"], ["--set", "train.lr.means=.nan"], ["--set", "train.densify.every=0"],
+    ["--set", "render.near=0"], ["--set", "render.hidden=0"], ["--set", "train.sh_degree=4"], ["--seed", "-1"],
+    ["--set", "data.background=[0, 2, 0]"], ["--set", "train.checkpoint_every=0"], ["--set", "bake.min_weight=1"],
+])
+def test_an_out_of_range_number_leaves_a_finished_run_as_it_was(scene_dir, finished_run, cli, args):
+    """`reconstruct RUN --iterations -5` on a finished run exited 0 and replaced the trained model by
+    an untrained one (issue 44): every number is checked against its range (config.RANGES) when it
+    is set, before the run directory is touched."""
+    before = snapshot(finished_run)
+    code, out, err = cli("reconstruct", scene_dir, "-o", finished_run, "-q", *args)
+    assert code == 1 and out == "" and err.startswith("radfield: error: ") and err.count("\n") == 1, err
+    assert snapshot(finished_run) == before
 
 
 # --- init -----------------------------------------------------------------------------------------
@@ -342,8 +366,13 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
     code, out, _ = cli("info", run_dir, "--json")
     info = json.loads(out)
     assert code == 0 and set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages",
-                                       "edited_from", "edit"}
+                                       "edited_from", "edit", "artifacts"}
     assert info["edited_from"] is None and info["edit"] is None
+    # what each stage wrote, in pipeline order, and the table says it too (it promised "artifacts")
+    assert list(info["artifacts"]) == [s for s in info["stages"] if info["stages"][s]["done"] and s != "sfm"]
+    assert info["artifacts"]["train"][0] == info["model"] and str(run_dir / "eval" / "report.md") in info["artifacts"]["eval"]
+    code, out, _ = cli("info", run_dir)
+    assert code == 0 and f"artifacts (in {run_dir}):" in out and "  eval/: metrics.json, renders, report.md" in out
     assert info["pending_checkpoint"] is None
     assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())

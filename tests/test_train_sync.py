@@ -18,9 +18,8 @@ from radfield.core.train.trainlog import read_log
 from radfield.datasets.images import write_image
 from radfield.delivery.io import save_model
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import load_defaults, section
+from radfield.pipeline.config import load_config, load_defaults, section
 from radfield.pipeline.runner import Context
-from radfield.stages import init as init_stage
 from radfield.stages import train as train_stage
 
 BG = (1.0, 1.0, 1.0)
@@ -102,10 +101,8 @@ def test_reads_every_fifty_steps_by_default_on_a_gpu_only():
 
 
 def test_a_log_every_below_one_is_a_config_error():
-    config = load_defaults()
-    config["train"]["log_every"] = 0
-    with pytest.raises(RadfieldError, match=r"^config key train.log_every must be at least 1.*got 0$"):
-        init_stage.check_config(config, {})
+    with pytest.raises(RadfieldError, match=r"^--set train.log_every=0: config key train.log_every must be at least 1.*got 0$"):
+        load_config(None, ["train.log_every=0"])
 
 
 # --- the train stage: log.jsonl and resume ----------------------------------------------------

@@ -26,7 +26,8 @@ from radfield.core.geometry.cameras import Camera, look_at  # noqa: E402
 from radfield.core.kinds import random_gaussians, random_neural   # noqa: E402
 from radfield.core.render.rasterize import render           # noqa: E402
 from radfield.core.train.strategy import make_strategy      # noqa: E402
-from shared_helpers import projection_rows                  # noqa: E402
+from shared_helpers import (TOL32, assert_renders_close, float32_sensitivity, float64_twin,   # noqa: E402
+                            projection_rows, render_with_grads)
 
 IN_CI = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")   # conftest.in_ci()
 INSTALLED = gpu._installed()   # a Triton the kernels compile with (>= gpu.MIN_TRITON)
@@ -36,7 +37,7 @@ DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 # (and fail) regardless
 pytestmark = pytest.mark.skipif(not IN_CI and gpu.why_not() is not None, reason=f"{gpu.why_not()} (Linux x86-64; "
                                 "CUDA builds of torch 2.8 and later bring Triton 3.4 or newer)")
-TOL = {torch.float64: dict(rtol=1e-9, atol=1e-10), torch.float32: dict(rtol=1e-3, atol=1e-4)}
+TOL = {torch.float64: dict(rtol=1e-9, atol=1e-10), torch.float32: TOL32}
 
 
 def test_triton_is_installed_and_runs_here():
@@ -108,49 +109,43 @@ def hard_scene(dtype):
     return prims.to(dtype=dtype, device=DEVICE), cam
 
 
-def render_with_grads(prims, cam, backend):
-    """The render on `backend` alone and the gradients of a random weighting of its image, alpha and
-    depth w.r.t. every tensor of prims (as tests/test_backends.py)."""
-    with backends.using(backend):
-        assert backends.select(prims.means.device, prims.means.dtype, kinds.of(prims).name) == backend
-        params = prims.map(lambda t: t.clone().requires_grad_(True))
-        out = render(params, cam, background=(0.2, 0.3, 0.4), near=0.05)
-        g = torch.Generator().manual_seed(0)
-        weights = [torch.randn(t.shape, generator=g, dtype=torch.float64).to(t) for t in (out.color, out.alpha, out.depth)]
-        loss = sum((w * t).sum() for w, t in zip(weights, (out.color, out.alpha, out.depth)))
-        names = list(params.tensors())
-        grads = torch.autograd.grad(loss, [params.tensors()[n] for n in names])
-    return out, dict(zip(names, grads))
-
-
 def scene_of(name, dtype, render_scene):
     """hard_scene, or conftest.render_scene's (24×20, the backends' common case: for neural primitives
     the camera inside one, one straddling the near plane, one at the α clamp) of a kind; "neural-5":
     5 hidden units (the backward sums the units' gradients in groups of 8, the rest masked);
     "neural-dense": 40 primitives in one tile, a list longer than the forward's CHUNK (it counts
-    the live pixels once a chunk)."""
+    the live pixels once a chunk). The last two are windowed: their hard-edged versions graze a
+    silhouette at 1e-4 of a radius, where no float32 gradient is within the tolerance of float64
+    (test_the_float32_scenes_are_well_posed); the hard-edged kernels' float32 case is "neural"."""
     if name == "hard_scene":
         return hard_scene(dtype)
     if name == "neural-5":
-        prims, cam = render_scene("neural", dtype, hidden=5)
+        prims, cam = render_scene("neural-window", dtype, hidden=5)
         assert prims.hidden == 5
     elif name == "neural-dense":
         prims = random_neural(40, sh_degree=1, scale=0.35, extent=0.3, b2=1.0, w2_amplitude=1.0, seed=5).to(dtype=dtype)
+        prims.window = True
         cam = Camera(fx=14.0, fy=15.0, cx=8.2, cy=7.9, width=16, height=16, c2w=look_at((0.15, -1.5, 0.25), (0, 0, 0)))
     else:
         prims, cam = render_scene(name, dtype)
     return prims.to(device=DEVICE), cam
 
 
+SCENES = ["gaussian", "hard_scene", "neural", "neural-window", "neural-5", "neural-dense"]
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("scene", ["gaussian", "hard_scene", "neural", "neural-window", "neural-5", "neural-dense"])
+@pytest.mark.parametrize("scene", SCENES)
 def test_render_matches_the_torch_twin(scene, dtype, render_scene):
+    """float64: the kernels and the twin agree to rounding. float32: both are compared with the
+    twin in float64 on the same rounded inputs (shared_helpers.float64_twin), each within TOL32;
+    the two float32 paths agree on every count."""
     prims, cam = scene_of(scene, dtype, render_scene)
     fast, grads_fast = render_with_grads(prims, cam, backends.TRITON)
     slow, grads_slow = render_with_grads(prims, cam, backends.TORCH)
     assert slow.meta["contributing_pairs"] > 500
     if scene != "gaussian":   # the scenes do what they say: pixels terminate early
-        assert slow.meta["terminated_pixels"] > 50
+        assert slow.meta["terminated_pixels"] > 20
     if scene == "hard_scene":
         assert slow.meta["visible"] < len(prims.means)
     if scene == "neural-dense":   # one tile, its list longer than a chunk
@@ -159,13 +154,27 @@ def test_render_matches_the_torch_twin(scene, dtype, render_scene):
     # only between chunks); every other count is the same
     evaluated = fast.meta.pop("pairs"), slow.meta.pop("pairs")
     assert fast.meta == slow.meta and evaluated[0] <= evaluated[1]
-    for name in ("color", "alpha", "depth"):
-        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), **TOL[dtype], msg=lambda m: f"{name}: {m}")
     assert grads_fast.keys() == grads_slow.keys() == set(prims.tensors())
-    for name, gs in grads_slow.items():
-        assert gs.abs().max() > 0, name
-        scale = gs.abs().max().clamp_min(1.0)   # sums over the view: tolerance relative to the largest
-        torch.testing.assert_close(grads_fast[name] / scale, gs / scale, **TOL[dtype], msg=lambda m: f"d/d{name}: {m}")
+    assert all(gs.abs().max() > 0 for gs in grads_slow.values())
+    if dtype == torch.float64:
+        assert_renders_close(fast, grads_fast, slow, grads_slow, TOL[dtype])
+    else:
+        exact, grads_exact = float64_twin(prims, cam)
+        assert_renders_close(fast, grads_fast, exact, grads_exact, TOL32, "triton float32: ")
+        assert_renders_close(slow, grads_slow, exact, grads_exact, TOL32, "torch float32: ")
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_the_float32_scenes_are_well_posed(scene, render_scene):
+    """A float32 render is within TOL32 of float64 on every CPU only where the scene allows it:
+    moving every parameter by 4 float32 ulps moves the float64 image and gradients by well under
+    the tolerance (a quarter of it). A gradient kink at one pair (a ray entering exactly at the
+    near plane, a sphere's tied max(s)) or a hard silhouette grazed at 1e-4 of a radius breaks it:
+    whether float32 lands on the float64 side then depends on the CPU's last bits (on an AVX2 MKL
+    the twin did not, and test_render_matches_the_torch_twin failed there)."""
+    prims, cam = scene_of(scene, torch.float32, render_scene)
+    sensitivity = float32_sensitivity(prims, cam)
+    assert sensitivity <= TOL32["atol"] / 4, f"{scene}: 4 float32 ulps move the float64 render by {sensitivity:.2g}"
 
 
 @pytest.mark.parametrize("kind", ["gaussian", "neural"])

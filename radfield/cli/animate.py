@@ -8,8 +8,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import Force, check_output, parse_background, resolve_device
+from radfield.cli.common import Force, check_options, check_output, parse_background, resolve_device
 from radfield.errors import RadfieldError
+from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, ELEVATION, POSITIVE
 
 
 def animate(
@@ -20,7 +21,7 @@ def animate(
     spec: Annotated[Optional[Path], typer.Option("--spec", "-s", help="Instead of --cages/--simulate: a YAML animation spec, 'animate: {cages: PATTERN, camera: ..., fps: ...}' and/or 'simulate: {...}'; its keys replace the options of the same name (docs/usage.md 'Animation').")] = None,
     dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose camera to use (default: the run's).")] = None,
     split: Annotated[str, typer.Option(help="Split of the dataset camera.")] = "test",
-    camera: Annotated[int, typer.Option(help="Index of the dataset camera in the split.")] = 0,
+    camera: Annotated[str, typer.Option(help="The dataset view to render from: its frame name, or its index in the split.")] = "0",
     orbit: Annotated[bool, typer.Option("--orbit", help="Turn the camera once around the scene over the animation.")] = False,
     elevation: Annotated[float, typer.Option(help="Orbit elevation in degrees.")] = 20.0,
     downscale: Annotated[int, typer.Option(help="Render at 1/K of the dataset's resolution.")] = 1,
@@ -32,8 +33,10 @@ def animate(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
     force: Force = False,
 ):
-    """Render a sequence of cage poses of a run (e.g. a soft-body simulation exported from Houdini
-    or Blender, or the built-in one) frame by frame to PNGs and an MP4.
+    """Render a sequence of cage poses of a run frame by frame to PNGs and an MP4.
+
+    The poses: cage files (a soft-body simulation exported from Houdini or Blender, say), or the
+    built-in simulation.
 
     Every frame deforms the run's field exactly from its rest cage to the frame's cage (as
     `radfield edit` with a deform operation), then renders it from one dataset camera or an orbit.
@@ -43,21 +46,22 @@ def animate(
     from radfield.edit.source import load_source
     from radfield.run import is_run_dir
 
+    check_options({"--elevation": (elevation, ELEVATION), "--downscale": (downscale, AT_LEAST_1),
+                   "--fps": (fps, POSITIVE), "--split-threshold": (split_threshold, AT_LEAST_0)})
     if sum(x is not None for x in (cages, simulate, spec)) != 1:
         raise RadfieldError("give exactly one of --cages, --simulate and --spec")
-    simulation = simulate
+    simulation, camera_option = simulate, "--camera"
     if spec is not None:
         from radfield.edit.animation import read_animation
 
         anim = read_animation(spec)
         cages, simulation = anim["cages"], anim["simulate"]
         camera, split, orbit = anim.get("camera", camera), anim.get("split", split), anim.get("orbit", orbit)
+        camera_option = f"{spec}: animate.camera" if "camera" in anim else camera_option
         elevation, fps, downscale = anim.get("elevation", elevation), anim.get("fps", fps), anim.get("downscale", downscale)
         background, gradient = anim.get("background", background), anim.get("gradient", gradient)
         split_threshold = anim.get("split_threshold", split_threshold)
     check_output(output, force, folder=True)
-    if fps is not None and fps <= 0:
-        raise RadfieldError(f"--fps must be positive, got {fps}")
     if not is_run_dir(run):
         raise RadfieldError(f"{run}: not a radfield run directory")
     dev = resolve_device(device)
@@ -65,7 +69,7 @@ def animate(
     if not fld.has_cage:
         raise RadfieldError(f"{run}: this run has no cage to animate")
     summary = animate_run(run, fld, output, cages=cages, simulation=simulation, dataset=dataset, split=split,
-                          camera=camera, orbit=orbit, elevation=elevation, downscale=downscale,
+                          camera=camera, camera_option=camera_option, orbit=orbit, elevation=elevation, downscale=downscale,
                           background=parse_background(background) if background is not None else None, fps=fps or 0.0,
                           gradient=gradient, split_threshold=split_threshold, device=dev, quiet=quiet,
                           log=None if quiet else (lambda m: typer.echo(m, err=True)))

@@ -27,7 +27,7 @@ def bake(
     """Bake a model for delivery: prune primitives no training view sees, optionally float16.
 
     Prints the primitive count and file size before and after and the held-out PSNR change."""
-    from radfield.stages.bake import bake_model, check_config
+    from radfield.stages.bake import bake_model
     from radfield.stages.evaluate import resolve_target
 
     check_output(output, force, folder=False)
@@ -37,7 +37,6 @@ def bake(
     if fp16 is not None:
         options["bake.fp16"] = fp16
     model, scene, _, config = resolve_target(target, dataset, options)
-    check_config(config)
     if output.resolve() == Path(model).resolve():
         raise RadfieldError(f"{output}: would overwrite the model being baked")
     f = bake_model(model, scene, output, min_weight=config["bake"]["min_weight"], fp16=config["bake"]["fp16"],

@@ -22,9 +22,11 @@ def bench_render(
     profile: Annotated[bool, typer.Option(help="Also print the torch profiler's top costs.")] = False,
     baseline: Annotated[bool, typer.Option("--baseline", help="Also time the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
-    """Benchmark (not a test): forward and forward+backward time of neural primitives (windowed,
-    as the defaults train them, and hard-edged: neural-hard) and 3D Gaussians on the same cameras
-    and budgets; prints ms/frame, pairs/s and the time ratio."""
+    """Renderer speed: neural primitives against 3D Gaussians.
+
+    A benchmark, not a test: forward and forward+backward time of neural primitives (windowed, as
+    the defaults train them, and hard-edged: neural-hard) and 3D Gaussians on the same cameras and
+    budgets; prints ms/frame, pairs/s and the time ratio."""
     from radfield.bench.render import run_bench
 
     if min(primitives, width, height, views, repeats) < 1:
@@ -52,7 +54,9 @@ def bench_train(
     quiet: Quiet = False,
     baseline: Annotated[bool, typer.Option("--baseline", help="Also time every row on the readable torch twins (RADFIELD_KERNELS=torch) in the same run and print the speed-up.")] = False,
 ):
-    """Benchmark (not a test): ms per training step of the default recipe, split into render
+    """Training speed: ms per step, split into its parts.
+
+    A benchmark, not a test: ms per training step of the default recipe, split into render
     forward, loss, render backward, optimiser and population control, for each primitive kind,
     count and view size; also trainer.train's own ms per step and the forward's pairs/s."""
     from radfield.bench.render import ALL_BENCH_KINDS
@@ -81,7 +85,9 @@ def bench_dist(
     ranks: Annotated[int, typer.Option(help="Ranks of the distributed configuration (gloo, local).")] = 2,
     threads: Annotated[int, typer.Option(help="Threads of the single rank; each of the ranks gets threads/ranks.")] = 2,
 ):
-    """Benchmark (not a test): steps/s of trainer.train with 1 rank x THREADS threads against RANKS
+    """Data-parallel training: 1 rank against several.
+
+    A benchmark, not a test: steps/s of trainer.train with 1 rank x THREADS threads against RANKS
     ranks x THREADS/RANKS threads on the same scene (torch.distributed, gloo), the all-reduce time
     per step and the all-reduced bytes per step."""
     from radfield.bench.dist import run_bench_dist
@@ -137,7 +143,9 @@ def bench_quality(
 def bench_startup(
     repeats: Annotated[int, typer.Option(help="Fresh processes per command; the median is printed.")] = 5,
 ):
-    """Benchmark (not a test): the start-up time of `radfield --help` and of every `radfield
+    """Start-up time of `radfield --help` and of every command's.
+
+    A benchmark, not a test: the start-up time of `radfield --help` and of every `radfield
     <command> --help`, each the median of REPEATS fresh processes, against the 0.5 s target."""
     from radfield.bench.startup import run_bench_startup
     from radfield.cli.main import app, command_names

@@ -13,9 +13,10 @@ import typer
 from radfield.errors import RadfieldError
 from radfield.util.numbers import three_numbers
 from radfield.util.progress import progress_bar
+from radfield.util.ranges import Range
 
-__all__ = ["Background", "Dataset", "Device", "Downscale", "Force", "Quiet", "check_output", "data_options",
-           "parse_background", "progress_bar", "resolve_device", "resolve_model"]
+__all__ = ["Background", "Dataset", "Device", "Downscale", "Force", "KINDS", "Quiet", "check_options", "check_output",
+           "data_options", "kind_names", "parse_background", "progress_bar", "resolve_device", "resolve_model"]
 
 # options shared by eval and bake
 Dataset = Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth and the cameras (default: the run's input; its SfM output for photos).")]
@@ -32,6 +33,25 @@ def data_options(downscale: int | None, background: str | None) -> dict:
                "data.background": list(parse_background(background)) if background is not None else None}
     return {k: v for k, v in options.items() if v is not None}
 
+
+KINDS = "KIND"   # the metavar of an option that takes a primitive kind: its help lists them (cli/main.py)
+
+
+def kind_names() -> list[str]:
+    """The registered primitive kinds, read from the registry's entry points (pyproject.toml,
+    group radfield.kinds) without importing them (which needs torch): the base kinds, then their
+    variants."""
+    from importlib.metadata import entry_points
+
+    return sorted({point.name for point in entry_points(group="radfield.kinds")}, key=lambda name: (name.count("-"), name))
+
+
+def check_options(checks: dict[str, tuple[float | None, Range]]) -> None:
+    """Each given option's number in its range ({"--fps": (fps, POSITIVE)}; None: not given), checked
+    first, before anything is read or written: one line naming the option otherwise."""
+    for option, (value, allowed) in checks.items():
+        if value is not None and not allowed.holds(value):
+            raise RadfieldError(f"{option} must be {allowed.describe()}, got {value:g}")
 
 
 def parse_background(text: str) -> tuple[float, float, float]:

@@ -9,13 +9,14 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import Force, Quiet, check_output
+from radfield.cli.common import Force, Quiet, check_options, check_output
 from radfield.datasets.timelapse import SCENES as _DYNAMIC  # D-NeRF layout: every camera at every time
 from radfield.errors import RadfieldError
+from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, Range
 
 
 def demo_scene(
-    name: Annotated[str, typer.Argument(help="blobs (easy), thin (sub-pixel rods), checker (high-frequency texture), objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the visual hull), glossy (glossy and matte objects with moving specular highlights; 100 + 20 views), studio (glossy's objects rendered like a path tracer: 8x8 jittered rays per pixel, soft shadows, moderate highlights; 100 + 20 views) and the dynamic scenes (36 + 4 cameras, each at --times moments, a D-NeRF dataset): smoke (a volume of coloured puffs that move, grow and turn) or moving (the objects scene's shapes moving and turning); olat (studio's objects lit by one point light at a time, a new light in every frame: 40 + 8 cameras, each under --lights lights, written with light_position per frame) and olat-glossy (the same with glossy's objects: sharp highlights that move with the light and a tall pillar whose shadow sweeps the matte slab).")],
+    name: Annotated[str, typer.Argument(metavar="NAME", help="The scene: blobs, thin, checker, objects, glossy, studio; dynamic: smoke, moving; one light at a time: olat, olat-glossy (each described below).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder to create (an existing non-empty one needs --force).")],
     train_views: Annotated[Optional[int], typer.Option(help="Training views (default: the scene's own, 40; glossy and studio 100; smoke and moving 36 cameras; olat and olat-glossy 40 cameras).")] = None,
     test_views: Annotated[Optional[int], typer.Option(help="Held-out test views (default: the scene's own, 8; glossy and studio 20; smoke and moving 4 cameras; olat and olat-glossy 8 cameras).")] = None,
@@ -30,11 +31,27 @@ def demo_scene(
     force: Force = False,
     quiet: Quiet = False,
 ):
-    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply, except for objects, smoke and moving)."""
+    """Write a tiny synthetic NeRF-synthetic scene with exact ground truth (and its mesh.ply, except
+    for objects, smoke and moving).
+
+    Static scenes (40 + 8 views): blobs (easy), thin (sub-pixel rods), checker (high-frequency
+    texture), objects (separate objects, a torus, thin rods; no mesh.ply, so the envelope is the
+    visual hull); glossy (glossy and matte objects with moving highlights) and studio (glossy's
+    objects rendered like a path tracer: soft shadows, moderate highlights), 100 + 20 views.
+
+    Dynamic scenes (a D-NeRF dataset, 36 + 4 cameras, each at --times moments): smoke (coloured
+    puffs that move, grow and turn), moving (the objects scene's shapes moving and turning).
+
+    One light at a time (40 + 8 cameras, each under --lights point lights, light_position per
+    frame): olat (studio's objects), olat-glossy (glossy's: sharp highlights that move with the
+    light, a pillar whose shadow sweeps the matte slab)."""
     import json
 
     from radfield.datasets.olat import SCENES as _OLAT  # one light at a time (imports numpy: not at start-up)
 
+    check_options({"--train-views": (train_views, AT_LEAST_1), "--test-views": (test_views, AT_LEAST_1),
+                   "--size": (size, Range(8)), "--seed": (seed, AT_LEAST_0), "--times": (times, AT_LEAST_1),
+                   "--lights": (lights, AT_LEAST_1), "--workers": (workers, AT_LEAST_1)})
     if (name in _DYNAMIC or name in _OLAT) and deform is not None:
         raise RadfieldError(f"demo-scene {name}: --deform is for the static scenes")
     if name not in _DYNAMIC and times is not None:
@@ -43,8 +60,6 @@ def demo_scene(
         raise RadfieldError(f"demo-scene {name}: --held-out-times is for the dynamic scenes ({', '.join(_DYNAMIC)})")
     if workers != 1 and (name in _DYNAMIC or name in _OLAT):
         raise RadfieldError(f"demo-scene {name}: --workers is for the static scenes")
-    if workers < 1:
-        raise RadfieldError(f"demo-scene: --workers must be at least 1, got {workers}")
     if name not in _OLAT and lights is not None:
         raise RadfieldError(f"demo-scene {name}: --lights is for the one-light-at-a-time scenes ({', '.join(_OLAT)})")
     if name not in _DYNAMIC and name not in _OLAT:
@@ -52,11 +67,14 @@ def demo_scene(
 
         if name not in SCENES:
             raise RadfieldError(f"unknown demo scene {name!r} (available: {', '.join([*SCENES, *_DYNAMIC, *_OLAT])})")
-    if exist_ok and (output / "scene.json").is_file():
-        existing = json.loads((output / "scene.json").read_text())
-        if existing.get("name") == name and existing.get("seed") == seed and existing.get("deform", {}).get("name") == deform:
-            typer.echo(f"{output} already holds the {name} scene")
-            return
+    existing = _scene_in(output)
+    if existing is not None and existing.get("name") != name:   # --force would mix two scenes' files
+        raise RadfieldError(f"{output}: holds the {existing.get('name', 'unnamed')} demo scene, not {name}; "
+                            f"write {name} to another folder")
+    if exist_ok and existing is not None and existing.get("seed") == seed and \
+            existing.get("deform", {}).get("name") == deform:
+        typer.echo(f"{output} already holds the {name} scene")
+        return
     check_output(output, force, folder=True)
 
     def generate(folder: Path) -> None:
@@ -94,6 +112,17 @@ def demo_scene(
         return
     what = name if deform is None else f"{name} deformed by {deform} (edit spec: {output / 'deform.yaml'})"
     typer.echo(f"wrote {what}: {len(frames['train'])} train + {len(frames['test'])} test views of {size}x{size} to {output}")
+
+
+def _scene_in(folder: Path) -> dict | None:
+    """The scene.json of the demo scene `folder` holds, if it holds one."""
+    import json
+
+    try:
+        described = json.loads((folder / "scene.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return described if isinstance(described, dict) and "name" in described else None
 
 
 def _generate_dynamic(name: str, folder: Path, train_views, test_views, times, size: int, seed: int,

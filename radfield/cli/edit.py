@@ -9,8 +9,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import Force, check_output, resolve_device
+from radfield.cli.common import Force, check_options, check_output, resolve_device
 from radfield.errors import RadfieldError
+from radfield.util.ranges import AT_LEAST_0, POSITIVE
 from radfield.util.numbers import three_numbers
 
 
@@ -53,29 +54,31 @@ def edit(
     from radfield.pipeline.runner import format_figures
 
     start = time.perf_counter()
+    check_options({"--scale": (scale, POSITIVE), "--split-threshold": (split_threshold, AT_LEAST_0),
+                   "--split": (split_old, AT_LEAST_0), "--seed": (seed, AT_LEAST_0)})
     check_output(output, force, folder=True)
     resolve_device(device)
     operations = read_spec(spec) if spec is not None else []
+    sources = [str(spec)] * len(operations)   # a bad value in the spec: its error names the file
     flags = {"rotate": _vector(rotate, "rotate"), "translate": _vector(translate, "translate"),
              "scale": scale, "origin": _vector(origin, "origin")}
     flags = {k: v for k, v in flags.items() if v is not None}
     if set(flags) - {"origin"}:
         operations += parse_spec({"operations": [{"transform": {"select": "all", **flags}}]}, "flags")
+        sources.append("--rotate/--translate/--scale")
     elif not operations:
         raise RadfieldError("nothing to do: give --spec and/or --rotate/--translate/--scale")
     if split_old is not None:
         typer.echo("radfield: note: edit --split is deprecated and will be removed; use --split-threshold (same meaning)", err=True)
         split_threshold = split_old
     split = split_threshold
-    if split < 0:
-        raise RadfieldError(f"--split-threshold must be >= 0, got {split}")
     log = (lambda message: None) if quiet else (lambda message: typer.echo(message, err=True))
 
     fld = load_source(source, cage)
     ctx = EditContext(base_dir=spec.parent if spec is not None else Path("."), load_operand=load_source,
                       device=device, seed=seed, log=log,
                       options={"gradient": gradient, "split": split or None, "preserve_opacity": preserve_opacity})
-    edited = apply_operations(fld, operations, ctx)
+    edited = apply_operations(fld, operations, ctx, sources)
     figures = write_edited_run(output, source, edited, operations, ctx.options, start)
     split_total = figures["split"]
     typer.echo(f"edited {len(fld.prims)} -> {len(edited.prims)} {edited.prims.kind} primitives with "

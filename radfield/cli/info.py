@@ -12,7 +12,7 @@ def info(
     run_dir: Annotated[Path, typer.Argument(metavar="RUN", help="A run directory.")],
     as_json: Annotated[bool, typer.Option("--json", help="Machine-readable JSON (a stable interface).")] = False,
 ):
-    """Stages done, their timings and key figures, and the main artifacts of a run."""
+    """Stages done, their timings and key figures, the model, and the artifacts each stage wrote."""
     import json
 
     from radfield.pipeline.info import format_info, run_info

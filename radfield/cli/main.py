@@ -13,14 +13,83 @@ import types
 from typing import Annotated
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
 import radfield
 from radfield.cli import animate, bake, bench, demo_scene, edit, eval as eval_, export, info, reconstruct, render, view
+from radfield.cli.common import KINDS, kind_names
 from radfield.errors import RadfieldError
+
+
+def _click():
+    """The Click that Typer runs on: its vendored copy (Typer >= 0.20, typer._click) or Click."""
+    try:
+        import typer._click as click
+    except ImportError:
+        import click
+    return click
+
+
+_NO_BREAK = "\u2011"   # a non-breaking hyphen stands for "-" while help text is wrapped
+
+
+class _Formatter(_click().HelpFormatter):
+    """Click's plain help layout, wrapped to the terminal's width, which never breaks a line inside
+    a hyphenated word: an option name (--light-orbit) stays whole."""
+
+    def write_text(self, text: str) -> None:
+        super().write_text(text.replace("-", _NO_BREAK))
+
+    def write_dl(self, rows, *args, **kwargs) -> None:
+        super().write_dl([(first, second.replace("-", _NO_BREAK)) for first, second in rows], *args, **kwargs)
+
+    def getvalue(self) -> str:
+        return super().getvalue().replace(_NO_BREAK, "-")
+
+
+class _Context(_click().Context):
+    formatter_class = _Formatter
+
+
+class _Command(TyperCommand):
+    """A command whose help lists the registered primitive kinds for an option whose metavar is
+    KINDS (read when the help is shown: the registry's entry points, without importing the kinds)."""
+
+    context_class = _Context
+
+    def format_help(self, ctx, formatter) -> None:
+        for param in self.params:
+            if param.metavar == KINDS and "Registered kinds:" not in (param.help or ""):
+                param.help = f"{param.help} Registered kinds: {', '.join(kind_names())}."
+        super().format_help(ctx, formatter)
+
+
+class _Group(TyperGroup):
+    """The root: its commands in two lists, what a user runs and the benchmarks, each command's
+    summary whole (Click cuts it with "..." to one line)."""
+
+    context_class = _Context
+
+    def format_commands(self, ctx, formatter) -> None:
+        rows = {"Commands": [], "Benchmarks": []}
+        for name in self.list_commands(ctx):
+            command = self.get_command(ctx, name)
+            if command is not None and not command.hidden:
+                rows["Benchmarks" if name.startswith("bench-") else "Commands"].append(
+                    (name, command.get_short_help_str(limit=10_000)))
+        for title, section in rows.items():
+            if section:
+                with formatter.section(title):
+                    formatter.write_dl(section)
+
 
 app = typer.Typer(
     name="radfield",
     help="Reconstruct, edit, render and evaluate radiance fields made of splattable neural primitives.",
+    cls=_Group,
+    # Click's plain layout: paragraphs rewrapped to the terminal, nothing cut with "…", no Rich
+    # markup (which turned `--times A:B:N` into an emoji), flags without a type
+    rich_markup_mode=None,
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_show_locals=False,
@@ -40,22 +109,14 @@ def _root(version: Annotated[bool, typer.Option("--version", callback=_version, 
     """radfield: editable radiance fields from multi-view images."""
 
 
-# in the order `radfield --help` lists them
-app.command("reconstruct")(reconstruct.reconstruct)
-app.command("info")(info.info)
-app.command("render")(render.render)
-app.command("bench-render")(bench.bench_render)
-app.command("bench-train")(bench.bench_train)
-app.command("bench-dist")(bench.bench_dist)
-app.command("demo-scene")(demo_scene.demo_scene)
-app.command("edit")(edit.edit)
-app.command("animate")(animate.animate)
-app.command("eval")(eval_.eval_command)
-app.command("bake")(bake.bake)
-app.command("bench-quality")(bench.bench_quality)
-app.command("bench-startup")(bench.bench_startup)
-app.command("export")(export.export)
-app.command("view")(view.view)
+# in the order `radfield --help` lists them, the README's: the commands, then the benchmarks
+for _name, _function in (("reconstruct", reconstruct.reconstruct), ("info", info.info), ("render", render.render),
+                         ("eval", eval_.eval_command), ("bake", bake.bake), ("edit", edit.edit),
+                         ("animate", animate.animate), ("export", export.export), ("view", view.view),
+                         ("demo-scene", demo_scene.demo_scene), ("bench-quality", bench.bench_quality),
+                         ("bench-render", bench.bench_render), ("bench-train", bench.bench_train),
+                         ("bench-dist", bench.bench_dist), ("bench-startup", bench.bench_startup)):
+    app.command(_name, cls=_Command)(_function)
 
 
 def command_names(typer_app: typer.Typer) -> list[str]:
@@ -69,7 +130,7 @@ def main() -> None:
     error Click finds while parsing: a wrong option type, a missing or unknown option)."""
     click = _click_exceptions()
     try:
-        code = app(standalone_mode=False)
+        code = app(standalone_mode=False, prog_name="radfield")
     except click.NoArgsIsHelpError as e:  # bare `radfield` or a group without a command (Click ≥ 8.2)
         typer.echo(e.ctx.get_help())
         code = 0
@@ -95,10 +156,7 @@ def _click_exceptions():
     """Click's exception classes: Typer ≥ 0.20 vendors Click as typer._click, older Typer uses Click.
     Click < 8.2 has no NoArgsIsHelpError (it prints the help and exits 0 itself): a class nothing
     raises stands in for it there."""
-    try:
-        from typer._click import exceptions
-    except ImportError:
-        from click import exceptions
+    exceptions = _click().exceptions
     if not hasattr(exceptions, "NoArgsIsHelpError"):
         never_raised = type("NoArgsIsHelpError", (Exception,), {})
         exceptions = types.SimpleNamespace(**vars(exceptions), NoArgsIsHelpError=never_raised)

@@ -9,13 +9,13 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import parse_background, resolve_device
+from radfield.cli.common import KINDS, parse_background, resolve_device
 
 
 def reconstruct(
     input_path: Annotated[Path, typer.Argument(metavar="INPUT", help="Dataset folder (NeRF-synthetic, nerfstudio/instant-ngp, COLMAP) or a folder of photos (posed by SfM).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Run directory (created). Run again on it to resume or to redo only what changed.")],
-    primitive: Annotated[Optional[str], typer.Option(help="neural (splattable neural primitives) or gaussian (3DGS baseline). (config key train.primitive)")] = None,
+    primitive: Annotated[Optional[str], typer.Option(metavar=KINDS, help="The kind of primitive: neural (splattable neural primitives, the default) or gaussian (3DGS, the baseline); a dynamic or relighting dataset trains their time- or light-conditioned variant. (config key train.primitive)")] = None,
     max_primitives: Annotated[Optional[int], typer.Option(help="Hard primitive budget, initialised exactly (the paper's memory-budget protocol). (config key train.max_primitives)")] = None,
     iterations: Annotated[Optional[int], typer.Option(help="Optimisation steps; raising it on a finished run continues from its final state (see docs/usage.md, 'Training: log, curves, continuing'). (config key train.iterations)")] = None,
     downscale: Annotated[Optional[int], typer.Option(help="Integer image downscale factor. (config key data.downscale)")] = None,
@@ -33,9 +33,9 @@ def reconstruct(
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
-    Runs the cached stages sfm → data → envelope → tetra → init → train → bake → eval in the run
-    directory (sfm only for a folder of photos); a stage re-runs only when its inputs or its config
-    keys changed."""
+    Runs the cached stages sfm → data → envelope → tetra → init → train → bind → bake → eval in the
+    run directory (sfm only for a folder of photos); a stage re-runs only when its inputs or its
+    config keys changed."""
     from radfield.core.train import distributed, launch
     from radfield.pipeline import registry
     from radfield.pipeline.config import load_config

@@ -8,8 +8,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import Force, check_output, parse_background, progress_bar, resolve_device, resolve_model
-from radfield.errors import RadfieldError
+from radfield.cli.common import (Force, check_options, check_output, parse_background, progress_bar, resolve_device,
+                                 resolve_model)
+from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, ELEVATION, POSITIVE
 
 
 def render(
@@ -36,7 +37,9 @@ def render(
     light_orbit: Annotated[int, typer.Option("--light-orbit", metavar="N", help="A relightable model: N lights circling the object at the dataset lights' mean distance and elevation; one image per view and light (<view>_l<k>.png), or along an --orbit/--camera-path of N frames one light a frame.")] = 0,
     force: Force = False,
 ):
-    """Render every camera of a dataset split (or an orbit / a camera path) to OUTPUT/<frame name>.png.
+    """Render a model's views of a dataset split, an orbit or a camera path to PNGs.
+
+    Every camera of the split (or of the orbit or the path) becomes OUTPUT/<frame name>.png.
 
     For a run directory every default is the run's own: its dataset, its split rule
     (data.test_every), background, downscale and near plane; explicit options win. Each pixel is
@@ -53,18 +56,16 @@ def render(
     from radfield.delivery.times import check_time, parse_times
     from radfield.run import is_run_dir
 
+    check_options({"--downscale": (downscale, AT_LEAST_1), "--near": (near, POSITIVE), "--orbit": (orbit, AT_LEAST_0),
+                   "--elevation": (elevation, ELEVATION), "--fps": (fps, POSITIVE), "--light-orbit": (light_orbit, AT_LEAST_0)})
     options = {"data.downscale": downscale, "render.near": near,
                "data.background": list(parse_background(background)) if background is not None else None}
     check_output(output, force, folder=True)
     if video is not None:
         check_output(video, force, folder=False)
-    if fps is not None and fps <= 0:
-        raise RadfieldError(f"--fps must be positive, got {fps}")
     moment = check_time(time) if time is not None else None
     moments = parse_times(times) if times is not None else None
     lit = light_from_options(light, light_dir, light_intensity)
-    if light_orbit < 0:
-        raise RadfieldError(f"--light-orbit takes a frame count >= 1, got {light_orbit}")
     dev = resolve_device(device)
     model = resolve_model(model_or_run)
     with progress_bar(quiet) as progress:
@@ -74,10 +75,18 @@ def render(
                                 orbit=orbit, elevation=elevation, camera_path=camera_path, video=video, fps=fps or 0.0,
                                 camera=camera, time=moment, times=moments,
                                 light=lit, light_orbit=light_orbit, light_intensity=light_intensity,
-                                on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} views"),
+                                on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} images"),
                                 on_frame=lambda: progress.advance(task))
-    at = f" at {summary['moments']} moment{'s' if summary['moments'] != 1 else ''}" if summary["moments"] else ""
-    at += f" under {summary['lights']} light{'s' if summary['lights'] != 1 else ''}" if summary["lights"] else ""
-    typer.echo(f"rendered {summary['views']} views{at} ({summary['width']}x{summary['height']}, {summary['primitives']} "
+    typer.echo(f"rendered {what_was_drawn(summary)} ({summary['width']}x{summary['height']}, {summary['primitives']} "
                f"{summary['kind']} primitives) to {output}{f' and {video}' if video is not None else ''}; "
                f"mean render time {summary['ms_per_frame']:.1f} ms/frame")
+
+
+def what_was_drawn(summary: dict) -> str:
+    """'8 views', '4 views at 1 moment', or where a view has several images '96 images: 4 views at
+    24 moments' (a dynamic dataset's cameras at their moments; 1 view under 40 lights)."""
+    plural = lambda n, word: f"{n} {word}{'s' if n != 1 else ''}"
+    views = plural(summary["views"], "view")
+    views += f" at {plural(summary['moments'], 'moment')}" if summary["moments"] else ""
+    views += f" under {plural(summary['lights'], 'light')}" if summary["lights"] else ""
+    return views if summary["images"] == summary["views"] else f"{plural(summary['images'], 'image')}: {views}"

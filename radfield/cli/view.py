@@ -25,10 +25,12 @@ def view(
     light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: start with a directional light shining along X,Y,Z instead.")] = None,
     light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir (default: the mean of the run's dataset lights, else 1).")] = None,
 ):
-    """Open an interactive viewer in the browser (http://HOST:PORT), rendered on this machine with
-    radfield's renderer; shows the run's cage as a wireframe toggle and its cameras as frustums,
-    for a dynamic model a Time slider and a Play button, and for a relightable model light sliders (azimuth,
-    elevation, distance). Stop it with Ctrl-C (or SIGTERM: one line, exit 0)."""
+    """Open an interactive viewer of a model in the browser, rendered on this machine.
+
+    The page (http://HOST:PORT) shows frames drawn by radfield's renderer here, the run's cage as
+    a wireframe toggle and its cameras as frustums; for a dynamic model a Time slider and a Play
+    button, for a relightable model light sliders (azimuth, elevation, distance). Stop it with
+    Ctrl-C (or SIGTERM: one line, exit 0)."""
     from radfield.delivery.lights import light_from_options
     from radfield.delivery.times import check_time
     from radfield.delivery.viewer import Viewer, viewer_scene

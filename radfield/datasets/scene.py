@@ -73,7 +73,6 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
     """The scene.json content and points.npz arrays of the dataset at `path` under the `data`
     config section. Reads every image header: any problem is a RadfieldError naming the file."""
     path = Path(path).resolve()
-    _check_data(data)
     background = tuple(data["background"])
     splits = _splits(path, data["downscale"], background, data["test_every"], data["val_every"])
     for dataset in splits.values():
@@ -136,7 +135,6 @@ def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
     path = Path(path).resolve()
     if split not in SPLITS:
         raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
-    _check_data(data)
     downscale, background = data["downscale"], tuple(data["background"])
     present = formats.detect(path).splits(path)
     carved = data["val_every"] > 0 and "val" not in present and split in ("train", "val")  # val cut from train
@@ -147,14 +145,6 @@ def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
         raise RadfieldError(f"{path}: the dataset has no {split!r} split (it has {', '.join(splits)}; "
                             "data.val_every > 0 makes a val split of the training views)")
     return splits[split]
-
-
-def _check_data(data: dict[str, Any]) -> None:
-    for key, least in (("downscale", 1), ("test_every", 2), ("val_every", 0)):
-        if data[key] < least:
-            raise RadfieldError(f"config key data.{key} must be at least {least}, got {data[key]}")
-    if not all(0.0 <= c <= 1.0 for c in data["background"]):
-        raise RadfieldError(f"config key data.background must hold numbers in [0, 1], got {list(data['background'])}")
 
 
 def _native_splits(path: Path) -> tuple[str, ...]:

@@ -106,6 +106,22 @@ class Dataset:
     def image_paths(self) -> list[Path]:
         return [view.image_path for view in self.views]
 
+    @property
+    def names(self) -> list[str]:
+        """Each view's frame name: its image file's name without the extension."""
+        return [view.image_path.stem for view in self.views]
+
+    def view_index(self, which: str, option: str = "--camera") -> int:
+        """The index of the view `which` names: its frame name, else its index in the split."""
+        names = self.names
+        if which in names:
+            return names.index(which)
+        if which.isdigit() and int(which) < len(names):
+            return int(which)
+        shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+        raise RadfieldError(f"{option} {which!r}: no view of that name (or index) in the {self.split} split ({shown}; "
+                            f"indices 0 to {len(names) - 1})")
+
     @cached_property
     def cameras(self) -> list[Camera]:
         if not self.posed:

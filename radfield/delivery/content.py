@@ -190,10 +190,10 @@ def gaussians_for(content: Content, format: str, components: int, steps: int, qu
 
 def fidelity(gaussians, teacher, content: Content) -> tuple[float, int, str] | None:
     """Mean PSNR of the Gaussians drawn with one ray a pixel against the model's own renders, over
-    the run's test views (train views when it has none); None for a model file."""
+    the run's test views (train views when it has none), each camera once (`static_views`); None
+    for a model file."""
     from radfield.core.render.antialias import render_model
     from radfield.core.render.rasterize import render
-    from radfield.delivery.export import view_cameras
 
     if not content.views:
         return None
@@ -203,22 +203,33 @@ def fidelity(gaussians, teacher, content: Content) -> tuple[float, int, str] | N
     background = content.background or (1.0, 1.0, 1.0)
     values = []
     with torch.no_grad():
-        for camera in view_cameras(content.views[split]):
+        for camera in static_views(content.views[split], teacher):
             truth = render_model(teacher, camera, background=background).color.clamp(0, 1)
             mine = render(gaussians, camera, background=background).color.clamp(0, 1)
             values.append(float(-10 * torch.log10(((mine - truth) ** 2).mean().clamp_min(1e-12))))
     return sum(values) / len(values), len(values), split
 
 
+def static_views(views: list[dict], model) -> list:
+    """The cameras of scene.json `views` as a static model sees them: each pose once. A dynamic or
+    relighting dataset holds every camera at each of its moments or lights, which the static model
+    of one moment or light (at_moment, under_light) draws the same: measured once, not 24 times."""
+    from radfield.core import kinds
+    from radfield.core.geometry.cameras import distinct_poses
+    from radfield.delivery.export import view_cameras
+
+    cameras = view_cameras(views)
+    return cameras if kinds.of(model).conditions else distinct_poses(cameras)[0]
+
+
 def refined(gaussians, content: Content, steps: int, quiet: bool = True):
     """`gaussians` optimised `steps` steps against renders of content.model from the run's training
     cameras and as many orbit views (up to ORBIT_VIEWS), with densification
     (radfield.delivery.moments.refine_gaussians, with the defaults' train settings)."""
-    from radfield.delivery.export import view_cameras
     from radfield.delivery.moments import refine_gaussians
     from radfield.pipeline.config import load_config
 
-    cameras = view_cameras(content.views["train"])
+    cameras = static_views(content.views["train"], content.model)
     orbit = min(len(cameras), ORBIT_VIEWS)
     with progress_bar(quiet) as progress:
         task = progress.add_task(f"refining {len(gaussians)} Gaussians on {len(cameras) + orbit} views", total=steps)

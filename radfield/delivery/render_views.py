@@ -21,6 +21,7 @@ view and light, `<view>_l<k>.png`, or along an orbit or a camera path one light 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -31,6 +32,7 @@ import torch
 from radfield.util.atomic import atomic_folder
 from radfield.core.geometry.camera_path import orbit as make_orbit
 from radfield.core.geometry.camera_path import orbit_from_cameras, read_nerfstudio_path, write_video
+from radfield.core.geometry.cameras import distinct_poses
 from radfield.errors import RadfieldError
 from radfield.delivery.io import load_model
 from radfield.core.render.antialias import render_model
@@ -44,6 +46,7 @@ from radfield.delivery.times import at_time, check_takes_time, check_timed, is_d
 from radfield.run import Run
 
 DEFAULT_FPS = 30.0
+SEPARATORS = "_-. "   # between the parts of a frame name (r_000_t000)
 
 
 def path_cameras(cameras, names, orbit: int, elevation: float, camera_path: Path | None, fps: float):
@@ -52,8 +55,6 @@ def path_cameras(cameras, names, orbit: int, elevation: float, camera_path: Path
     frame names, fps): `fps`, else the camera path's, else DEFAULT_FPS."""
     if orbit and camera_path is not None:
         raise RadfieldError("--orbit and --camera-path exclude each other")
-    if orbit < 0:
-        raise RadfieldError(f"--orbit takes a frame count >= 1, got {orbit}")
     if camera_path is not None:
         cameras, path_fps = read_nerfstudio_path(camera_path)
         return cameras, [c.name for c in cameras], fps or path_fps or DEFAULT_FPS
@@ -66,16 +67,36 @@ def path_cameras(cameras, names, orbit: int, elevation: float, camera_path: Path
     return cameras, names, fps or DEFAULT_FPS
 
 
-def fixed_camera(cameras, names, which: str, split: str):
-    """([camera], [name]) of the split's view named `which` (a frame name, else its index)."""
-    if which in names:
-        k = names.index(which)
-    elif which.isdigit() and int(which) < len(cameras):
-        k = int(which)
+def split_views(data, which: str | None, one_per_pose: bool) -> tuple[list, list[str]]:
+    """(cameras, names) of the split `data` to draw: every view, or the one `which` names (its frame
+    name or index). `one_per_pose`: the options give every view its moment or light, so the views
+    that differ only by theirs (a dynamic dataset's camera at each of its moments) are drawn once,
+    named by what their names share (r_000_t000 … r_000_t023: r_000, which `which` may name too),
+    not once per recorded moment."""
+    cameras, names = data.cameras, data.names
+    if not one_per_pose:
+        chosen = range(len(cameras)) if which is None else [data.view_index(which)]
+        return [cameras[k] for k in chosen], [names[k] for k in chosen]
+    poses, pose_of = distinct_poses(cameras)
+    groups: dict[int, list[str]] = {}
+    for k, pose in enumerate(pose_of):
+        groups.setdefault(pose, []).append(names[k])
+    pose_names = [shared_name(groups[pose]) for pose in range(len(poses))]
+    if len(set(pose_names)) < len(pose_names):   # two poses whose names share the same stem
+        pose_names = [groups[pose][0] for pose in range(len(poses))]
+    if which is None:
+        drawn = range(len(poses))
     else:
-        shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
-        raise RadfieldError(f"--camera {which!r}: no view of that name (or index) in the {split} split ({shown})")
-    return [cameras[k]], [names[k]]
+        drawn = [pose_names.index(which) if which in pose_names else pose_of[data.view_index(which)]]
+    return [poses[p] for p in drawn], [pose_names[p] for p in drawn]
+
+
+def shared_name(names: list[str]) -> str:
+    """What frame names share up to a separator: r_000_t000, r_000_t001 -> r_000 (one name: itself)."""
+    prefix = os.path.commonprefix(names)
+    if len(names) > 1 and not all(len(name) == len(prefix) or name[len(prefix)] in SEPARATORS for name in names):
+        prefix = prefix[:max(prefix.rfind(c) for c in SEPARATORS) + 1]   # back to the last whole part
+    return prefix.rstrip(SEPARATORS) or names[0]
 
 
 def timed_frames(cameras, names, time: float | None, times: list[float] | None, path: str | None):
@@ -157,9 +178,11 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     as_bright_as, as the orbit's); a camera without a light, a light for a model that is not
     relightable, or a point light inside the object's bounds is one error (delivery/lights.py).
 
-    on_start(number of views) and on_frame() drive a progress bar. Returns views, width, height,
-    primitives, kind, moments (the distinct times drawn of a dynamic model, else 0), lights (the
-    distinct lights drawn of a relightable model, else 0) and
+    A time or a light given for every view draws each camera pose of the split once (split_views).
+
+    on_start(number of images) and on_frame() drive a progress bar. Returns images, views (the
+    distinct camera poses drawn), width, height, primitives, kind, moments (the distinct times drawn
+    of a dynamic model, else 0), lights (the distinct lights drawn of a relightable model, else 0) and
     ms_per_frame (rendering only, after one untimed warm-up render, the device synchronised before
     each clock reading)."""
     on_path = bool(orbit) or camera_path is not None
@@ -189,18 +212,20 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
         check_takes_light(model, model_file, light_option(light) if light is not None else "--light-orbit")
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
     draw = lambda camera: render_model(model, camera, background=background, near=near)  # its own n × n rays a pixel
-    cameras, names = [], []
+    # every view given its moment or light by the options: one image per pose, not per recorded one
+    one_per_pose = (is_dynamic(model) and (time is not None or times is not None)) or \
+        (is_relightable(model) and (light is not None or bool(light_orbit)))
+    cameras, names, recorded = [], [], []   # recorded: the split's views with their own moments and lights
     if dataset is not None:
         data = load_split(dataset, split, config["data"])
-        cameras, names = data.cameras, [view.image_path.stem for view in data.views]
+        cameras, names = split_views(data, camera, one_per_pose)
+        recorded = data.cameras
     if light_intensity is None:   # a light as bright as the dataset's (delivery/lights.py: as_bright_as)
-        light = as_bright_as(light, [view.light for view in cameras])
-    bounds = dataset_bounds(cameras, dataset) if light is not None or light_orbit else None
+        light = as_bright_as(light, [view.light for view in recorded])
+    bounds = dataset_bounds(recorded, dataset) if light is not None or light_orbit else None
     check_outside(light, bounds, light_option(light))
-    lights = light_orbit_lights(cameras, light_orbit, light_intensity, bounds) if light_orbit else None
+    lights = light_orbit_lights(recorded, light_orbit, light_intensity, bounds) if light_orbit else None
     frame_rate = fps or DEFAULT_FPS
-    if camera is not None:
-        cameras, names = fixed_camera(cameras, names, camera, split)
     if on_path:
         cameras, names, frame_rate = path_cameras(cameras, names, orbit, elevation, camera_path, fps)
     path = "the orbit" if orbit else f"the camera path {camera_path}" if camera_path is not None else None
@@ -230,6 +255,6 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     first = cameras[0]
     moments = {view.time for view in cameras} if is_dynamic(model) else set()
     lit = {view.light for view in cameras} if is_relightable(model) else set()
-    return {"views": len(cameras), "width": first.width, "height": first.height, "primitives": len(model),
-            "kind": model.kind, "ms_per_frame": 1e3 * seconds / len(cameras), "moments": len(moments),
-            "lights": len(lit)}
+    return {"images": len(cameras), "views": len(distinct_poses(cameras)[0]), "width": first.width,
+            "height": first.height, "primitives": len(model), "kind": model.kind,
+            "ms_per_frame": 1e3 * seconds / len(cameras), "moments": len(moments), "lights": len(lit)}

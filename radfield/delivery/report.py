@@ -2,7 +2,7 @@
 
     error_map(render, photo)          mean absolute error over channels, coloured with `inferno` on a
                                       fixed scale [0, ERROR_SCALE] (so maps of different runs compare)
-    view_grid(photo, render)          ground truth | render | error map, one (H, 3W + 2·GAP, 3) image
+    view_grid(photo, render)          ground truth | render | error map | its colour bar, captioned
     side_by_side(photo, renders, labels)   ground truth | render A | render B | ..., labelled
     report_markdown(metrics, ...)     the report.md of one evaluation
     time_plot(per_time)               a dynamic scene's PSNR over time, as PNG bytes
@@ -27,7 +27,8 @@ import numpy as np
 
 ERROR_SCALE = 0.25  # |render − photo| (mean over RGB) shown at full brightness
 GAP = 2             # white pixels between the panels of a grid
-LABEL_HEIGHT = 14   # pixels of the caption row of side-by-side grids
+LABEL_HEIGHT = 14   # pixels of the caption row of a grid's panels
+BAR_WIDTH, BAR_STRIP = 26, 8   # the colour bar panel of a view grid and its strip of colours
 FIGURES = "figures"                         # the report's plots, beside report.md
 TIME_PLOT = f"{FIGURES}/psnr_over_time.png"   # a dynamic scene's per-time PSNR (time_plot)
 LIGHT_PLOT = f"{FIGURES}/psnr_per_light.png"  # a one-light-at-a-time capture's per-light PSNR (light_plot)
@@ -52,7 +53,25 @@ def hstack(panels: Sequence[np.ndarray], gap: int = GAP) -> np.ndarray:
 
 
 def view_grid(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
-    return hstack([photo, render, error_map(render, photo)])
+    """Ground truth | render | error map | the error map's colour bar (0 to ERROR_SCALE), each with
+    a caption row on top."""
+    height = np.asarray(photo).shape[0]
+    return hstack([_captioned(photo, "truth"), _captioned(render, "render"),
+                   _captioned(error_map(render, photo), "|error|"), _captioned(colour_bar(height), "")])
+
+
+def colour_bar(height: int, width: int = BAR_WIDTH) -> np.ndarray:
+    """The error maps' scale as an (height, width, 3) panel: a vertical strip of their colours,
+    ERROR_SCALE at the top, 0 at the bottom, with both values written beside it."""
+    import cv2
+    from matplotlib import colormaps
+
+    strip = colormaps["inferno"](np.linspace(1.0, 0.0, height))[:, :3]
+    panel = np.full((height, width, 3), 255, np.uint8)
+    panel[:, :BAR_STRIP] = (strip[:, None, :] * 255).round().astype(np.uint8)
+    for text, y in ((f"{ERROR_SCALE:g}", 8), ("0", height - 2)):
+        cv2.putText(panel, text, (BAR_STRIP + 1, y), cv2.FONT_HERSHEY_SIMPLEX, 0.28, (0, 0, 0), 1, cv2.LINE_AA)
+    return panel.astype(np.float32) / 255.0
 
 
 def side_by_side(photo: np.ndarray, renders: Sequence[np.ndarray], labels: Sequence[str]) -> np.ndarray:
@@ -128,7 +147,7 @@ def report_markdown(metrics: dict[str, Any], *, model: str, grids_dir: str | Non
         lines += light_section(m["per_light"])
     if grids_dir is not None:
         lines += ["## Views", "", f"ground truth | render | error |render − photo| (mean over RGB; black 0, "
-                  f"yellow ≥ {ERROR_SCALE})", ""]
+                  f"yellow ≥ {ERROR_SCALE}) | the error's colour bar", ""]
         lines += [f"![{v['name']}]({grids_dir}/{v['name']}.png)" for v in m["per_view"]]
         lines.append("")
     if curves:
@@ -161,10 +180,17 @@ def light_section(per_light: Sequence[dict[str, Any]]) -> list[str]:
 
 
 def time_plot(per_time: Sequence[dict[str, Any]], title: str = "held-out views over time") -> bytes:
-    """PNG bytes (matplotlib, Agg backend): PSNR per moment ξ_t, the mean over its views, with the
-    overall mean as a dashed line."""
+    """PNG bytes (matplotlib, Agg backend) of `time_figure`."""
     import io
 
+    buffer = io.BytesIO()
+    time_figure(per_time, title).savefig(buffer, format="png", dpi=100)
+    return buffer.getvalue()
+
+
+def time_figure(per_time: Sequence[dict[str, Any]], title: str = "held-out views over time"):
+    """PSNR per moment ξ_t, the mean over its views, with the overall mean as a dashed line; the
+    legend below the axes, where it hides no point (in the corner it hid the last moment's)."""
     import matplotlib
 
     matplotlib.use("Agg")  # no display; must precede pyplot
@@ -172,16 +198,14 @@ def time_plot(per_time: Sequence[dict[str, Any]], title: str = "held-out views o
 
     times, values = [t["time"] for t in per_time], [t["psnr"] for t in per_time]
     weights = [t["views"] for t in per_time]
-    figure = Figure(figsize=(6, 3.2), layout="constrained")
+    figure = Figure(figsize=(6, 3.6), layout="constrained")
     axes = figure.subplots()
     axes.plot(times, values, "o-", ms=3, lw=1.0, label="mean over the moment's views")
     axes.axhline(sum(v * w for v, w in zip(values, weights)) / sum(weights), ls="--", lw=0.8, color="grey",
                  label="mean over all views")
     axes.set(title=title, xlabel="time ξ", ylabel="PSNR (dB)", xlim=(-0.02, 1.02))
-    axes.legend(loc="lower right", fontsize="small")
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=100)
-    return buffer.getvalue()
+    figure.legend(loc="outside lower center", ncols=2, fontsize="small")
+    return figure
 
 
 def light_angles(per_light: Sequence[dict[str, Any]], centre, up) -> list[tuple[float, float]]:
@@ -232,7 +256,7 @@ def light_plot(per_light: Sequence[dict[str, Any]], centre=(0.0, 0.0, 0.0), up=(
     versus.axhline(float((values * weights).sum() / weights.sum()), ls="--", lw=0.8, color="grey",
                    label="mean over all views")
     versus.set(title=title, xlabel="light elevation (degrees)", ylabel="PSNR (dB)")
-    versus.legend(loc="lower right", fontsize="small")
+    versus.legend(loc="best", fontsize="small")
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=100)
     return buffer.getvalue()

@@ -78,7 +78,7 @@ def cage_poses(fld: Field, pattern: str) -> list[np.ndarray]:
 
 def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None,
             simulation: dict[str, Any] | Path | None = None, dataset: Path | None = None, split: str = "test",
-            camera: int = 0, orbit: bool = False, elevation: float = 20.0, downscale: int = 1,
+            camera: str = "0", camera_option: str = "--camera", orbit: bool = False, elevation: float = 20.0, downscale: int = 1,
             background: tuple[float, float, float] | None = None, fps: float = 0.0, gradient: str = "smooth",
             split_threshold: float = 0.5, device: torch.device | str = "cpu", quiet: bool = False,
             log: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -86,7 +86,8 @@ def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None
     `output` (layout in the module docstring): the poses are the cage files of `cages` or the
     frames of the `simulation` (checked parameters, or a YAML file with a 'simulate:' mapping:
     radfield.edit.simulate); the camera is
-    `camera` of the dataset's `split` (default dataset: the run's), or an orbit starting there.
+    the view `camera` (a frame name or an index; `camera_option` names where it was given) of the
+    dataset's `split` (default dataset: the run's), or an orbit starting there.
     `background` defaults to the run's, `fps` to the simulation's, else DEFAULT_FPS. `log` gets
     the simulation's lines. Returns the summary written to SUMMARY."""
     from radfield.edit.simulate import read_simulation, simulate_cage
@@ -102,8 +103,7 @@ def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None
     if dataset is None:
         raise RadfieldError("--dataset is required: the run does not record its dataset")
     data = load_dataset(dataset, split=split, downscale=downscale, background=bg)
-    if not 0 <= camera < len(data.cameras):
-        raise RadfieldError(f"--camera {camera}: the {split} split has {len(data.cameras)} cameras")
+    camera = data.view_index(str(camera), camera_option)
 
     sim_cages = sim_figures = None
     if simulation is not None:

@@ -49,12 +49,16 @@ def read_animation(path: str | Path) -> dict[str, Any]:
         out["cages"] = cages if Path(cages).expanduser().is_absolute() else str(path.parent / cages)
     else:
         out["simulate"] = parse_simulation(data["simulate"] or {}, f"{where}: simulate")
-    for key in ("camera", "downscale"):
-        if key in anim:
-            value = anim[key]
-            if isinstance(value, bool) or not isinstance(value, int) or value < (1 if key == "downscale" else 0):
-                raise RadfieldError(f"{w}.{key}: expected an integer >= {1 if key == 'downscale' else 0}, got {value!r}")
-            out[key] = value
+    if "camera" in anim:   # a frame name, or an index in the split
+        value = anim["camera"]
+        if isinstance(value, bool) or not (isinstance(value, int) and value >= 0 or isinstance(value, str) and value):
+            raise RadfieldError(f"{w}.camera: expected a frame name or an index >= 0, got {value!r}")
+        out["camera"] = str(value)
+    if "downscale" in anim:
+        value = anim["downscale"]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise RadfieldError(f"{w}.downscale: expected an integer >= 1, got {value!r}")
+        out["downscale"] = value
     for key in ("elevation", "fps", "split_threshold"):
         if key in anim:
             out[key] = number(anim, key, w, positive=key == "fps")

@@ -23,7 +23,7 @@ import yaml
 
 from radfield.errors import RadfieldError
 from radfield.edit.field import Field
-from radfield.pipeline.config import parse_yaml
+from radfield.pipeline.config import parse_yaml, yaml_problem
 
 # modules whose import registers operations (one per operation family)
 OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.warp", "radfield.edit.boolean", "radfield.edit.compose",
@@ -94,7 +94,7 @@ def read_yaml(path: str | Path, what: str = "the file") -> Any:
     except OSError as exc:
         raise RadfieldError(f"{path}: cannot read {what} ({exc.strerror})") from None
     except yaml.YAMLError as exc:
-        raise RadfieldError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        raise RadfieldError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
 
 
 def parse_spec(data: Any, source: str = "spec") -> list[tuple[str, dict]]:
@@ -109,7 +109,7 @@ def parse_spec(data: Any, source: str = "spec") -> list[tuple[str, dict]]:
     known = registry()
     out = []
     for i, entry in enumerate(ops):
-        where = f"operations[{i}]"
+        where = f"{source}: operations[{i}]"
         if not isinstance(entry, Mapping) or len(entry) != 1:
             raise RadfieldError(f"{where}: each operation is a mapping with one key (its name), got {entry!r}")
         (name, args), = entry.items()
@@ -123,11 +123,14 @@ def parse_spec(data: Any, source: str = "spec") -> list[tuple[str, dict]]:
     return out
 
 
-def apply_operations(fld: Field, operations: list[tuple[str, dict]], ctx: EditContext) -> Field:
-    """Apply (name, args) pairs in order; each operation's figures are appended to fld.notes."""
+def apply_operations(fld: Field, operations: list[tuple[str, dict]], ctx: EditContext,
+                     sources: list[str] | None = None) -> Field:
+    """Apply (name, args) pairs in order; each operation's figures are appended to fld.notes.
+    `sources`: where each operation was written (a spec file's path), which its errors name first."""
     known = registry()
     for i, (name, args) in enumerate(operations):
-        ctx.where = f"operations[{i}].{name}"
+        source = sources[i] if sources is not None else None
+        ctx.where = f"{source}: operations[{i}].{name}" if source else f"operations[{i}].{name}"
         fld = known[name](fld, args, ctx)
     return fld
 

@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 
 from radfield.util.atomic import atomic_write_text
+from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, FRACTION, POSITIVE, Range
 from radfield.errors import RadfieldError
 
 DEFAULTS_NAME = "pipeline.yaml"
@@ -57,6 +58,86 @@ CHOICES: dict[str, tuple[str, ...] | Callable[[], tuple[str, ...]]] = {
 }
 
 _TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}
+
+COMMAND_LINE = "command line"   # the source of `options`: the CLI's own flags
+# The flag that sets a key directly, the same on every command: its error lines name the flag the
+# user typed, not the key (`--downscale must be at least 1, got 0`).
+OPTION_FLAGS = {"seed": "--seed", "device": "--device", "data.downscale": "--downscale",
+                "data.background": "--background", "train.primitive": "--primitive",
+                "train.iterations": "--iterations", "train.max_primitives": "--max-primitives",
+                "render.near": "--near", "bake.min_weight": "--min-weight"}
+
+
+# The range of every numeric key of pipeline.yaml (tests/test_config.py: every one is listed): an
+# out-of-range value is refused when it is set (one line naming where it came from), before the
+# run directory is touched, so a mistake never replaces a trained model by a broken one.
+RANGES: dict[str, Range] = {
+    "seed": AT_LEAST_0,
+    "data.downscale": AT_LEAST_1,
+    "data.background": FRACTION,
+    "data.test_every": Range(2),
+    "data.val_every": Range(0, note="0 = no val split"),
+    "sfm.num_threads": Range(1, also=-1, note="-1 = all cores"),
+    "sfm.max_image_size": AT_LEAST_1,
+    "sfm.max_num_features": AT_LEAST_1,
+    "sfm.exhaustive_max_images": AT_LEAST_1,
+    "sfm.sequential_overlap": AT_LEAST_1,
+    "sfm.min_registered_fraction": Range(0, 1, open_low=True),
+    "sfm.target_radius": POSITIVE,
+    "envelope.outlier_std": POSITIVE,
+    "envelope.poisson_depth": Range(1, 16),
+    "envelope.wrap_alpha": POSITIVE,
+    "envelope.offset": POSITIVE,
+    "envelope.target_faces": Range(20),
+    "envelope.hull_resolution": Range(8),
+    "envelope.num_threads": AT_LEAST_1,
+    "tetra.edge_length_fac": Range(0, 1, open_low=True, open_high=True),
+    "tetra.epsilon": Range(0, 1, open_low=True, open_high=True),
+    "tetra.num_threads": AT_LEAST_1,
+    "init.num_points": AT_LEAST_1,
+    "init.w1_scale": Range(0, 10),
+    "init.neural_radius": Range(0, 10, note="0 = automatic"),
+    "init.cage_fraction": FRACTION,
+    "train.iterations": AT_LEAST_1,
+    "train.max_primitives": AT_LEAST_1,
+    "train.sh_degree": Range(0, 3),
+    "train.sh_increase_every": AT_LEAST_1,
+    "train.lambda_dssim": FRACTION,
+    "train.lambda_aniso": AT_LEAST_0,
+    "train.lambda_w1": Range(0, note="0 = off"),
+    "train.lambda_density": Range(0, note="0 = off"),
+    "train.frequency_cap": Range(0, note="0 = no cap"),
+    "train.frequency_bound": Range(0, note="0 = no bound"),
+    "train.nonnegative_density": Range(0, 180, note="degrees, 0 = off"),
+    "train.ray_jitter": Range(0, 1, note="pixels, 0 = off"),
+    "train.min_footprint": Range(0, 8, note="pixels, 0 = off"),
+    **{f"train.lr.{group}": Range(0, note="0 freezes the group")
+       for group in ("means", "log_scales", "quats", "sh_dc", "sh_rest", "mlp", "color", "opacities")},
+    "train.means_lr_final_ratio": Range(0, 1, open_low=True),
+    "train.densify.start": AT_LEAST_0,
+    "train.densify.stop": AT_LEAST_0,
+    "train.densify.every": AT_LEAST_1,
+    "train.densify.grad_threshold": AT_LEAST_0,
+    "train.densify.prune_threshold": AT_LEAST_0,
+    "train.densify.grow_scale": POSITIVE,
+    "train.densify.prune_scale": POSITIVE,
+    "train.densify.gaussian.grad_threshold": AT_LEAST_0,
+    "train.densify.gaussian.min_opacity": Range(0, 1, open_high=True),
+    "train.densify.gaussian.prune_scale": POSITIVE,
+    "train.densify.gaussian.opacity_reset_every": AT_LEAST_1,
+    "train.checkpoint_every": AT_LEAST_1,
+    "train.batch_views": AT_LEAST_1,
+    "train.eval_every": Range(0, note="0 = never"),
+    "train.log_every": Range(1, note="null: 1 on the CPU, 50 on a GPU"),
+    "distributed.timeout": POSITIVE,
+    "distributed.sync_check_every": Range(0, note="0 = only at the start"),
+    "render.near": POSITIVE,
+    "render.omega0": POSITIVE,
+    "render.hidden": Range(1, 64),
+    "render.supersample": Range(1, 4, note="1 = off"),
+    "render.time_frequency": Range(0, 100, open_low=True, note="1: the paper's ω; 2π: one period"),
+    "bake.min_weight": Range(0, 1, open_high=True),
+}
 
 
 class _Loader(yaml.SafeLoader):
@@ -105,7 +186,7 @@ def load_config(
     if config_file is not None:
         _merge(config, _read_yaml_mapping(Path(config_file)), source=str(config_file))
     for key, value in (options or {}).items():
-        set_key(config, key, value, source="command line")
+        set_key(config, key, value, source=COMMAND_LINE)
     for text in sets:
         key, value = parse_set(text)
         set_key(config, key, value, source=f"--set {text}")
@@ -122,7 +203,7 @@ def parse_set(text: str) -> tuple[str, Any]:
     try:
         value = parse_yaml(raw)
     except yaml.YAMLError as error:
-        raise RadfieldError(f"--set {text}: cannot parse the value of {key} ({_first_line(error)})") from error
+        raise RadfieldError(f"--set {text}: cannot parse the value of {key} ({yaml_problem(error)})") from error
     if isinstance(value, dict):
         raise RadfieldError(f"--set {text}: {key} takes a single value; set the keys inside it one by one")
     return key, value
@@ -168,16 +249,6 @@ def section(config: Mapping[str, Any], keys: str | Iterable[str]) -> dict[str, A
     return out
 
 
-def require(config: Mapping[str, Any], key: str, ok: Callable[[Any], bool], what: str) -> None:
-    """A range check a type cannot express: RadfieldError naming the dotted `key` unless
-    `ok(value)`, e.g. require(cfg, "sfm.max_image_size", lambda n: n >= 1, "at least 1")."""
-    value: Any = config
-    for part in key.split("."):
-        value = value[part]
-    if not ok(value):
-        raise RadfieldError(f"config key {key} must be {what}, got {_show(value)}")
-
-
 def save_resolved(config: Mapping[str, Any], path: Path) -> None:
     """Write the resolved config as YAML, atomically (a reader never sees half a file)."""
     atomic_write_text(Path(path), yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None))
@@ -217,14 +288,15 @@ def _merge(config: dict[str, Any], partial: Mapping[str, Any], source: str, pref
 
 
 def _checked(key: str, value: Any, default: Any, source: str) -> Any:
-    """`value` if it fits the type of `default` (ints widened to float), else RadfieldError."""
+    """`value` if it fits the type of `default` (ints widened to float) and the key's range
+    (RANGES; each item of a list), else RadfieldError."""
     if value is None:
         if key in NULLABLE:
             return None
-        raise RadfieldError(f"{source}: config key {key} must be {_describe(default, key)}, got null")
+        raise _bad(source, key, _describe(default, key), value)
     if isinstance(default, list):
         if not isinstance(value, list) or (key not in SELECTIONS and len(value) != len(default)):
-            raise RadfieldError(f"{source}: config key {key} must be {_describe(default, key)}, got {_show(value)}")
+            raise _bad(source, key, _describe(default, key), value)
         items = [_checked_scalar(key, item, type(default[0]), default, source, whole=value) for item in value]
         if key in SELECTIONS:
             _check_selection(key, items, default, source)
@@ -233,7 +305,7 @@ def _checked(key: str, value: Any, default: Any, source: str) -> Any:
     checked = _checked_scalar(key, value, expected, default, source, whole=value)
     choices = CHOICES[key]() if callable(CHOICES.get(key)) else CHOICES.get(key)   # callable: read when checked
     if choices is not None and checked not in choices:
-        raise RadfieldError(f"{source}: config key {key} must be one of {', '.join(choices)}, got {_show(value)}")
+        raise _bad(source, key, f"one of {', '.join(choices)}", value)
     return checked
 
 
@@ -246,8 +318,20 @@ def _checked_scalar(key: str, value: Any, expected: type, default: Any, source: 
     else:
         ok = isinstance(value, expected)
     if not ok:
-        raise RadfieldError(f"{source}: config key {key} must be {_describe(default, key)}, got {_show(whole)}")
+        raise _bad(source, key, _describe(default, key), whole)
+    allowed = RANGES.get(key)
+    if allowed is not None and not allowed.holds(value):
+        what = allowed.describe()
+        raise _bad(source, key, f"{'numbers ' if isinstance(whole, list) else ''}{what}", whole)
     return float(value) if expected is float else value
+
+
+def _bad(source: str, key: str, what: str, value: Any) -> RadfieldError:
+    """The one error line of a value that does not fit: a flag's names the flag the user typed,
+    any other's the source and the key."""
+    if source == COMMAND_LINE and key in OPTION_FLAGS:
+        return RadfieldError(f"{OPTION_FLAGS[key]} must be {what}, got {_show(value)}")
+    return RadfieldError(f"{source}: config key {key} must be {what}, got {_show(value)}")
 
 
 def _check_selection(key: str, items: list[Any], default: list[Any], source: str) -> None:
@@ -314,7 +398,7 @@ def _read_yaml_mapping(path: Path) -> dict[str, Any]:
     try:
         data = parse_yaml(text)
     except yaml.YAMLError as error:
-        raise RadfieldError(f"config file {path} is not valid YAML: {_first_line(error)}") from error
+        raise RadfieldError(f"{path}: not valid YAML: {yaml_problem(error)}") from error
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -322,7 +406,9 @@ def _read_yaml_mapping(path: Path) -> dict[str, Any]:
     return data
 
 
-def _first_line(error: yaml.YAMLError) -> str:
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """What is wrong in a YAML text and where, in one line: "expected ',' or ']', but got '<stream
+    end>' (line 3, column 1)". Every YAML file radfield reads words its syntax errors so."""
     mark = getattr(error, "problem_mark", None)
     problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-    return f"{problem} at line {mark.line + 1}" if mark is not None else problem
+    return f"{problem} (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else problem

@@ -20,6 +20,9 @@ The JSON of `run_info` is a stable interface (scripts and docs/formats.md rely o
         "operations": [{"<name>": {...}}, ...],
         "spec": "/abs/path/RUN/edit/spec.yaml"
       } | null,
+      "artifacts": {                              # what each finished stage wrote, files and folders
+        "<stage>": ["/abs/path/RUN/<stage>/<output>", ...]     # (its manifest's outputs), in pipeline order
+      },
       "stages": {                                 # in pipeline order; an edited run has only "edit" (the
                                                   # reconstruction's stages ran in its source run)
         "<stage>": {
@@ -59,11 +62,15 @@ def run_info(run_dir: Path) -> dict[str, Any]:
     """The documented JSON summary of a run directory (see the module docstring)."""
     run = Run.open(run_dir)
     stages: dict[str, Any] = {}
+    artifacts: dict[str, list[str]] = {}
     for name in run.stage_names():
         manifest = run.manifest(name)
         if manifest is None:
             stages[name] = {"done": False, "seconds": None, "applicable": None}
             continue
+        written = [run.stage_dir(name) / output for output in manifest.get("outputs") or {}]
+        if written:
+            artifacts[name] = [str(path.resolve()) for path in written if path.exists()]
         entry: dict[str, Any] = {
             "done": True,
             "seconds": manifest.get("seconds"),
@@ -83,6 +90,7 @@ def run_info(run_dir: Path) -> dict[str, Any]:
         "stages": stages,
         "edited_from": str(run.edited_from) if run.edited_from is not None else None,
         "edit": edit_info(run),
+        "artifacts": artifacts,
     }
 
 
@@ -153,6 +161,10 @@ def format_info(info: dict[str, Any]) -> str:
             console.print(f"  {i}. {_operation(op)}", soft_wrap=True)
     if info["normalization"]:
         console.print(f"normalization (photos -> run frame): {info['normalization']}")
+    if info.get("artifacts"):
+        console.print(f"artifacts (in {info['run']}):")
+        for stage, paths in info["artifacts"].items():
+            console.print(f"  {stage}/: {', '.join(Path(path).name for path in paths)}", soft_wrap=True)
     return buffer.getvalue()
 
 

@@ -35,8 +35,6 @@ def check(config: dict[str, Any], input_path: Path) -> None:
     """Everything about the config and the dataset a user can get wrong, checked before the run
     directory is touched (the data stage checks the dataset again, when it runs)."""
     scene, points = read_dataset(input_path, config["data"])
-    for module in (sfm, envelope, tetra, bake):
-        module.check_config(config)
     init.check_config(config, points, posed=scene["posed"])
     conditions = data.view_conditions(data.without_ignored(scene, config["data"])["splits"])
     try:

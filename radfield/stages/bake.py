@@ -25,7 +25,6 @@ from typing import Any
 import torch
 
 from radfield.delivery.bake import coverage, prune, to_fp16_and_back
-from radfield.errors import RadfieldError
 from radfield.util.progress import progress_bar
 from radfield.delivery.io import load_model, save_model
 from radfield.core.train.trainer import mean_psnr
@@ -45,11 +44,6 @@ def run(ctx: Context) -> dict[str, Any]:
 
 STAGE = Stage("bake", run, config_keys=("bake", "eval.split", "render.near"), inputs=(SCENE, MODEL_FILE),
               outputs=(BAKED,), version=2)   # 2: conditioned kinds measured as each view draws them
-
-
-def check_config(config: dict[str, Any]) -> None:
-    if not 0 <= config["bake"]["min_weight"] < 1:
-        raise RadfieldError(f"config key bake.min_weight must be in [0, 1), got {config['bake']['min_weight']}")
 
 
 def bake_model(model_file: Path, scene: Scene, out: Path, *, min_weight: float, fp16: bool, split: str,

@@ -23,12 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from radfield.core.geometry.envelope import (MIN_POINTS, build_envelope, choose_source, focus_box, overlay_picture,
-                                             visual_hull, write_envelope)
+from radfield.core.geometry.envelope import (CARVING_PASSES, MIN_POINTS, build_envelope, choose_source, focus_box,
+                                             overlay_picture, visual_hull, write_envelope)
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import require
 from radfield.datasets.scene import POINTS, SCENE, load_scene
 from radfield.pipeline.runner import Context, NotApplicable, Stage
+from radfield.util.progress import progress_bar
 from radfield import run as layout
 
 ENVELOPE = layout.ENVELOPE_FILE
@@ -62,7 +62,7 @@ def run(ctx: Context) -> dict[str, Any]:
         mesh = points["mesh_vertices"]
         v, f, figures = build_envelope((mesh, points["mesh_faces"]) if len(points["mesh_faces"]) else mesh, cfg)
     else:
-        v, f, figures = hull_of_every_moment(train, cfg)
+        v, f, figures = hull_of_every_moment(train, cfg, ctx.quiet)
     write_envelope(ctx.outputs[ENVELOPE], v, f)
     overlay_picture(v, f, train.cameras[0], train.load_image(0)[0].numpy(), ctx.outputs[OVERLAY])
     ctx.log(f"{figures['faces']} faces from the {source} ({figures['method']}), margin {figures['margin']:.3g}")
@@ -72,9 +72,11 @@ def run(ctx: Context) -> dict[str, Any]:
     return {"source": source, **figures}
 
 
-def hull_of_every_moment(train, cfg: dict[str, Any]):
+def hull_of_every_moment(train, cfg: dict[str, Any], quiet: bool = True):
     """The visual hull of the training masks; for a dynamic scene the union of its moments' hulls,
-    or the box about the cameras' focus when a moment has too few views (module docstring)."""
+    or the box about the cameras' focus when a moment has too few views (module docstring). Shows
+    the loading and the carving as progress (unless `quiet`): 864 frames of a dynamic scene take
+    a minute or two."""
     moments: dict[float, list[int]] = {}
     for k, camera in enumerate(train.cameras):
         if camera.time is not None:
@@ -84,21 +86,19 @@ def hull_of_every_moment(train, cfg: dict[str, Any]):
         v, f, figures = focus_box(train.cameras, f"a dynamic scene with {fewest} training view(s) at some moment, "
                                                  f"too few for per-moment hulls (at least {MIN_VIEWS_PER_TIME})")
         return v, f, {**figures, "moments": len(moments)}
-    _, masks = train.load_images()  # views without alpha count as all foreground
     groups = [moments[t] for t in sorted(moments)] or None
-    v, f, figures = visual_hull(train.cameras, list(masks.numpy()), cfg, groups=groups)
+    with progress_bar(quiet) as progress:   # a dynamic scene's hull: one carving a moment and pass
+        task = progress.add_task(f"loading {len(train)} training masks", total=len(train))
+        masks = []
+        for k, camera in enumerate(train.cameras):
+            mask = train.load_image(k)[1]   # a view without alpha counts as all foreground
+            masks.append(mask.numpy() if mask is not None else np.ones((camera.height, camera.width), np.float32))
+            progress.advance(task)
+        what = f"{len(groups)} moments' hulls" if groups else "the visual hull"
+        task = progress.add_task(f"carving {what}", total=CARVING_PASSES * len(groups or [0]))
+        v, f, figures = visual_hull(train.cameras, masks, cfg, groups=groups, on_carved=lambda: progress.advance(task))
     return v, f, {**figures, **({"moments": len(moments)} if moments else {})}
 
 
 STAGE = Stage("envelope", run, config_keys=("envelope", "sfm", "seed"), inputs=(SCENE, POINTS),
               outputs=(ENVELOPE, OVERLAY), version=2)
-
-
-def check_config(config: dict[str, Any]) -> None:
-    """The `envelope` settings a user can get wrong, checked before anything runs."""
-    for key in ("offset", "wrap_alpha", "outlier_std"):
-        require(config, f"envelope.{key}", lambda x: x > 0, "positive")
-    require(config, "envelope.poisson_depth", lambda n: 1 <= n <= 16, "between 1 and 16")
-    require(config, "envelope.target_faces", lambda n: n >= 20, "at least 20")
-    require(config, "envelope.hull_resolution", lambda n: n >= 8, "at least 8")
-    require(config, "envelope.num_threads", lambda n: n >= 1, "at least 1")

@@ -54,7 +54,6 @@ from radfield.errors import RadfieldError
 from radfield.delivery.io import save_model
 from radfield.core import kinds
 from radfield.core.render.sh import num_sh_coeffs, rgb_to_sh_dc
-from radfield.pipeline.config import require
 from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
@@ -112,20 +111,6 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
     """The init settings a user can get wrong, checked before anything runs (`points`: the data
     stage's points.npz arrays; for unposed photos, whose points the sfm stage makes, only a
     mesh source can be missing). The kind against the views' conditions: `primitive_kind`."""
-    require(config, "render.time_frequency", lambda x: 0 < x <= 100, "in (0, 100] (1: the paper's ω; 2π: one period)")
-    for key, value in (("init.num_points", config["init"]["num_points"]),
-                       ("train.max_primitives", config["train"]["max_primitives"])):
-        if value is not None and value < 1:
-            raise RadfieldError(f"config key {key} must be at least 1, got {value}")
-    require(config, "init.cage_fraction", lambda x: 0 <= x <= 1, "in [0, 1]")
-    require(config, "init.neural_radius", lambda x: 0 <= x <= 10, "in [0, 10] (0 = automatic)")
-    require(config, "train.frequency_cap", lambda x: x >= 0, "at least 0 (0 = no cap)")
-    require(config, "train.frequency_bound", lambda x: x >= 0, "at least 0 (0 = no bound)")
-    require(config, "train.nonnegative_density", lambda x: 0 <= x <= 180, "in [0, 180] degrees (0 = off)")
-    require(config, "train.ray_jitter", lambda x: 0 <= x <= 1, "in [0, 1] pixels (0 = off)")
-    require(config, "render.supersample", lambda x: 1 <= x <= 4, "an integer in [1, 4] (1 = off)")
-    require(config, "train.min_footprint", lambda x: 0 <= x <= 8, "in [0, 8] pixels (0 = off)")
-    require(config, "train.log_every", lambda n: n is None or n >= 1, "at least 1 (null: 1 on the CPU, 50 on a GPU)")
     if posed or config["init"]["source"] == "mesh":
         choose_source(config["init"]["source"], points)
 

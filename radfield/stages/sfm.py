@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import Any
 
 from radfield.datasets import formats
-from radfield.pipeline.config import require
 from radfield.pipeline.runner import INPUT, Context, NotApplicable, Stage
 from radfield import run as layout
 
@@ -30,12 +29,3 @@ def run(ctx: Context) -> dict[str, Any]:
 
 
 STAGE = Stage("sfm", run, config_keys=("sfm", "seed"), inputs=(INPUT,), outputs=(SFM_DATASET,))
-
-
-def check_config(config: dict[str, Any]) -> None:
-    """The `sfm` settings a user can get wrong, checked before anything runs."""
-    require(config, "sfm.num_threads", lambda n: n == -1 or n >= 1, "-1 (all cores) or at least 1")
-    for key in ("max_image_size", "max_num_features", "exhaustive_max_images", "sequential_overlap"):
-        require(config, f"sfm.{key}", lambda n: n >= 1, "at least 1")
-    require(config, "sfm.min_registered_fraction", lambda x: 0 < x <= 1, "in (0, 1]")
-    require(config, "sfm.target_radius", lambda x: x > 0, "positive")

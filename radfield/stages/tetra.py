@@ -12,7 +12,6 @@ from typing import Any
 from radfield.core.geometry.cage import CAGE_FILES, build_cage, fallback_cage, tet_volumes, write_cage
 from radfield.core.geometry.envelope import read_envelope
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import require
 from radfield.stages.envelope import ENVELOPE
 from radfield.pipeline.runner import Context, NotApplicable, Stage
 
@@ -35,10 +34,3 @@ def run(ctx: Context) -> dict[str, Any]:
 
 
 STAGE = Stage("tetra", run, config_keys=("tetra",), inputs=(ENVELOPE,), outputs=CAGE_FILES, version=2)
-
-
-def check_config(config: dict[str, Any]) -> None:
-    """The `tetra` settings a user can get wrong, checked before anything runs."""
-    for key in ("edge_length_fac", "epsilon"):
-        require(config, f"tetra.{key}", lambda x: 0 < x < 1, "in (0, 1)")
-    require(config, "tetra.num_threads", lambda n: n >= 1, "at least 1")

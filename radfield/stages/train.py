@@ -40,13 +40,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
 from radfield.delivery.io import load_model, save_model
 from radfield.core.kinds import Primitives
 from radfield.core.train.dataparallel import train_on_ranks
 from radfield.core.train.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint
 from radfield.core.train.trainlog import TrainLog, plot_curves, read_log
+from radfield.util.progress import progress_bar
 from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.init import INIT_MODEL
 from radfield.pipeline.runner import Context, Stage
@@ -161,22 +160,20 @@ def to_world(prims: Primitives, norm: Normalization) -> Primitives:
 
 
 class _TrainProgress:
-    """A rich progress bar with loss, PSNR, primitive count and it/s (nothing when quiet)."""
+    """The training's progress (util/progress.py) with loss, PSNR, primitive count and it/s."""
 
     def __init__(self, iterations: int, first_step: int, quiet: bool):
         self.first_step = first_step
-        self.progress = Progress(TextColumn("training"), BarColumn(), MofNCompleteColumn(),
-                                 TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
-                                 disable=quiet, transient=True)
-        self.task = self.progress.add_task("train", total=iterations, completed=first_step, stats="")
+        self.progress = progress_bar(quiet, stats=True)
+        self.task = self.progress.add_task("training", total=iterations, completed=first_step, stats="")
         self.clock = time.perf_counter()
 
     def __enter__(self) -> "_TrainProgress":
-        self.progress.start()
+        self.progress.__enter__()
         return self
 
     def __exit__(self, *exc) -> None:
-        self.progress.stop()
+        self.progress.__exit__(*exc)
 
     def update(self, step: int, info: dict) -> None:
         rate = (step - self.first_step) / max(time.perf_counter() - self.clock, 1e-9)

@@ -43,7 +43,7 @@ _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
             _CSRC / "loss_kernels.cpp", _CSRC / "strategy_kernels.cpp", _CSRC / "positivity_kernels.cpp",
             _CSRC / "relight_kernels.cpp"]
-_NAME = "radfield_kernels"
+_NAME = "radfield_kernels"   # the build's name: one build per SIMD level (_build_name)
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
 
@@ -65,6 +65,13 @@ def _simd_flags() -> list[str]:
     if capability == "AVX2":
         return ["-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2", "-mavx2", "-mfma", "-mf16c"]
     return ["-DCPU_CAPABILITY=DEFAULT"]   # portable Vectorized<T>: scalar libm calls
+
+
+def _build_name() -> str:
+    """One cached build per SIMD level (radfield_kernels_avx512, _avx2, _default): lowering the level
+    with ATEN_CPU_CAPABILITY (CI runs the numerics tests once more at AVX2) then loads its own build
+    instead of recompiling over the other one each time the level changes."""
+    return f"{_NAME}_{torch.backends.cpu.get_cpu_capability().lower()}"
 
 
 class _NoCudaRuntimeLine(logging.Filter):
@@ -94,13 +101,13 @@ def _build():
 
     # torch waits forever on the lock file of a build that was killed midway: clear a stale one
     try:
-        lock = Path(cpp_extension._get_build_directory(_NAME, verbose=False)) / "lock"
+        lock = Path(cpp_extension._get_build_directory(_build_name(), verbose=False)) / "lock"
         if time.time() - lock.stat().st_mtime > _STALE_LOCK_SECONDS:
             lock.unlink(missing_ok=True)
     except (OSError, AttributeError):   # no lock (the usual case), or torch's private helper moved
         pass
     cpp_extension.load(
-        name=_NAME,
+        name=_build_name(),
         sources=[str(p) for p in _SOURCES],
         extra_include_paths=[str(_CSRC)],
         # IEEE semantics kept (no -ffast-math); -fno-math-errno as torch's own build, so that

@@ -92,6 +92,22 @@ class Camera:
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w, height=h)
 
 
+def distinct_poses(cameras: list[Camera]) -> tuple[list[Camera], list[int]]:
+    """Each pose of `cameras` once, in the order first seen, without a time or a light (views that
+    differ only by the moment or the light they show are one pose: a dynamic or relighting
+    dataset's camera at each of its moments or lights); and for each camera the index of its pose."""
+    poses: dict[tuple, int] = {}
+    firsts: list[Camera] = []
+    index = []
+    for camera in cameras:
+        key = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, camera.c2w.numpy().tobytes())
+        if key not in poses:
+            poses[key] = len(firsts)
+            firsts.append(replace(camera, time=None, light=None))
+        index.append(poses[key])
+    return firsts, index
+
+
 def opengl_to_opencv(c2w_gl: torch.Tensor) -> torch.Tensor:
     """Camera-to-world in OpenGL axes (NeRF-synthetic, nerfstudio) -> OpenCV axes."""
     return torch.as_tensor(c2w_gl, dtype=torch.float64) @ _GL_TO_CV

@@ -53,6 +53,7 @@ LAST_RESORTS = ("convex_hull", "box")
 
 # Algorithm constants (the tunable settings are the `envelope` section of pipeline.yaml).
 MIN_POINTS = 10  # fewer points make no surface
+CARVING_PASSES = 3  # the visual hull carves a coarse grid, then its fine grid twice (visual_hull)
 OUTLIER_NEIGHBORS = 16  # k of both outlier tests
 OUTLIER_PROBABILITY = 0.8  # LoOP test: points more likely than this to be outliers are dropped
 ALPHA_SHAPE = 0.1  # alpha-shape fallback radius, fraction of the bounding-box diagonal
@@ -126,7 +127,8 @@ def build_envelope(geometry, cfg: dict) -> tuple[np.ndarray, np.ndarray, dict]:
     return v, f, {**figures, "inliers": len(inliers), "outliers": len(points) - len(inliers)}
 
 
-def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict, groups: list[list[int]] | None = None):
+def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict, groups: list[list[int]] | None = None,
+                on_carved: Callable[[], None] | None = None):
     """Envelope carved from silhouettes, with the `envelope` section `cfg` of the config.
     `masks[k]` is (H, W) for `cameras[k]` (bool, or alpha in [0, 1]: foreground above
     MASK_THRESHOLD). A voxel is removed when some view sees it entirely on background, and kept
@@ -141,7 +143,9 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict, group
     `groups`: lists of indices into `cameras`, each carved on its own (the views of one moment
     of a dynamic scene, each voxel judged by its group's views only) on one shared grid; the
     hull is the union of the groups' hulls, so it holds the object at every moment. None: one
-    group of every view."""
+    group of every view. on_carved() is called after each group's carving of each of the
+    CARVING_PASSES passes (a progress bar's advance; a second round of passes follows when the
+    strict one keeps nothing)."""
     import cv2
     from skimage.measure import marching_cubes
 
@@ -165,8 +169,8 @@ def visual_hull(cameras: list[Camera], masks: list[np.ndarray], cfg: dict, group
         box = rig_lo, rig_hi
         # a coarse pass finds the object's box, a fine one carves it, and a second fine pass in
         # the fine pass's box (large coarse voxels survive farther out) spends the resolution on it
-        for resolution in (32, int(cfg["hull_resolution"]), int(cfg["hull_resolution"])):
-            occupied, origin, h = _carve_union(view_groups, *box, resolution, min_views)
+        for resolution in (32, int(cfg["hull_resolution"]), int(cfg["hull_resolution"])):   # CARVING_PASSES of them
+            occupied, origin, h = _carve_union(view_groups, *box, resolution, min_views, on_carved)
             if not occupied.any():
                 break
             idx = np.argwhere(occupied)
@@ -535,11 +539,16 @@ def _rig_box(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
     return target - radius, target + radius
 
 
-def _carve_union(view_groups, lo: np.ndarray, hi: np.ndarray, resolution: int, min_views: tuple[int, ...]):
-    """`_carve` of each group of views (with its own min_views) on the same grid, united."""
-    occupied, origin, h = _carve(view_groups[0], lo, hi, resolution, min_views[0])
-    for views, least in zip(view_groups[1:], min_views[1:]):
-        occupied |= _carve(views, lo, hi, resolution, least)[0]
+def _carve_union(view_groups, lo: np.ndarray, hi: np.ndarray, resolution: int, min_views: tuple[int, ...],
+                 on_carved: Callable[[], None] | None = None):
+    """`_carve` of each group of views (with its own min_views) on the same grid, united;
+    on_carved() after each group."""
+    occupied = None
+    for views, least in zip(view_groups, min_views):
+        carved, origin, h = _carve(views, lo, hi, resolution, least)
+        occupied = carved if occupied is None else occupied | carved
+        if on_carved is not None:
+            on_carved()
     return occupied, origin, h
 
 

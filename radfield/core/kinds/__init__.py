@@ -13,7 +13,9 @@ a view must give a time) and their relightable variants for one-light-at-a-time 
 A new kind is one module that defines its primitives dataclass (a `_Primitives` subclass), a
 `PrimitiveKind` subclass with the hooks it needs, registers it, and registers its fast renderers
 with radfield.core.backends; training, the model file, rendering, editing and export then take it
-(tests/test_kinds.py adds one inside a test).
+(tests/test_kinds.py adds one inside a test). Every kind is also declared as an entry point of the
+group radfield.kinds (pyproject.toml), which is how `reconstruct --help` lists the kinds without
+importing them and how a kind of another installed package is found (_load_declared_kinds).
 """
 
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
@@ -27,6 +29,25 @@ from radfield.core.kinds.relight import RelightGaussians, RelightNeuralPrimitive
 from radfield.core.render.kernels import WINDOW_GAIN
 
 Primitives = _Primitives   # any kind's primitives, for annotations
+
+
+def _load_declared_kinds() -> None:
+    """The kinds other installed packages declare (entry points of the group radfield.kinds, as
+    pyproject.toml declares the built-in ones): loading one imports its module, which registers it.
+    A package whose kind fails to import is named in one warning; the rest of radfield works."""
+    import warnings
+    from importlib.metadata import entry_points
+
+    for point in entry_points(group="radfield.kinds"):
+        if point.name not in names():
+            try:
+                point.load()
+            except Exception as error:  # a broken plugin must not break radfield
+                warnings.warn(f"radfield: the primitive kind {point.name!r} ({point.value}) failed to load: "
+                              f"{type(error).__name__}: {error}", RuntimeWarning, stacklevel=2)
+
+
+_load_declared_kinds()
 
 __all__ = ["DEFAULT_HIDDEN", "DEFAULT_OMEGA0", "INITIAL_ALPHA", "WINDOW_GAIN", "DynamicGaussians",
            "DynamicNeuralPrimitives", "Gaussians", "NeuralPrimitives", "RelightGaussians", "RelightNeuralPrimitives",
