@@ -53,9 +53,10 @@ DATA_STAGE, SCENE_FILE = "data", "scene.json"             # datasets/scene.py (S
 ENVELOPE_STAGE, ENVELOPE_FILE = "envelope", "envelope.ply"  # stages/envelope.py
 CAGE_STAGE, CAGE_FILE = "tetra", "cage.npz"               # core/geometry/cage.py (CAGE_NPZ)
 MODEL_STAGE, MODEL_FILE = "train", "model.safetensors"    # stages/train.py; edit/field.py (EDIT_MODEL)
+LOG_FILE, CURVES_FILE = "log.jsonl", "curves.png"         # stages/train.py: the training log and its plot
 CHECKPOINT_FILE = "checkpoint.safetensors"                # stages/train.py, inside train.work/
 BIND_STAGE, BINDING_FILE = "bind", "model_binding.npz"    # stages/bind.py; edit/field.py (EDIT_BINDING)
-EVAL_STAGE, METRICS_FILE = "eval", "metrics.json"         # stages/evaluate.py
+EVAL_STAGE, METRICS_FILE = "eval", "metrics.json"         # evaluation/evaluate.py
 EDIT_STAGE = "edit"                                       # `radfield edit` writes an edited run's field here
 EDIT_SPEC = "spec.yaml"                                   # the spec an edited run was made with, in edit/
 
@@ -149,20 +150,13 @@ class Run:
         source = self.marker().get("input")
         return None if source is None else Path(source)
 
-    def config(self, options: dict[str, Any] | None = None) -> dict[str, Any]:
-        """The run's resolved config (the defaults for a run without one, such as a run edited from a
-        model file), with `options` ({"data.downscale": 2, ...}) set over it."""
-        from radfield.pipeline.config import load_config
-
-        return load_config(self.config_file if self.config_file.is_file() else None, options=options or {})
-
     def stage_names(self) -> list[str]:
         """Stages in the order of the run's config, then any other folder with a manifest (edit/).
         An edited run has no stages of its own (its config is the source's, whose stages were run
         there, not here): only its folders with a manifest, i.e. edit/."""
         import yaml
 
-        from radfield.pipeline.config import parse_yaml
+        from radfield.util.yamlfile import parse_yaml
 
         names: list[str] = []
         if not self.is_edited:

@@ -22,7 +22,7 @@ from radfield.edit.source import load_source
 from radfield.core.geometry.cage import write_cage
 from radfield.core.render.rasterize import render
 from radfield.datasets.readers import load_dataset
-from radfield.edit.deform import deform_field
+from radfield.edit.affine import deform_field
 from radfield.edit.warp import axis_rotation
 from radfield.run import Run
 

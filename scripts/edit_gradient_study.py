@@ -1,4 +1,4 @@
-"""Which deformation gradient follows a bent or twisted cage better (edit/deform.py, `gradient`)?
+"""Which deformation gradient follows a bent or twisted cage better (edit/affine.py, `gradient`)?
 
 For a run's model and cage, the cage vertices are moved by an analytic map φ (twist, bend); each
 primitive's affine map x ↦ μ' + A (x − μ) is compared with φ itself on points of its bounding
@@ -21,7 +21,7 @@ import torch
 
 from radfield.edit.source import load_source
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.edit import deform
+from radfield.edit import affine
 from radfield.edit.warp import axis_rotation
 
 
@@ -52,7 +52,7 @@ def probe_errors(fld, phi, gradient, target=None):
     """Error of each primitive's affine map against `target` (default phi) on its probe points."""
     new = phi(fld.cage_vertices)
     target = target or phi
-    a, means, _ = deform.primitive_maps(fld, new, gradient)
+    a, means, _ = affine.primitive_maps(fld, new, gradient)
     prims = fld.prims
     rot = quat_to_rotmat(prims.quats.double()).numpy()
     s = torch.exp(prims.log_scales.double()).numpy()
@@ -71,20 +71,20 @@ def main(run):
     fld = load_source(run)
     print(f"{run}: {len(fld.prims)} primitives, {len(fld.cage_tets)} tets")
     for name, phi in (("twist 45°/unit about z", twist), ("bend 45°/unit about y along z", bend)):
-        for gradient in deform.GRADIENTS:
+        for gradient in affine.GRADIENTS:
             e = probe_errors(fld, phi, gradient)
             print(f"  {name:30s} {gradient:7s} probe error / max radius: mean {e.mean():.4f}  "
                   f"p95 {np.percentile(e, 95):.4f}  max {e.max():.4f}")
         new = phi(fld.cage_vertices)
-        a_tet, _, _ = deform.tet_maps(fld.cage_vertices, new, fld.cage_tets)
+        a_tet, _, _ = affine.tet_maps(fld.cage_vertices, new, fld.cage_tets)
         for threshold in (0.25, 1e9):
             split = fld
-            for _ in range(deform.MAX_SPLIT_ROUNDS):   # as deform_field splits
-                flagged = np.flatnonzero(deform.nonuniformity(split, a_tet) > threshold)
+            for _ in range(affine.MAX_SPLIT_ROUNDS):   # as deform_field splits
+                flagged = np.flatnonzero(affine.nonuniformity(split, a_tet) > threshold)
                 if flagged.size == 0:
                     break
-                split = split.with_prims(deform.split_primitives(split.prims, flagged))
-            for gradient in deform.GRADIENTS:
+                split = split.with_prims(affine.split_primitives(split.prims, flagged))
+            for gradient in affine.GRADIENTS:
                 e = probe_errors(split, phi, gradient)
                 c = probe_errors(split, phi, gradient, cage_map(fld, new))
                 print(f"  {name:30s} {gradient:7s} split at {threshold}: {len(split.prims) - len(fld.prims)} splits; "

@@ -59,7 +59,7 @@ radfield() { $PY -m radfield "$@"; }
 secs() { local t0; t0=$(date +%s%N); "$@"; local rc=$?; echo "  ($(( ($(date +%s%N) - t0) / 1000000 )) ms, exit $rc)"; }
 CORES=$(nproc)
 DEVICE=${DEVICE:-cuda}   # DEVICE=cpu runs a part on the CPU (its figures for the same-method comparisons)
-scene() { $PY -c "from radfield.datasets.synthetic import generate_scene as g; g('$1', '$2', size=$3, mesh=False, workers=$CORES)"; }
+scene() { $PY -c "from radfield.demo.static import generate_scene as g; g('$1', '$2', size=$3, mesh=False, workers=$CORES)"; }
 
 summary() {   # a run's train time, steps, primitives and held-out PSNR
     radfield info "$1" --json | $PY -c "import json,sys; s=json.load(sys.stdin)['stages']; t=s['train']; \

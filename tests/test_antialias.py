@@ -6,16 +6,17 @@ import math
 import pytest
 import torch
 
-from radfield.core.render.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
+from radfield.core.train.footprint import FootprintFloor
+from radfield.core.render.antialias import jitter_offsets, render_supersampled, shifted
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
-from radfield.delivery.io import load_model
-from radfield.delivery.metrics import psnr
+from radfield.model_file import load_model
+from radfield.evaluation.metrics import psnr
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.train.trainer import generator, load_checkpoint, mean_psnr, save_checkpoint, train
+from radfield.core.trainer.loop import generator, load_checkpoint, mean_psnr, save_checkpoint, train
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_scene
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 
 from radfield.pipeline.config import load_defaults
 

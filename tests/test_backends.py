@@ -17,7 +17,7 @@ from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.render.rasterize import render
 from radfield.core.train import losses
 from radfield.core.train.positivity import NonNegativeDensity
-from radfield.core.train.strategy import make_strategy
+from radfield.core.trainer.loop import make_strategy
 from shared_helpers import TOL32, assert_renders_close, float64_twin, render_with_grads
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
@@ -169,8 +169,7 @@ def test_the_switch_forces_the_torch_twins(monkeypatch, render_scene):
     assert backends.available("cpu", torch.float32) == [backends.TORCH] == backends.available()
     assert backends.select("cpu", torch.float64, kind="gaussian") == backends.TORCH
     assert backends.why_not(backends.FUSED_CPU) == "RADFIELD_KERNELS=torch"
-    for op in ("view.neural", "view.gaussian", "sh_color", "sh_color_parts", "ssim_map", "photometric", "anisotropy",
-               "neural_accumulate", "gaussian_accumulate", "project_nonnegative_"):
+    for op in (backends.view_op("neural"), backends.view_op("gaussian"), *backends.Op):
         assert backends.kernel(op, "cpu", torch.float32) is None, op
     assert not fused.available()
     for kind in ("neural", "gaussian"):
@@ -210,3 +209,16 @@ def test_a_registered_backend_runs_where_it_says_it_runs():
     finally:
         backends.unregister("test-f64")
     assert "test-f64" not in backends.names() and backends.kernel("anisotropy", "cpu", torch.float64) is not anisotropy
+
+
+def test_an_unknown_op_fails_loudly():
+    """A misspelt op is an error where it is registered and where it is asked for, not a silent twin;
+    the ops are the typed keys of backends.Op (their plain strings are the same keys)."""
+    with pytest.raises(KeyError, match="unknown backend op 'anisotropi'"):
+        backends.kernel("anisotropi", "cpu", torch.float32)
+    with pytest.raises(KeyError, match="unknown backend op 'ssim'"):
+        backends.implement("ssim", backends.FUSED_CPU, lambda *a: None)
+    assert backends.kernel("anisotropy", "cpu", torch.float32) is backends.kernel(backends.Op.ANISOTROPY, "cpu", torch.float32)
+    if fused.available():
+        assert backends.kernel(backends.Op.ANISOTROPY, "cpu", torch.float32) is fused.anisotropy
+    assert backends.view_op("neural") == "view.neural"

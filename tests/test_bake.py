@@ -12,10 +12,10 @@ import torch
 from radfield.delivery.bake import coverage, prune, to_fp16_and_back
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
-from radfield.delivery.io import load_model, read_metadata, save_model
+from radfield.model_file import load_model, read_metadata, save_model
 from radfield.core.kinds import Gaussians, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import C0, rgb_to_sh_dc
+from radfield.core.splat.sh import C0, rgb_to_sh_dc
 
 SIZE = 20
 HIDDEN, OUTSIDE, VISIBLE = 3, 4, 5  # indices in `scene()`
@@ -102,7 +102,7 @@ def test_fp16_model_files_round_trip(tmp_path):
 
 
 def test_bake_command_prunes_reports_and_keeps_psnr(tmp_path, cli):
-    from radfield.datasets.synthetic import generate_scene
+    from radfield.demo.static import generate_scene
 
     data = generate_scene("blobs", tmp_path / "blobs", n_train=4, n_test=2, size=20)
     visible = random_neural(40, extent=0.5, scale=0.25, b2=1.0, seed=0)

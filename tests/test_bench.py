@@ -38,7 +38,7 @@ def test_bench_train_prints_every_part(cli):
         assert row[1] == "300" and row[2] == "32x32" and all(p >= 0 for p in parts)
         # every figure is printed to 0.1 ms: six roundings of up to 0.05 each separate the sum from its parts
         assert float(row[9]) == pytest.approx(sum(parts), abs=0.3 + 1e-9) and float(row[10]) > 0
-        assert float(row[11]) > 0 and float(row[12]) >= 0   # trainer.train's set-up, pairs per second
+        assert float(row[11]) > 0 and float(row[12]) >= 0   # loop.train's set-up, pairs per second
     assert len(ratios) == 2 and all(len(r) == 8 and float(r[6]) > 0 for r in ratios)   # x, 5 parts, sum, train()
     code, _, err = cli("bench-train", "--sizes", "0")
     assert code == 1 and "radfield: error: --sizes" in err

@@ -63,8 +63,8 @@ def test_a_model_with_values_out_of_range_is_one_line_on_every_reader(cli, tmp_p
                                                                       value, message):
     """Such a model (log_scales = 100) loaded and rendered silently as background (issue #28)."""
     from radfield.core.kinds import random_neural
-    from radfield.datasets.synthetic import generate_scene
-    from radfield.delivery.io import save_model
+    from radfield.demo.static import generate_scene
+    from radfield.model_file import save_model
 
     data = tmp_path_factory.getbasetemp() / "tiny-blobs"
     if not data.exists():
@@ -84,7 +84,7 @@ def test_a_model_with_values_out_of_range_is_one_line_on_every_reader(cli, tmp_p
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory, run_radfield):
     """A dataset and a finished run of it, both tiny."""
-    from radfield.datasets.synthetic import generate_scene
+    from radfield.demo.static import generate_scene
 
     root = tmp_path_factory.mktemp("tiny")
     data = generate_scene("blobs", root / "blobs", n_train=4, n_test=1, size=16, seed=0)
@@ -133,3 +133,13 @@ def test_an_out_of_range_number_is_one_line_before_any_work(cli, tiny_run, tmp_p
     assert code == 1 and stdout == "" and err.startswith("radfield: error: ") and err.count("\n") == 1, err
     assert option in err, err
     assert not out.exists() and sorted(p.name for p in run.rglob("*")) == before
+
+
+def test_bench_quality_takes_the_kinds_the_registry_has(cli, tiny_run, tmp_path):
+    """bench-quality's --kinds are the registry's unconditioned kinds: a conditioned one (it needs a
+    time) or an unknown one is one line naming the choices, before any run."""
+    data, _ = tiny_run
+    for bad in ("neural-dynamic", "neural,splats"):
+        code, stdout, err = cli("bench-quality", data, "-o", tmp_path / "out", "--kinds", bad)
+        assert code == 1 and err.startswith("radfield: error: --kinds takes neural, gaussian") and err.count("\n") == 1, err
+        assert not (tmp_path / "out").exists()

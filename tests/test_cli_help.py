@@ -57,7 +57,7 @@ def test_the_root_help_lists_the_commands_then_the_benchmarks(cli, monkeypatch):
 
 
 def test_reconstruct_help_names_every_stage_in_order(cli, monkeypatch):
-    from radfield.pipeline.registry import stages
+    from radfield.stages.registry import stages
 
     out = words(help_of(cli, monkeypatch, 120, "reconstruct"))
     assert " → ".join(stage.name for stage in stages()) in out

@@ -12,7 +12,7 @@ import torch
 from safetensors import safe_open
 
 from radfield.core.geometry.cameras import look_at, opencv_to_opengl
-from radfield.delivery.io import save_model
+from radfield.model_file import save_model
 from radfield.core.kinds import NeuralPrimitives, siren_mlp_init
 from radfield.datasets.images import read_image, write_image
 

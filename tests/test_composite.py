@@ -1,4 +1,4 @@
-"""Front-to-back compositing (radfield.core.render.composite.composite_pairs, paper eq. 4) against
+"""Front-to-back compositing (radfield.core.splat.composite.composite_pairs, paper eq. 4) against
 a direct per-pixel loop: C = Σ c_i α_i Π_{j<i}(1 − α_j), stopping before the pair that would take
 the transmittance below t_min."""
 
@@ -8,7 +8,7 @@ import random
 import pytest
 import torch
 
-from radfield.core.render.composite import composite_pairs
+from radfield.core.splat.composite import composite_pairs
 
 T_MIN = 1e-4
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.delivery.io import load_model
+from radfield.model_file import load_model
 from radfield.core.render.rasterize import render
 from radfield.datasets.images import read_image
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.datasets.scene import load_scene
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
@@ -80,7 +80,7 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
     from radfield.core.backends.gpu import binning
     from radfield.core.geometry.cameras import Camera, look_at
     from radfield.core.kinds import random_gaussians, random_neural
-    from radfield.core.train import trainer
+    from radfield.core.trainer import loop
     from radfield.pipeline.config import load_defaults
 
     cameras = [Camera(fx=20.8, fy=20.8, cx=8, cy=8, width=16, height=16, name=f"v{i}",
@@ -93,7 +93,7 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
                min_footprint=0.5, ray_jitter=0.5, random_background=True)
     cfg["densify"].update(start=1, stop=100, every=100)   # gathers every step, refines never
     reads = {5, 10, 12}   # the steps whose records are read
-    decayed, count_pairs = trainer.decayed, binning.pair_count
+    decayed, count_pairs = loop.decayed, binning.pair_count
     counted = []
 
     def step_marker(lr, ratio, step, iterations):   # the first thing each step does
@@ -109,12 +109,12 @@ def test_cuda_training_steps_between_reads_do_not_synchronise(monkeypatch, kind)
         finally:
             torch.cuda.set_sync_debug_mode(mode)
 
-    monkeypatch.setattr(trainer, "decayed", step_marker)
+    monkeypatch.setattr(loop, "decayed", step_marker)
     monkeypatch.setattr(binning, "pair_count", allowed_read)
     log = []
     make = random_neural if kind == "neural" else random_gaussians
     try:
-        trainer.train(make(20, seed=2), cameras, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0,
+        loop.train(make(20, seed=2), cameras, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0,
                       seed=0, device="cuda", alphas=torch.ones(3, 16, 16), on_step=lambda s, i: log.append((s, i)))
     finally:
         torch.cuda.set_sync_debug_mode("default")

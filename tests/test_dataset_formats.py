@@ -20,7 +20,9 @@ from radfield.core.geometry.cameras import Camera
 from radfield.datasets import formats, load_dataset, write_image
 from radfield.datasets.formats import DatasetFormat, Reading
 from radfield.datasets.scene import load_scene
-from radfield.datasets.synthetic import SCENES, generate_scene, orbit_cameras, render_view
+from radfield.demo.scenes import SCENES, orbit_cameras
+from radfield.demo.static import generate_scene
+from radfield.demo.raytrace import render_view
 from radfield.datasets.views import View
 from radfield.errors import RadfieldError
 from radfield.pipeline.runner import read_manifest

@@ -18,7 +18,9 @@ import torch
 from radfield.core.geometry.cameras import Camera, look_at, opencv_to_opengl
 from radfield.errors import RadfieldError
 from radfield.datasets import detect_format, load_dataset, read_image, resize_area, validate, write_image
-from radfield.datasets.synthetic import LIGHT, SCENES, generate_scene, orbit_cameras, render_view, trace
+from radfield.demo.scenes import LIGHT, SCENES, orbit_cameras
+from radfield.demo.static import generate_scene
+from radfield.demo.raytrace import render_view, trace
 
 RED_SPHERE = SCENES["blobs"].primitives[1]  # on top of 'blobs': no other object can hide its centre
 

@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from radfield.core.train import launch
-from radfield.core.train.distributed import compare_checksums
-from radfield.core.train.trainer import load_checkpoint
-from radfield.datasets.synthetic import generate_scene
+from radfield.core.trainer import launch
+from radfield.core.trainer.distributed import compare_checksums
+from radfield.core.trainer.loop import load_checkpoint
+from radfield.demo.static import generate_scene
 
 ITERATIONS = 40
 SETS = ["--set", "init.num_points=200", "--set", "train.batch_views=2", "--set", "train.eval_every=0",
@@ -198,7 +198,7 @@ def test_the_last_message_is_dropped_only_after_its_group(tmp_path):
     with them kept). A one-rank group here: the deadlock itself needs a race this cannot force."""
     import weakref
 
-    from radfield.core.train import distributed
+    from radfield.core.trainer import distributed
 
     torch.distributed.init_process_group("gloo", store=torch.distributed.FileStore(str(tmp_path / "store"), 1),
                                          rank=0, world_size=1)

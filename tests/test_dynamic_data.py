@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from radfield.datasets import moving, smoke
+from radfield.demo import moving, smoke
 from radfield.datasets.images import read_image
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
-from radfield.datasets.synthetic import generate_scene, get_scene, orbit_cameras, render_view
-from radfield.datasets.timelapse import generate_dynamic
+from radfield.demo.static import generate_scene
+from radfield.demo.scenes import get_scene, orbit_cameras
+from radfield.demo.raytrace import render_view
+from radfield.demo.timelapse import generate_dynamic
 from radfield.pipeline.config import load_defaults
 
 from shared_helpers import frames, nerfstudio_copy, rewrite

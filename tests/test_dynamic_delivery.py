@@ -26,7 +26,7 @@ from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
 from radfield.delivery.content import at_moment, gaussians_for
 from radfield.delivery.export import Content, as_gaussians, nerfstudio_transforms, read_gaussian_ply, view_cameras
-from radfield.delivery.io import load_model, save_model
+from radfield.model_file import load_model, save_model
 from radfield.delivery.times import parse_times
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config
@@ -288,7 +288,7 @@ WAIT = 90.0   # seconds, upper bound of every wait (the machine may be busy)
 def red_to_blue(path):
     """Opaque dynamic Gaussians that are red at time 0 and blue at time 1 (S(ξ) = S0 + a_1 ξ, eq. 10)."""
     from radfield.core.kinds import DynamicGaussians
-    from radfield.core.render.sh import rgb_to_sh_dc
+    from radfield.core.splat.sh import rgb_to_sh_dc
 
     g = random_gaussians(150, extent=0.6, scale=0.15, seed=2)
     red, blue = rgb_to_sh_dc(torch.tensor([[1.0, 0.1, 0.1]])), rgb_to_sh_dc(torch.tensor([[0.1, 0.2, 1.0]]))

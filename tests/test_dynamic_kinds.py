@@ -18,10 +18,10 @@ from radfield.core.kinds import DynamicGaussians, DynamicNeuralPrimitives, Gauss
 from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.core.render.rasterize import render
 from radfield.core.render.reference import reference_render
-from radfield.core.train.strategy import make_strategy
-from radfield.core.train.trainer import (assemble, initial_state, load_checkpoint, make_optimizer, mean_psnr,
+from radfield.core.trainer.loop import make_strategy
+from radfield.core.trainer.loop import (assemble, initial_state, load_checkpoint, make_optimizer, mean_psnr,
                                          save_checkpoint, train)
-from radfield.delivery.io import load_model, save_model
+from radfield.model_file import load_model, save_model
 from radfield.errors import RadfieldError
 
 from shared_helpers import refine_everything
@@ -324,7 +324,7 @@ def test_edits_commute_with_time(render_scene):
     dynamic model and then taken at ξ, equal the same edit of the static model at ξ."""
     import numpy as np
 
-    from radfield.edit.deform import deform_field, split_primitives
+    from radfield.edit.affine import deform_field, split_primitives
     from radfield.edit.field import Field, box_cage
 
     prims, _ = scene(render_scene, "neural-dynamic", torch.float64)

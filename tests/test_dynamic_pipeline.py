@@ -12,9 +12,9 @@ import pytest
 
 from radfield.core.geometry.envelope import read_envelope, visual_hull
 from radfield.datasets.scene import read_dataset, scene_from_json
-from radfield.datasets.synthetic import generate_scene
-from radfield.datasets.timelapse import generate_dynamic
-from radfield.delivery.io import load_model
+from radfield.demo.static import generate_scene
+from radfield.demo.timelapse import generate_dynamic
+from radfield.model_file import load_model
 from radfield.pipeline.config import load_defaults
 
 TIMES = [0.0, 0.5, 1.0]

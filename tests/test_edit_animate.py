@@ -81,9 +81,9 @@ def test_orbit_and_nerfstudio_path(tmp_path):
                                          ("+3e2", 300.0), (".5e3", 500.0), ("1.e2", 100.0)])
 def test_yaml_reads_numbers_as_users_write_them(tmp_path, text, value):
     """`youngs_modulus: 1e6` (the docs' own example) was the string '1e6' to YAML 1.1's loader."""
-    from radfield.edit.animation import read_animation
+    from radfield.edit.animation_spec import read_animation
     from radfield.edit.simulate import read_simulation
-    from radfield.pipeline.config import parse_yaml
+    from radfield.util.yamlfile import parse_yaml
 
     assert parse_yaml(f"x: {text}") == {"x": value} and isinstance(parse_yaml(f"x: {text}")["x"], float)
     sim = tmp_path / "sim.yaml"

@@ -12,7 +12,8 @@ from radfield.errors import RadfieldError
 from radfield.core.train.losses import psnr
 from radfield.core.kinds import NeuralPrimitives, quat_to_rotmat, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import sh_to_color
+from radfield.core.splat.sh import sh_to_color
+from radfield.core.kinds import neural_density
 from radfield.edit import boolean, retrain
 from radfield.edit.field import Field
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
@@ -82,7 +83,7 @@ def slow_masked_render(prims, cam, mask, masked, samples=2000):
                 centre = float((p.means[i] - o) @ d)
                 ell = torch.linspace(max(0.01 * float(norm[row, col]), centre - smax), centre + smax, 2 * samples + 1, dtype=torch.float64)
                 x = o + ell[:, None] * d
-                sigma = retrain.pair_density(p.select(torch.tensor([i])), x)[:, 0]     # 0 outside the ellipsoid
+                sigma = neural_density.pair_density(p.select(torch.tensor([i])), x)[:, 0]     # 0 outside the ellipsoid
                 if i in masked:
                     sigma = sigma * torch.as_tensor(mask(x.numpy()), dtype=torch.float64)
                 w = torch.ones_like(ell)

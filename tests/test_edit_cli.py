@@ -15,7 +15,7 @@ import yaml
 from radfield.core.geometry.cage import write_cage
 from radfield.core.geometry.camera_path import orbit
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
-from radfield.delivery.io import load_model
+from radfield.model_file import load_model
 from radfield.datasets.images import read_image
 from radfield.datasets.readers import load_dataset
 from radfield.edit.field import box_cage

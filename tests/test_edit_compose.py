@@ -8,8 +8,8 @@ from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import eval_sh
-from radfield.core.render.sh import rotate_sh
+from radfield.core.splat.sh import eval_sh
+from radfield.core.splat.sh import rotate_sh
 from radfield.edit.compose import concat_prims
 from radfield.edit.warp import euler_rotation
 from radfield.edit.field import Field

@@ -1,4 +1,4 @@
-"""Exact cage deformation (edit/deform.py): SH rotation, similarity invariance, general affine maps
+"""Exact cage deformation (edit/affine.py): SH rotation, similarity invariance, general affine maps
 against a quadrature reference of the pulled-back field, identity round trip, inverted tets, splits."""
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
-from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
+from radfield.core.splat.kernels import ALPHA_MAX, ALPHA_MIN
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import T_MIN, render
-from radfield.core.render.reference import quadrature_optical_depth
-from radfield.core.render.sh import eval_sh, rotate_sh, sh_to_color
-from radfield.edit import deform
+from radfield.core.kinds.neural_density import quadrature_optical_depth
+from radfield.core.splat.sh import eval_sh, rotate_sh, sh_to_color
+from radfield.edit import affine
 from radfield.edit.field import Field, box_cage
 from radfield.edit.warp import euler_rotation
 
@@ -57,8 +57,8 @@ def test_similarity_of_the_cage_renders_as_the_pulled_back_camera(kind):
     fld = _field(kind)
     s, rot, t = 1.7, euler_rotation([25.0, -40.0, 70.0]), np.array([0.3, -0.2, 0.5])
     moved = fld.cage_vertices @ (s * rot).T + t
-    out = deform.deform_field(fld, moved, gradient="tet")
-    out_c = deform.deform_field(fld, moved, gradient="centre")
+    out = affine.deform_field(fld, moved, gradient="tet")
+    out_c = affine.deform_field(fld, moved, gradient="centre")
     cam = _camera(s * np.array([2.2, -1.6, 1.3]) + t, target=t)
     # the same view of the rest field: c2w_rest = T⁻¹ c2w (position (R⁻¹(o − t))/s, rotation Rᵀ R_c)
     c2w = cam.c2w.clone()
@@ -83,7 +83,7 @@ def _pulled_back_reference(rest, a, b, camera, background, preserve_opacity=Fals
     rest = rest.to(dtype=torch.float64)
     a_t, b_t = torch.tensor(a), torch.tensor(b)
     a_inv = torch.linalg.inv(a_t)
-    rot = torch.tensor(deform.polar_rotation(a))
+    rot = torch.tensor(affine.polar_rotation(a))
     smax = torch.exp(rest.log_scales).amax(-1)
     mu_new = rest.means @ a_t.T + b_t
     c2w = camera.c2w
@@ -122,9 +122,9 @@ def test_general_affine_cage_map_matches_the_pulled_back_quadrature():
     a = euler_rotation([20.0, 35.0, -15.0]) @ np.array([[1.4, 0.3, 0.0], [0.0, 0.8, 0.25], [0.1, 0.0, 1.15]])
     b = np.array([0.1, 0.2, -0.1])
     # the density convention (preserve_opacity off; the default takes it on for such a map)
-    out = deform.deform_field(fld, fld.cage_vertices @ a.T + b, preserve_opacity=False)
+    out = affine.deform_field(fld, fld.cage_vertices @ a.T + b, preserve_opacity=False)
     assert out.prims.rest_metric is None
-    assert deform.deform_field(fld, fld.cage_vertices @ a.T + b).prims.rest_metric is not None
+    assert affine.deform_field(fld, fld.cage_vertices @ a.T + b).prims.rest_metric is not None
     cam = _camera([2.5, -2.0, 1.5], size=12)
     bg = (1.0, 1.0, 1.0)
     with torch.no_grad():
@@ -134,7 +134,7 @@ def test_general_affine_cage_map_matches_the_pulled_back_quadrature():
     assert (fast - ref).abs().max() < 2e-3
 
     # preserve_opacity: exact on each primitive's central ray; measure the whole image's error
-    kept = deform.deform_field(fld, fld.cage_vertices @ a.T + b, preserve_opacity=True)
+    kept = affine.deform_field(fld, fld.cage_vertices @ a.T + b, preserve_opacity=True)
     assert kept.prims.rest_metric is not None
     with torch.no_grad():
         fast_kept = render(kept.prims.to(dtype=torch.float64), cam, background=bg).color
@@ -148,7 +148,7 @@ def test_general_affine_cage_map_matches_the_pulled_back_quadrature():
 def test_identity_cage_keeps_the_model_bit_identical():
     for kind in ("neural", "gaussian"):
         fld = _field(kind)
-        out = deform.deform_field(fld, fld.cage_vertices.copy())
+        out = affine.deform_field(fld, fld.cage_vertices.copy())
         for name, value in fld.prims.tensors().items():
             assert torch.equal(value, out.prims.tensors()[name]), name
         assert out.notes[-1]["moved_primitives"] == 0
@@ -166,7 +166,7 @@ def test_local_edit_leaves_far_primitives_untouched(gradient):
     moved = fld.cage_vertices.copy()
     corner = np.flatnonzero((moved > 0.99).all(1))
     moved[corner] += 0.2
-    out = deform.deform_field(fld, moved, split=None, gradient=gradient)
+    out = affine.deform_field(fld, moved, split=None, gradient=gradient)
     same = (fld.prims.means == out.prims.means).all(1)
     assert 0 < int(same.sum()) < len(fld.prims)
     if gradient != "centre":   # (centre's A is interpolated from vertex gradients beyond μ's tet)
@@ -180,12 +180,12 @@ def test_inverted_and_degenerate_tets_are_one_line_errors():
     centre = np.flatnonzero(np.abs(moved).sum(1) == 0)[0]
     moved[centre] = [1.5, 1.5, 1.5]   # the centre vertex pushed through a corner: tets turn inside out
     with pytest.raises(RadfieldError, match=r"inverted tets in the deformed cage .*: \d+") as info:
-        deform.deform_field(fld, moved)
+        affine.deform_field(fld, moved)
     assert "\n" not in str(info.value)
     flat = fld.cage_vertices.copy()
     flat[:, 2] = 0.0
     with pytest.raises(RadfieldError, match="tets in the deformed cage"):
-        deform.deform_field(fld, flat)
+        affine.deform_field(fld, flat)
 
 
 def test_twist_splits_straddling_primitives_and_stays_finite():
@@ -194,7 +194,7 @@ def test_twist_splits_straddling_primitives_and_stays_finite():
     theta = np.radians(60.0) * v[:, 2]
     c, s = np.cos(theta), np.sin(theta)
     twisted = np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], 1)
-    out = deform.deform_field(fld, twisted, split=0.2)
+    out = affine.deform_field(fld, twisted, split=0.2)
     note = out.notes[-1]
     assert note["split"] > 0 and len(out.prims) == len(fld.prims) + note["split"]
     for value in out.prims.tensors().values():
@@ -203,8 +203,8 @@ def test_twist_splits_straddling_primitives_and_stays_finite():
 
 def test_split_keeps_the_density_inside_each_half():
     prims = random_neural(3, extent=0.3, scale=0.2, seed=5).to(dtype=torch.float64)
-    halves = deform.split_primitives(prims, np.array([1]))
-    from radfield.core.render.reference import neural_density
+    halves = affine.split_primitives(prims, np.array([1]))
+    from radfield.core.kinds.neural_density import primitive_density
     # child i (rows 2 and 3 hold the halves of primitive 1): same density at points inside it
     for child in (2, 3):
         mu, s = halves.means[child], torch.exp(halves.log_scales[child])
@@ -213,7 +213,7 @@ def test_split_keeps_the_density_inside_each_half():
         z = torch.nn.functional.normalize(torch.randn(50, 3, dtype=torch.float64), dim=-1) * torch.rand(50, 1, dtype=torch.float64) * 0.9
         x = mu + (z * s) @ rot.T
         # optical-depth density per unit of the primitive's own size: σ/max(s) is what is conserved
-        child_sigma = neural_density(halves, child, x) / s.max()
-        parent_sigma = neural_density(prims, 1, x) / torch.exp(prims.log_scales[1]).max()
-        inside_parent = neural_density(prims.map(lambda t: t), 1, x) != 0
+        child_sigma = primitive_density(halves, child, x) / s.max()
+        parent_sigma = primitive_density(prims, 1, x) / torch.exp(prims.log_scales[1]).max()
+        inside_parent = primitive_density(prims.map(lambda t: t), 1, x) != 0
         assert torch.allclose(child_sigma[inside_parent], parent_sigma[inside_parent], atol=1e-10)

@@ -6,7 +6,7 @@ import torch
 
 from radfield.errors import RadfieldError
 from radfield.core.kinds import random_neural
-from radfield.core.render.sh import C0, eval_sh
+from radfield.core.splat.sh import C0, eval_sh
 from radfield.edit.field import Field
 from radfield.edit.recolor import hue_matrix, peak_density
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
@@ -103,7 +103,7 @@ def write_posed_images(root, prims, cams, background=(1.0, 1.0, 1.0)):
 
 def test_transfer_from_posed_images(tmp_path):
     from radfield.core.geometry.cameras import Camera, look_at
-    from radfield.core.render.sh import C0
+    from radfield.core.splat.sh import C0
 
     # two blobs; the photos show the right one recoloured (the paper's snowman: one region takes
     # the appearance of the photos, geometry frozen)

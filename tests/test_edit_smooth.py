@@ -1,4 +1,4 @@
-"""Deformations as smooth as the user's map (edit/warp.py's closed-form maps, edit/deform.py's
+"""Deformations as smooth as the user's map (edit/warp.py's closed-form maps, edit/affine.py's
 "map" and "smooth" paths): closed-form Jacobians against finite differences, exactness for affine
 maps, a twist's centres and ellipsoids against the analytic map, the quadratic-accurate cage
 interpolation against a twisted cage, a 90° twist that inverts the cage, and smooth animation
@@ -14,9 +14,9 @@ import torch
 
 from radfield.core.geometry.cage import tet_volumes
 from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
-from radfield.delivery.io import save_model
+from radfield.model_file import save_model
 from radfield.core.geometry.cage import write_cage
-from radfield.edit import deform, warp
+from radfield.edit import affine, warp
 from radfield.edit.field import Field, box_cage
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
 from radfield.errors import RadfieldError
@@ -89,8 +89,8 @@ def test_closed_form_path_is_exact_for_an_affine_map(kind):
     fld = _field(kind)
     a = warp.euler_rotation([20.0, 35.0, -15.0]) @ np.array([[1.4, 0.3, 0.0], [0.0, 0.8, 0.25], [0.1, 0.0, 1.15]])
     b = np.array([0.1, 0.2, -0.1])
-    by_map, inverted = deform.map_field(fld, *warp.affine_map(a, b))
-    by_tet = deform.deform_field(fld, fld.cage_vertices @ a.T + b, gradient="tet")
+    by_map, inverted = affine.map_field(fld, *warp.affine_map(a, b))
+    by_tet = affine.deform_field(fld, fld.cage_vertices @ a.T + b, gradient="tet")
     assert inverted == 0 and by_map.notes[-1]["split"] == by_tet.notes[-1]["split"] == 0
     for name, value in by_tet.prims.tensors().items():
         assert torch.allclose(by_map.prims.tensors()[name], value, rtol=1e-10, atol=1e-12), name
@@ -140,11 +140,11 @@ def test_smooth_cage_interpolation_is_exact_for_affine_cage_maps():
     assert (fld.bary.min(1) < 0).any()                  # some centres outside the cage: extrapolated
     a = np.array([[1.2, 0.4, 0.0], [-0.1, 0.9, 0.2], [0.1, 0.0, 0.8]])
     moved = v @ a.T + np.array([0.3, 0.0, -0.2])
-    smooth = deform.deform_field(fld, moved, gradient="smooth", split=None)
-    tet = deform.deform_field(fld, moved, gradient="tet", split=None)
+    smooth = affine.deform_field(fld, moved, gradient="smooth", split=None)
+    tet = affine.deform_field(fld, moved, gradient="tet", split=None)
     for name, value in tet.prims.tensors().items():
         assert torch.allclose(smooth.prims.tensors()[name], value, rtol=1e-9, atol=1e-10), name
-    assert deform.DEFAULT_GRADIENT == "smooth"
+    assert affine.DEFAULT_GRADIENT == "smooth"
 
 
 @pytest.mark.parametrize("cage", ["box", "irregular"])
@@ -156,8 +156,8 @@ def test_smooth_cage_interpolation_follows_a_twisted_cage_closer(cage):
     phi, jac = warp.twist_map(np.array([0.0, 0.0, 1.0]), np.zeros(3), math.radians(45))
     mu = prims.means.numpy()
     errors = {}
-    for gradient in deform.CAGE_GRADIENTS:
-        a, means, _ = deform.primitive_maps(fld, phi(v), gradient)
+    for gradient in affine.CAGE_GRADIENTS:
+        a, means, _ = affine.primitive_maps(fld, phi(v), gradient)
         errors[gradient] = (np.linalg.norm(means - phi(mu), axis=1).mean(),
                             np.linalg.norm(a - jac(mu), axis=(1, 2)).mean())
     print(cage, {g: f"centre {e[0]:.5f}, A {e[1]:.4f}" for g, e in errors.items()})
@@ -183,7 +183,7 @@ def test_a_90_degree_twist_is_taken_and_its_inverted_cage_refuses_cage_edits():
         assert torch.isfinite(value).all()
     # a later cage-based edit of that field is one line; a later closed-form edit is fine
     with pytest.raises(RadfieldError, match=r"cage has \d+ inverted or flat tets .*--cage FILE") as info:
-        deform.deform_field(out, out.cage_vertices + 0.01)
+        affine.deform_field(out, out.cage_vertices + 0.01)
     assert "\n" not in str(info.value)
     again = _apply(out, {"twist": {"axis": "z", "degrees_per_unit": -90}})
     assert np.abs(again.prims.means.numpy() - fld.prims.means.numpy()).max() < 1e-9   # twisted back
@@ -196,7 +196,7 @@ def test_gradient_option_values_and_errors():
     # a hard selection's map jumps at the border: the default goes through the cage, "map" is refused
     sphere = {"sphere": {"center": [0, 0, 0], "radius": 0.7}}
     out = _apply(fld, {"twist": {"axis": "z", "degrees_per_unit": 10, "select": sphere}})
-    assert out.notes[-1]["gradient"] == deform.DEFAULT_GRADIENT
+    assert out.notes[-1]["gradient"] == affine.DEFAULT_GRADIENT
     with pytest.raises(RadfieldError, match="map needs a continuous map"):
         _apply(fld, {"twist": {"axis": "z", "degrees_per_unit": 10, "select": sphere, "gradient": "map"}})
     assert _apply(fld, {"twist": {"axis": "z", "degrees_per_unit": 10, "select": sphere, "falloff": 0.3}}).notes[-1]["gradient"] == "map"
@@ -239,7 +239,7 @@ def test_frames_of_a_slow_twist_animation_move_smoothly():
         phi, _ = warp.twist_map(axis, np.zeros(3), math.radians(15 + i))
         truths.append(phi(line))
         for gradient in frames:
-            pose = deform.deform_field(fld, phi(v), gradient=gradient, split=None, rebind=False)
+            pose = affine.deform_field(fld, phi(v), gradient=gradient, split=None, rebind=False)
             frames[gradient].append(pose.prims.means.numpy())
     true_step = np.diff(truths, axis=0)                                      # (5, P, 3)
     step = {g: np.diff(f, axis=0) for g, f in frames.items()}
@@ -258,7 +258,7 @@ def test_frames_of_a_slow_twist_animation_move_smoothly():
 
 def test_animate_takes_the_cage_modes_only(tmp_path):
     from radfield.edit.animate import animate
-    from radfield.edit.animation import read_animation
+    from radfield.edit.animation_spec import read_animation
     fld = _field("neural", n=5, cage_n=2)
     with pytest.raises(RadfieldError, match="--gradient: one of smooth, centre, tet for cage poses, got 'map'"):
         animate(tmp_path / "run", fld, tmp_path / "out", cages=str(tmp_path), gradient="map")
@@ -285,7 +285,7 @@ def test_the_90_degree_twist_through_the_command(tmp_path, cli):
     assert "gradient=map" in out and (tmp_path / "twisted" / "edit" / "model.safetensors").is_file()
     # a cage-based edit of the result: one line, nothing written
     write_cage(tmp_path / "moved", fld.cage_vertices * 1.1, fld.cage_tets)
-    deform_spec = tmp_path / "deform.yaml"
+    deform_spec = tmp_path / "affine.yaml"
     deform_spec.write_text(f"operations:\n  - deform: {{cage: {tmp_path / 'moved' / 'cage.npz'}}}\n")
     code, out, err = cli("edit", tmp_path / "twisted", "--spec", deform_spec, "-o", tmp_path / "again", "-q")
     assert code == 1 and "inverted or flat tets" in err and len(err.strip().splitlines()) == 1

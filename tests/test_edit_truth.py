@@ -18,10 +18,10 @@ import torch
 
 from radfield.core.render.antialias import render_model
 from radfield.datasets.readers import load_dataset
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.edit.source import load_source
 from radfield.pipeline.config import load_config
-from radfield.pipeline.registry import stages
+from radfield.stages.registry import stages
 from radfield.pipeline.runner import run_pipeline
 
 SIZE, TRAIN, TEST = 48, 24, 4

@@ -16,16 +16,16 @@ from plyfile import PlyData
 
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.delivery.export import Content, export, read_gaussian_ply
-from radfield.delivery.io import save_model
-from radfield.delivery.moments import gaussians_from_neural
+from radfield.model_file import save_model
+from radfield.core.kinds.moment_matching import gaussians_from_neural
 from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.render.rasterize import render
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.datasets.formats.nerfstudio import read_nerfstudio
 from radfield.pipeline.config import load_config
 from radfield.datasets.scene import load_scene
 from radfield.pipeline.runner import run_pipeline
-from radfield.pipeline.registry import stages
+from radfield.stages.registry import stages
 
 BACKGROUND = (0.2, 0.3, 0.4)
 
@@ -190,7 +190,7 @@ def test_more_components_fit_a_dense_primitive_better():
 
 
 def test_refinement_brings_the_gaussians_closer_to_the_neural_model():
-    from radfield.delivery.moments import refine_gaussians
+    from radfield.delivery.refine import refine_gaussians
 
     p = random_neural(12, w2_amplitude=0.3, b2=3.0, scale=0.25, extent=0.5, seed=6)
     cameras = [Camera(28.0, 28.0, 12, 12, 24, 24, look_at((3 * math.cos(a), 3 * math.sin(a), 1.0), (0, 0, 0)))
@@ -234,7 +234,7 @@ def run_dir(tmp_path_factory) -> Path:
 
 def test_points_cage_envelope_cameras_read_back(run_dir, tmp_path, cli):
     from radfield.core.geometry.cage import read_cage
-    from radfield.delivery.io import load_model
+    from radfield.model_file import load_model
 
     model = load_model(run_dir / "train" / "model.safetensors")
     code, out, err = cli("export", run_dir, "--format", "points", "-o", tmp_path / "p.ply")

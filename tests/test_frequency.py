@@ -9,7 +9,7 @@ from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.train.frequency import NYQUIST, FrequencyCap, footprint, view_stack
 from radfield.core.kinds import random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.train.trainer import initial_state, train
+from radfield.core.trainer.loop import initial_state, train
 from radfield.pipeline.config import load_defaults
 
 BG = (1.0, 1.0, 1.0)

@@ -18,12 +18,13 @@ import torch
 
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.render.kernels import ray_ellipsoid
+from radfield.core.splat.kernels import ray_ellipsoid
 from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
-from radfield.core.kinds import ViewFrame
-from radfield.core.kinds.base import camera_directions as _camera_directions, ellipsoid_bounds
-from radfield.core.kinds.gaussian import ewa_view as _gaussian_view, pair_alpha as _gaussian_block, splat_bounds as _gaussian_bounds
-from radfield.core.kinds.neural import pair_alpha as _neural_block, view_tensors as _neural_view
+from radfield.core.splat.view import ViewFrame
+from radfield.core.splat.view import camera_directions as _camera_directions, ellipsoid_bounds
+from radfield.core.splat.gaussian import (ewa_view as _gaussian_view, pair_alpha as _gaussian_block,
+                                          splat_bounds as _gaussian_bounds)
+from radfield.core.splat.neural import pair_alpha as _neural_block, view_tensors as _neural_view
 from radfield.core.render.rasterize import render
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
@@ -312,7 +313,7 @@ def test_the_build_adds_no_line_of_torch_about_a_cuda_runtime(tmp_path):
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_sh_color_matches_torch_twin_and_finite_differences(degree):
-    from radfield.core.render.sh import sh_to_color
+    from radfield.core.splat.sh import sh_to_color
 
     g = torch.Generator().manual_seed(degree)
     sh = torch.randn(12, 16, 3, generator=g, dtype=torch.float64) * 0.5
@@ -432,7 +433,7 @@ def test_bounds_and_depth_order_match_torch_twins(dtype):
 
 
 def test_gaussian_prep_matches_torch_twin_and_finite_differences():
-    """The EWA projection (mean2d, conic, cov) against kinds/gaussian.py: ewa_view, values and
+    """The EWA projection (mean2d, conic, cov) against splat/gaussian.py: ewa_view, values and
     gradients, with splats off screen (the Jacobian's clamped point) and behind the near plane."""
     near = 0.05
     prims = random_gaussians(60, extent=3.0, scale=0.3, seed=5, dtype=torch.float64)

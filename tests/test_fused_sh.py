@@ -1,6 +1,6 @@
 """The fused SH colour of the trainer's two SH tensors (fused.sh_color_parts) against the torch
-twin (core/render/sh.py: sh_to_color of their concatenation) and by finite differences, and the renderer
-and trainer using it (core/render/sh.py: join_sh)."""
+twin (core/splat/sh.py: sh_to_color of their concatenation) and by finite differences, and the renderer
+and trainer using it (core/splat/sh.py: join_sh)."""
 
 import os
 
@@ -11,7 +11,7 @@ from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.kinds import random_gaussians
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import join_sh, sh_parts, sh_to_color
+from radfield.core.splat.sh import join_sh, sh_parts, sh_to_color
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 pytestmark = pytest.mark.skipif(not IN_CI and not fused.available(), reason="fused CPU kernels unavailable")

@@ -8,7 +8,8 @@ import torch
 
 from radfield.core.backends import fused
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.train.strategy import GAUSSIAN_RADIUS_SIGMAS, in_frustum, make_strategy
+from radfield.core.train.strategy import GAUSSIAN_RADIUS_SIGMAS, in_frustum
+from radfield.core.trainer.loop import make_strategy
 
 IN_CI = os.environ.get("CI", "").strip().lower() == "true"
 pytestmark = pytest.mark.skipif(not IN_CI and not fused.available(), reason="fused CPU kernels unavailable")

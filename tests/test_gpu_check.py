@@ -93,7 +93,8 @@ def test_a_mistake_in_a_command_would_be_caught(argv, tmp_path):
 
 
 def test_the_scene_helper_calls_generate_scene_as_it_is():
-    from radfield.datasets.synthetic import SCENES, generate_scene
+    from radfield.demo.scenes import SCENES
+    from radfield.demo.static import generate_scene
 
     text = SCRIPT.read_text(encoding="utf-8")
     call = re.search(r"generate_scene as g; g\('\$1', '\$2', (.*?)\)\"", text)

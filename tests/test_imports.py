@@ -16,7 +16,7 @@ import textwrap
 
 import pytest
 
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 
 GEOMETRY = ("pymeshlab", "pyvista", "pycolmap", "pytetwild", "fast_simplification")
 HEAVY = ("torch", "numpy", "scipy", "skimage", "meshio", "OpenImageIO", "cv2", "viser", "matplotlib", *GEOMETRY)

@@ -18,15 +18,15 @@ from safetensors.torch import save_file
 
 from radfield.core import backends, kinds
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.kinds import Gaussians, PrimitiveKind, _Primitives, random_gaussians, random_neural
-from radfield.core.kinds.base import camera_directions, ellipsoid_bounds
-from radfield.core.render.kernels import alpha_from_optical_depth, ellipsoid_frame, ray_ellipsoid
+from radfield.core.kinds import Gaussians, PrimitiveKind, Primitives, random_gaussians, random_neural
+from radfield.core.splat.view import camera_directions, ellipsoid_bounds
+from radfield.core.splat.kernels import alpha_from_optical_depth, ellipsoid_frame, ray_ellipsoid
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import rgb_to_sh_dc
-from radfield.core.train.trainer import load_checkpoint, mean_psnr, save_checkpoint, train
+from radfield.core.splat.sh import rgb_to_sh_dc
+from radfield.core.trainer.loop import load_checkpoint, mean_psnr, save_checkpoint, train
 from radfield.delivery.export import Content, export, read_gaussian_ply
-from radfield.delivery.io import load_model, save_model
-from radfield.edit.deform import deform_field
+from radfield.model_file import load_model, save_model
+from radfield.edit.affine import deform_field
 from radfield.edit.field import Field, box_cage
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config, load_defaults
@@ -35,7 +35,7 @@ BG = (1.0, 1.0, 1.0)
 
 
 @dataclass
-class Ellipsoids(_Primitives):
+class Ellipsoids(Primitives):
     """Ellipsoids B(μ, R, s) of constant density σ = exp(log_density) (per unit of max(s), so that a
     scene's normalisation leaves it unchanged, as kinds/base.py asks)."""
 
@@ -102,7 +102,7 @@ def cameras(n=4, size=20):
 def test_the_registry_knows_the_built_in_kinds_and_refuses_others():
     assert kinds.names()[:2] == ("neural", "gaussian")
     assert kinds.of(random_neural(2)).name == "neural" and kinds.of(random_gaussians(2)).name == "gaussian"
-    assert kinds.get("neural").has_line_integral_density and kinds.get("gaussian").exact_gaussians
+    assert kinds.get("neural").retrainable_locally and kinds.get("gaussian").exact_gaussians
     with pytest.raises(RadfieldError, match="unknown primitive kind 'ellipsoid'"):
         kinds.get("ellipsoid")
     with pytest.raises(ValueError, match="registered already"):

@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from radfield.errors import RadfieldError
-from radfield.delivery.lpips import (
+from radfield.evaluation.lpips import (
     SDIST_MEMBER,
     AlexLPIPS,
     Unavailable,

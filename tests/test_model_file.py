@@ -8,7 +8,7 @@ import torch
 from safetensors.torch import save_file
 
 from radfield.errors import RadfieldError
-from radfield.delivery.io import load_model, read_metadata, save_model
+from radfield.model_file import load_model, read_metadata, save_model
 from radfield.core.kinds import NeuralPrimitives, random_gaussians, random_neural
 
 

@@ -16,7 +16,7 @@ from radfield.core.train.positivity import NonNegativeDensity, project_nonnegati
 from radfield.core.kinds import random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.train.strategy import in_frustum
-from radfield.core.train.trainer import train
+from radfield.core.trainer.loop import train
 from radfield.pipeline.config import load_config, load_defaults
 from shared_helpers import projection_rows
 

@@ -50,7 +50,7 @@ def test_quiet_and_non_terminal_outputs(capsys):
 
 
 def test_a_reconstruction_writes_progress_lines_to_a_file(cli, tmp_path):
-    from radfield.datasets.synthetic import generate_scene
+    from radfield.demo.static import generate_scene
 
     data = generate_scene("blobs", tmp_path / "blobs", n_train=4, n_test=1, size=16, seed=0)
     code, out, err = cli("reconstruct", data, "-o", tmp_path / "run", "--iterations", "20", "--no-cage",

@@ -15,10 +15,12 @@ import torch
 
 from radfield.datasets.images import read_image
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.datasets.olat import LIGHT_RADIUS, PILLAR_RADIUS, PILLAR_TOP, generate_olat, olat_scene
+from radfield.demo.olat import LIGHT_RADIUS, PILLAR_RADIUS, PILLAR_TOP, generate_olat, olat_scene
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
-from radfield.datasets.synthetic import PointLight, generate_scene, intersect, render_view, shade
+from radfield.demo.scenes import PointLight
+from radfield.demo.static import generate_scene
+from radfield.demo.raytrace import intersect, render_view, shade
 from radfield.pipeline.config import load_defaults
 
 from shared_helpers import frames, nerfstudio_copy, rewrite

@@ -23,9 +23,9 @@ from radfield.core.geometry.cameras import Camera, Light, look_at
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
-from radfield.delivery import report
+from radfield.evaluation import report
 from radfield.delivery.export import as_gaussians, read_gaussian_ply
-from radfield.delivery.io import load_model, save_model
+from radfield.model_file import load_model, save_model
 from radfield.delivery.lights import light_angles, light_at, orbit_lights
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config

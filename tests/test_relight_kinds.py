@@ -21,10 +21,11 @@ from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.kinds import Gaussians, NeuralPrimitives, RelightNeuralPrimitives
 from radfield.core.kinds.relight import network_count
 from radfield.core.render.rasterize import render
-from radfield.core.render.reference import neural_density, reference_render
-from radfield.core.render.sh import C0, eval_sh
-from radfield.core.train.trainer import assemble, mean_psnr, train
-from radfield.delivery.io import load_model, save_model
+from radfield.core.kinds.neural_density import primitive_density
+from radfield.core.render.reference import reference_render
+from radfield.core.splat.sh import C0, eval_sh
+from radfield.core.trainer.loop import assemble, mean_psnr, train
+from radfield.model_file import load_model, save_model
 from radfield.errors import RadfieldError
 
 from shared_helpers import refine_everything, with_network
@@ -288,7 +289,7 @@ def quadrature_image(prims, static, cam, colour_along_ray, background, samples=3
             x = campos + ell[:, None] * d                                                # (S, 3)
             extinction, emitted = torch.zeros(samples, dtype=torch.float64), torch.zeros(samples, 3, dtype=torch.float64)
             for i in range(len(prims)):
-                sigma = neural_density(prims, i, x) / smax[i]
+                sigma = primitive_density(prims, i, x) / smax[i]
                 own = ((x - prims.means[i]) @ rot[i]) / smax[i]
                 extinction += sigma
                 emitted += sigma[:, None] * (centre[i] + colour_along_ray(i, own))
@@ -329,9 +330,9 @@ def test_the_centre_colour_against_quadrature_of_a_colour_varying_along_the_ray(
 
 
 def test_cage_edits_and_halving_keep_each_primitives_network(render_scene):
-    """A cage map and a halving (edit/deform.py) change the geometry and the density MLP as the
+    """A cage map and a halving (edit/affine.py) change the geometry and the density MLP as the
     parent kind's hooks do; the colour network, in the primitive's own frame, rides along."""
-    from radfield.edit.deform import deform_field, split_primitives
+    from radfield.edit.affine import deform_field, split_primitives
     from radfield.edit.field import Field, box_cage
 
     prims, cam = scene(render_scene, "neural-relight")
@@ -350,10 +351,10 @@ def test_cage_edits_and_halving_keep_each_primitives_network(render_scene):
 
 
 def test_data_parallel_training_sends_the_cameras_light():
-    """Rank 0 sends the cameras as JSON (core/train/dataparallel.py): the light comes back equal."""
+    """Rank 0 sends the cameras as JSON (core/trainer/dataparallel.py): the light comes back equal."""
     import json
 
-    from radfield.core.train.dataparallel import camera_from_meta, camera_meta
+    from radfield.core.trainer.dataparallel import camera_from_meta, camera_meta
 
     for light in (POINT, SUN, None):
         cam = Camera(fx=20.0, fy=21.0, cx=8.0, cy=7.5, width=16, height=15, c2w=look_at((2.0, 0.5, 0.3), (0, 0, 0)),

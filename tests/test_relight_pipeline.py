@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from radfield.datasets.olat import generate_olat
-from radfield.datasets.synthetic import generate_scene
-from radfield.delivery.io import load_model
+from radfield.demo.olat import generate_olat
+from radfield.demo.static import generate_scene
+from radfield.model_file import load_model
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_defaults
 from radfield.stages.init import primitive_kind

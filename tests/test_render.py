@@ -6,11 +6,12 @@ import pytest
 import torch
 
 from radfield.core.geometry.cameras import Camera, look_at, opengl_to_opencv
-from radfield.core.render.kernels import neural_line_integral
+from radfield.core.kinds.neural_density import neural_line_integral
 from radfield.core.kinds import NeuralPrimitives, quat_to_rotmat, random_gaussians, random_neural, rotmat_to_quat
 from radfield.core.render.rasterize import render
-from radfield.core.render.reference import quadrature_optical_depth, reference_render
-from radfield.core.render.sh import eval_sh
+from radfield.core.kinds.neural_density import quadrature_optical_depth
+from radfield.core.render.reference import reference_render
+from radfield.core.splat.sh import eval_sh
 
 torch.set_default_dtype(torch.float32)
 

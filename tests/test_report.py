@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from radfield.delivery import lpips as lpips_metric
-from radfield.delivery.io import save_model
-from radfield.delivery.report import BAR_STRIP, BAR_WIDTH, GAP, LABEL_HEIGHT, error_map
+from radfield.evaluation import lpips as lpips_metric
+from radfield.model_file import save_model
+from radfield.evaluation.report import BAR_STRIP, BAR_WIDTH, GAP, LABEL_HEIGHT, error_map
 from radfield.datasets.images import read_image
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.datasets import scene as data
 from radfield.stages import init
 from radfield.pipeline.config import load_config
@@ -125,7 +125,7 @@ def test_bench_quality_tiny(scene_dir, tmp_path, cli):
 
 def test_the_time_plot_legend_hides_no_point():
     """In the corner the legend hid the last moment's point (issue 44): it is below the axes."""
-    from radfield.delivery.report import time_figure
+    from radfield.evaluation.report import time_figure
 
     per_time = [{"time": k / 23, "psnr": 40.0 - 3.0 * (k == 23), "views": 4} for k in range(24)]
     figure = time_figure(per_time)

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from radfield.core.geometry.envelope import read_envelope, signed_distance
-from radfield.delivery.io import load_model
-from radfield.datasets.synthetic import generate_scene, get_scene
+from radfield.model_file import load_model
+from radfield.demo.static import generate_scene
+from radfield.demo.scenes import get_scene
 from radfield.pipeline.runner import read_manifest
 from radfield.stages.train import CHECKPOINT
 
@@ -47,7 +48,7 @@ def test_objects_scene_has_no_mesh_and_the_traits_it_promises(objects):
 def test_torus_intersection_matches_ray_marching_its_distance_function():
     """The quartic's first root against the first sign change of the exact torus SDF along the
     ray (a dense march), normals against the SDF's finite-difference gradient."""
-    from radfield.datasets.shapes import Material, Torus
+    from radfield.demo.shapes import Material, Torus
 
     torus = Torus((0.2, 0.1, 0.3), (0.3, 0.2, 1.0), 0.5, 0.15, Material((1.0, 0.0, 0.0)))
     frame, centre = torus.frame, np.asarray(torus.center)

@@ -13,8 +13,8 @@ import pytest
 
 from radfield import run as layout
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import load_config
-from radfield.pipeline.registry import stages
+from radfield.pipeline.config import load_config, run_config
+from radfield.stages.registry import stages
 from radfield.pipeline.runner import run_pipeline
 from radfield.run import Run, model_file
 
@@ -32,7 +32,7 @@ def torch_kernels():
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
     """(dataset, run) of a real reconstruction of a tiny scene, with envelope, cage and binding."""
-    from radfield.datasets.synthetic import generate_scene
+    from radfield.demo.static import generate_scene
 
     root = tmp_path_factory.mktemp("run")
     scene = generate_scene("blobs", root / "blobs", n_train=6, n_test=2, size=24)
@@ -52,7 +52,7 @@ def test_a_reconstructed_run(made):
     assert not run.normalization.exists() and not run.checkpoint.exists()   # no photos, no interrupted training
     assert run.manifest("train")["figures"]["iterations"] == 3 and run.manifest("eval") is None
     assert run.stage_names() == load_config()["stages"]
-    assert run.config()["init"]["num_points"] == 120 and run.config({"seed": 7})["seed"] == 7
+    assert run_config(run)["init"]["num_points"] == 120 and run_config(run, {"seed": 7})["seed"] == 7
     assert run.marker()["input"] == str(scene.resolve())
     assert not run.scratch() and not run.work_dir("train").exists()    # a finished run leaves none
     with np.load(run.binding) as binding:
@@ -91,7 +91,7 @@ def test_an_edited_run(made, cli, tmp_path):
     assert code == 0, err
     bare = Run.open(tmp_path / "from_model")
     assert bare.is_edited and bare.dataset() is None and bare.cage is None and not bare.config_file.exists()
-    assert bare.config() == load_config()
+    assert run_config(bare) == load_config()
 
 
 def test_info_and_the_viewer_of_an_edited_run(made, cli, tmp_path):

@@ -15,20 +15,21 @@ import pytest
 import torch
 
 from radfield.errors import RadfieldError
-from radfield.delivery.io import load_model, save_model
-from radfield.core.render.kernels import neural_line_integral
-from radfield.core.kinds import density_window, neural
-from radfield.core.train.trainer import load_checkpoint, save_checkpoint
+from radfield.model_file import load_model, save_model
+from radfield.core.kinds.neural_density import neural_line_integral
+from radfield.core.kinds.neural_density import density_window
+from radfield.core.kinds import neural
+from radfield.core.trainer.loop import load_checkpoint, save_checkpoint
 from radfield.datasets.images import read_image, write_image
 from radfield.datasets.readers import load_dataset
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.datasets import scene as data
 from radfield.stages import init
 from radfield.pipeline.config import load_config
-from radfield.stages.evaluate import evaluate
+from radfield.evaluation.evaluate import evaluate
 from radfield.stages.train import MODEL_FILE
 from radfield.pipeline.runner import Stage, read_manifest, run_pipeline
-from radfield.pipeline.registry import stages
+from radfield.stages.registry import stages
 
 METRIC_KEYS = {"split", "kind", "psnr", "ssim", "num_primitives", "num_params", "file_size_bytes", "fps", "views",
                "width", "height", "per_view",

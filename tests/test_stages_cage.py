@@ -12,17 +12,17 @@ import meshio
 import numpy as np
 import pytest
 
-from radfield.delivery.io import load_model
+from radfield.model_file import load_model
 from radfield.datasets.images import read_image, write_image
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.datasets import scene as data
 from radfield.pipeline.config import load_config
 from radfield.core.geometry.envelope import read_envelope, signed_distance
-from radfield.stages.evaluate import eval_report
+from radfield.evaluation.evaluate import eval_report
 from radfield.pipeline.info import run_info
 from radfield.pipeline.runner import read_manifest, run_pipeline
 from radfield.run import Run
-from radfield.pipeline.registry import stages
+from radfield.stages.registry import stages
 from radfield.core.geometry.cage import bind_to_cage, locate_points, read_cage, write_binding
 
 FRONT = ["sfm", "data", "envelope", "tetra", "init"]

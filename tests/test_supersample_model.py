@@ -16,13 +16,13 @@ from radfield.core.render.antialias import render_model, render_supersampled
 from radfield.delivery.bake import coverage
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.delivery.export import supersample_warning
-from radfield.delivery.io import load_model, read_metadata, save_model
+from radfield.model_file import load_model, read_metadata, save_model
 from radfield.core.kinds import random_gaussians, random_neural, rotmat_to_quat
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import Normalization, load_split
-from radfield.datasets.synthetic import generate_scene
+from radfield.demo.static import generate_scene
 from radfield.edit.compose import concat_prims
-from radfield.edit.deform import deform_field
+from radfield.edit.affine import deform_field
 from radfield.edit.field import Field, box_cage
 from radfield.pipeline.config import load_defaults
 from radfield.run import Run
@@ -205,7 +205,7 @@ def test_export_warns_in_one_line_for_one_ray_formats(tmp_path, cli):
 def test_the_eval_stage_refuses_a_model_that_disagrees_with_its_run(tmp_path):
     """A run trained at n = 2 before model files recorded n: its eval stage must not measure it at 1."""
     from radfield.errors import RadfieldError
-    from radfield.stages.evaluate import check_supersample
+    from radfield.evaluation.evaluate import check_supersample
 
     save_model(tmp_path / "old.safetensors", model(1))
     save_model(tmp_path / "new.safetensors", model(2))

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from radfield.datasets import load_dataset, read_image
-from radfield.datasets.synthetic import (SCENES, generate_scene, intersect, light_samples, orbit_cameras,
-                                         pixel_offsets, render_view, shade)
+from radfield.demo.scenes import SCENES, orbit_cameras
+from radfield.demo.static import generate_scene
+from radfield.demo.raytrace import intersect, light_samples, pixel_offsets, render_view, shade
 
 STUDIO = SCENES["studio"]
 

@@ -11,13 +11,14 @@ import torch
 from skimage.metrics import structural_similarity
 
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.delivery.io import load_model, save_model
+from radfield.model_file import load_model, save_model
 from radfield.core.train.losses import anisotropy, density_magnitude, dssim, frequency_magnitude, photometric, psnr
-from radfield.delivery.metrics import ssim
+from radfield.evaluation.metrics import ssim
 from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.train.strategy import edit_rows, in_frustum, make_strategy, negligible_density
-from radfield.core.train.trainer import (
+from radfield.core.train.strategy import edit_rows, in_frustum, negligible_density
+from radfield.core.trainer.loop import make_strategy
+from radfield.core.trainer.loop import (
     TrainState,
     initial_state,
     load_checkpoint,
@@ -28,7 +29,7 @@ from radfield.core.train.trainer import (
     train,
     views_for_step,
 )
-from radfield.core.train.trainlog import read_log
+from radfield.core.trainer.log import read_log
 from radfield.datasets.images import write_image
 from radfield.stages import train as train_stage
 from radfield.pipeline.config import load_defaults, section

@@ -1,5 +1,5 @@
 """Training without host reads inside the loop (issue 27): the steps' loss and PSNR stay on the
-device and are read every `train.log_every` steps (radfield.core.train.trainer.StepRecords), and
+device and are read every `train.log_every` steps (radfield.core.trainer.loop.StepRecords), and
 the log is the same whatever log_every is. CPU checks; tests/test_cuda.py has the GPU's own."""
 
 import dataclasses
@@ -12,11 +12,11 @@ import torch
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.train import trainer
-from radfield.core.train.trainer import save_checkpoint, train
-from radfield.core.train.trainlog import read_log
+from radfield.core.trainer import loop
+from radfield.core.trainer.loop import save_checkpoint, train
+from radfield.core.trainer.log import read_log
 from radfield.datasets.images import write_image
-from radfield.delivery.io import save_model
+from radfield.model_file import save_model
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config, load_defaults, section
 from radfield.pipeline.runner import Context
@@ -70,7 +70,7 @@ def test_the_loop_reads_the_device_only_at_flush_steps(tmp_path, training_reads,
     read_steps = {step for step, _, _ in reads.seen}
     assert read_steps - {0} == {5, 10, 12}, reads.seen
     # one read of all the pending sums per flush
-    flushes = [step for step, op, where in reads.seen if where == "radfield.core.train.trainer.flush"]
+    flushes = [step for step, op, where in reads.seen if where == "radfield.core.trainer.loop.flush"]
     assert flushes == [5, 10, 12] and all(op == "tolist" for _, op, where in reads.seen if where.endswith(".flush"))
 
 
@@ -81,7 +81,7 @@ def test_the_records_equal_reading_every_step(batch):
     cameras, images = views()
     cfg = small_config(iterations=9, batch_views=batch, eval_every=4, checkpoint_every=100,
                        densify={"start": 3, "stop": 6, "every": 3})
-    held_out = lambda prims: trainer.mean_psnr(prims, cameras[:1], images[:1], background=BG)
+    held_out = lambda prims: loop.mean_psnr(prims, cameras[:1], images[:1], background=BG)
     logs = {}
     for every in (1, 4, None):
         logs[every] = []
@@ -92,12 +92,12 @@ def test_the_records_equal_reading_every_step(batch):
 
 
 def test_reads_every_fifty_steps_by_default_on_a_gpu_only():
-    assert trainer.log_interval({"log_every": None}, torch.device("cpu")) == 1
-    assert trainer.log_interval({}, torch.device("cpu")) == 1   # a caller's own config without the key
-    assert trainer.log_interval({"log_every": None}, torch.device("cuda")) == trainer.LOG_EVERY_GPU == 50
-    assert trainer.log_interval({"log_every": 7}, torch.device("cuda")) == 7
+    assert loop.log_interval({"log_every": None}, torch.device("cpu")) == 1
+    assert loop.log_interval({}, torch.device("cpu")) == 1   # a caller's own config without the key
+    assert loop.log_interval({"log_every": None}, torch.device("cuda")) == loop.LOG_EVERY_GPU == 50
+    assert loop.log_interval({"log_every": 7}, torch.device("cuda")) == 7
     with pytest.raises(ValueError, match="log_every"):
-        trainer.log_interval({"log_every": 0}, torch.device("cpu"))
+        loop.log_interval({"log_every": 0}, torch.device("cpu"))
 
 
 def test_a_log_every_below_one_is_a_config_error():

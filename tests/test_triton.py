@@ -25,7 +25,7 @@ from radfield.core.backends import gpu                      # noqa: E402
 from radfield.core.geometry.cameras import Camera, look_at  # noqa: E402
 from radfield.core.kinds import random_gaussians, random_neural   # noqa: E402
 from radfield.core.render.rasterize import render           # noqa: E402
-from radfield.core.train.strategy import make_strategy      # noqa: E402
+from radfield.core.trainer.loop import make_strategy   # noqa: E402
 from shared_helpers import (TOL32, assert_renders_close, float32_sensitivity, float64_twin,   # noqa: E402
                             projection_rows, render_with_grads)
 
@@ -269,7 +269,7 @@ def test_the_forward_writes_every_output_it_allocates(scene, monkeypatch, render
 
 @pytest.mark.parametrize("kind", ["neural", "gaussian", "neural-dynamic", "gaussian-relight"])
 def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
-    """trainer.train on the Triton path (the code a GPU runs: the kernels, the per-view preparation
+    """loop.train on the Triton path (the code a GPU runs: the kernels, the per-view preparation
     in torch, a conditioned kind's primitives of the view, loss, D-SSIM, Adam, the strategy's
     statistics, the rules), 6 steps of 2 views with log_every 3: between the reads of the step
     records (steps 3 and 6) the host reads one number a view, the binning's pair count
@@ -279,7 +279,7 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
 
     from radfield.core.geometry.cameras import Light
     from radfield.core.kinds import random_neural
-    from radfield.core.train import trainer
+    from radfield.core.trainer import loop
     from radfield.pipeline.config import load_defaults
 
     cams = [Camera(fx=20.8, fy=20.8, cx=8, cy=8, width=16, height=16, name=f"v{i}",
@@ -299,25 +299,25 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     start = kinds.get(kind).from_points(geometry, kinds.get(kind).init_settings(load_defaults()), seed=0)
     log = []
     with backends.using(backends.TRITON), training_reads as reads:
-        trainer.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
+        loop.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
                       device=DEVICE, alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append(step))
     assert log == list(range(1, 7))
     per_step = {step: sorted(f"{op} {where}" for s, op, where in reads.seen if s == step) for step in range(1, 7)}
     pair_counts = ["__int__ radfield.core.backends.gpu.binning.pair_count"] * 2
     for step, seen in per_step.items():
         if step in (3, 6):
-            assert seen == sorted([*pair_counts, "tolist radfield.core.train.trainer.flush"]), (step, seen)
+            assert seen == sorted([*pair_counts, "tolist radfield.core.trainer.loop.flush"]), (step, seen)
         else:
             assert seen == pair_counts, (step, seen)
 
 
 @pytest.mark.parametrize("kind", ["neural", "gaussian"])
 def test_training_on_the_triton_path_is_the_twins(kind):
-    """trainer.train, 4 steps of 2 views each, on the Triton path (the views, the loss, the
+    """loop.train, 4 steps of 2 views each, on the Triton path (the views, the loss, the
     projection, the statistics: gradients of two views summed into one buffer's views) and on the
     torch twins: the same parameters after the last step, to float32 rounding."""
     from radfield.core.kinds import random_neural
-    from radfield.core.train import trainer
+    from radfield.core.trainer import loop
     from radfield.pipeline.config import load_defaults
 
     cams = [Camera(fx=20.8, fy=20.8, cx=8, cy=8, width=16, height=16, name=f"v{i}",
@@ -334,7 +334,7 @@ def test_training_on_the_triton_path_is_the_twins(kind):
         geometry = {name: getattr(start, name) for name in ("means", "log_scales", "quats", "sh")}
         start = kinds.get(kind).from_points(geometry, kinds.get(kind).init_settings(load_defaults()), seed=0)
         with backends.using(backend):
-            states.append(trainer.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
+            states.append(loop.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
                                         device=DEVICE))
     fast, slow = states
     assert fast.step == slow.step == 4 and fast.params.keys() == slow.params.keys()
@@ -441,7 +441,7 @@ def test_sh_colour_matches_the_torch_twin(degree, dtype):
     and the gradients of sh and v, for 300 primitives (3 programs, the last one part full) with
     more coefficients than the degree reads, colours clamped at 0 (SH pulled below −0.5), and v of
     every length (a tiny one included)."""
-    from radfield.core.render.sh import sh_to_color
+    from radfield.core.splat.sh import sh_to_color
 
     g = torch.Generator().manual_seed(degree)
     sh = (torch.randn(300, 16, 3, generator=g, dtype=torch.float64) * 0.6).to(device=DEVICE, dtype=dtype)
@@ -471,8 +471,9 @@ def test_neural_bounds_are_the_twins(dtype):
     """gpu.neural_bounds (one launch) against kinds/base.py ellipsoid_bounds: the same boxes and
     visibility for 400 ellipsoids around a camera close to them (some behind it, some cut by the
     near plane: the whole image, some off-screen), on a 37×21 view."""
-    from radfield.core.kinds import ViewFrame, random_neural
-    from radfield.core.kinds.base import ellipsoid_bounds
+    from radfield.core.splat.view import ViewFrame
+    from radfield.core.kinds import random_neural
+    from radfield.core.splat.view import ellipsoid_bounds
 
     prims = random_neural(400, extent=1.2, scale=0.25, seed=4).to(dtype=dtype, device=DEVICE)
     cam = Camera(fx=30.0, fy=28.0, cx=18.3, cy=10.1, width=37, height=21, c2w=look_at((0.3, -1.0, 0.2), (0, 0, 0)))
@@ -574,7 +575,7 @@ for floats in ("*fp32", "*fp64"):   # (float64: the tests' dtype, which takes ot
     compile_for_sm90(positivity_kernels.project_nonnegative, PREPARE_OPTIONS, floats, UNITS=8,
                      BLOCK=positivity_kernels.BLOCK)
 # a float literal held in a plain local is made a float32 scalar: a float64 kernel's SH constants
-# must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/render/sh.py, 64-bit hex)
+# must reach its PTX in full, never rounded to float32 (C0 and C3[1] of core/splat/sh.py, 64-bit hex)
 ptx = ptx["sh_color_backward", "*fp64"]
 full, rounded = ("0d3FD20DD750429B6D", "0d40071FF8E45CAD2D"), ("0d3FD20DD760000000", "0d40071FF8E0000000")
 print("float64 constants:", all(h in ptx for h in full) and not any(h in ptx for h in rounded))

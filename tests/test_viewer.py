@@ -23,12 +23,12 @@ import pytest
 import torch
 
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.delivery.io import save_model
+from radfield.model_file import save_model
 from radfield.core.kinds import DynamicGaussians, Gaussians, RelightGaussians, random_gaussians, rotmat_to_quat
 from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.core.kinds.relight import DEFAULT_COLOR_HIDDEN, init_network
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import rgb_to_sh_dc
+from radfield.core.splat.sh import rgb_to_sh_dc
 from radfield.delivery.lights import light_at
 from radfield.delivery.viewer import tet_edges, viser_camera
 

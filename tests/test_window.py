@@ -16,15 +16,19 @@ import yaml
 from radfield.delivery.bake import prune, to_fp16_and_back
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.errors import RadfieldError
-from radfield.delivery.io import load_model, save_model
-from radfield.core.render.kernels import alpha_from_optical_depth, neural_line_integral
-from radfield.delivery.moments import gaussians_from_neural, neural_density_samples
-from radfield.core.kinds import ellipsoid_radius_sq, quat_to_rotmat, random_neural
+from radfield.model_file import load_model, save_model
+from radfield.core.splat.kernels import alpha_from_optical_depth
+from radfield.core.kinds.neural_density import neural_line_integral
+from radfield.core.kinds.moment_matching import gaussians_from_neural, neural_density_samples
+from radfield.core.kinds.neural_density import ellipsoid_radius_sq
+from radfield.core.kinds import quat_to_rotmat, random_neural
 from radfield.core.render.rasterize import render
-from radfield.core.render.reference import neural_density, quadrature_optical_depth, reference_render
+from radfield.core.kinds.neural_density import primitive_density, quadrature_optical_depth
+from radfield.core.render.reference import reference_render
+from radfield.core.kinds import neural_density
 from radfield.edit import boolean, retrain
 from radfield.edit.compose import concat_prims
-from radfield.edit.deform import map_primitives, split_primitives
+from radfield.edit.affine import map_primitives, split_primitives
 from radfield.edit.field import Field
 from radfield.edit.recolor import peak_density
 from radfield.edit.spec import EditContext, apply_operations, parse_spec
@@ -76,7 +80,7 @@ def test_ellipsoid_radius_sq_is_the_unit_sphere_radius():
     x = points_around(prims)
     r2 = ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x[:, None])
     torch.testing.assert_close(r2, brute_r2(prims, x), rtol=1e-12, atol=1e-12)
-    ends = retrain.ellipsoid_points(prims, torch.eye(3, dtype=torch.float64))          # μ + R S e_k
+    ends = neural_density.ellipsoid_points(prims, torch.eye(3, dtype=torch.float64))          # μ + R S e_k
     r2_ends = ellipsoid_radius_sq(prims.means[:, None], prims.log_scales[:, None], prims.quats[:, None], ends)
     torch.testing.assert_close(r2_ends, torch.ones(len(prims), 3, dtype=torch.float64))
 
@@ -147,8 +151,8 @@ def test_reference_density_is_the_windowed_one():
     inside = brute_r2(prims, x) <= 1
     expected_hard = torch.where(inside, brute_sigma(prims, x), 0.0)
     for i in range(len(prims)):
-        torch.testing.assert_close(neural_density(prims, i, x), expected_hard[:, i])
-        torch.testing.assert_close(neural_density(windowed(prims), i, x), expected_hard[:, i] * brute_window(prims, x)[:, i])
+        torch.testing.assert_close(primitive_density(prims, i, x), expected_hard[:, i])
+        torch.testing.assert_close(primitive_density(windowed(prims), i, x), expected_hard[:, i] * brute_window(prims, x)[:, i])
 
 
 def test_retrain_point_densities_are_windowed():
@@ -158,27 +162,27 @@ def test_retrain_point_densities_are_windowed():
     hard = torch.where(r2 <= 1, sigma / smax, 0.0)
     soft = hard * brute_window(prims, x)
     assert (soft - hard).abs().max() > 0.1
-    torch.testing.assert_close(retrain.pair_density(prims, x), hard)
-    torch.testing.assert_close(retrain.pair_density(windowed(prims), x), soft)
+    torch.testing.assert_close(neural_density.pair_density(prims, x), hard)
+    torch.testing.assert_close(neural_density.pair_density(windowed(prims), x), soft)
     # one point per primitive, and the field's D(x) = Σ max(σ, 0)/max s over the primitives
     q = torch.arange(len(x)) % len(prims)
     one = prims.select(q)
-    torch.testing.assert_close(retrain._pair_density_1to1(one, x), hard[torch.arange(len(x)), q])
-    torch.testing.assert_close(retrain._pair_density_1to1(windowed(one), x), soft[torch.arange(len(x)), q])
-    np.testing.assert_allclose(retrain.field_density(prims, x), hard.clamp_min(0).sum(1).numpy(), rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(retrain.field_density(windowed(prims), x), soft.clamp_min(0).sum(1).numpy(), rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(neural_density._pair_density_1to1(one, x), hard[torch.arange(len(x)), q])
+    torch.testing.assert_close(neural_density._pair_density_1to1(windowed(one), x), soft[torch.arange(len(x)), q])
+    np.testing.assert_allclose(neural_density.field_density(prims, x), hard.clamp_min(0).sum(1).numpy(), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(neural_density.field_density(windowed(prims), x), soft.clamp_min(0).sum(1).numpy(), rtol=1e-10, atol=1e-12)
     # each primitive at its own points (no ellipsoid test)
-    own = retrain.ellipsoid_points(prims, retrain.unit_ball_samples(20))
+    own = neural_density.ellipsoid_points(prims, neural_density.unit_ball_samples(20))
     diag = lambda f: torch.stack([f(own[i])[:, i] for i in range(len(prims))])
-    torch.testing.assert_close(retrain.neural_sigma(prims, own), diag(lambda y: brute_sigma(prims, y)))
-    torch.testing.assert_close(retrain.neural_sigma(windowed(prims), own),
+    torch.testing.assert_close(neural_density.neural_sigma(prims, own), diag(lambda y: brute_sigma(prims, y)))
+    torch.testing.assert_close(neural_density.neural_sigma(windowed(prims), own),
                                diag(lambda y: brute_sigma(prims, y) * brute_window(prims, y)))
 
 
 def test_peak_density_is_windowed():
     prims = scene64()
-    u = retrain.unit_ball_samples(128)
-    own = retrain.ellipsoid_points(prims, u)
+    u = neural_density.unit_ball_samples(128)
+    own = neural_density.ellipsoid_points(prims, u)
     sigma = torch.stack([brute_sigma(prims, own[i])[:, i] for i in range(len(prims))])     # (P, S)
     torch.testing.assert_close(peak_density(prims), sigma.max(1).values)
     torch.testing.assert_close(peak_density(windowed(prims)), (sigma * 1.5 * (1 - (u * u).sum(-1))).max(1).values)
@@ -225,14 +229,14 @@ def test_teacher_windowed_closed_form_and_masked_quadrature():
 
 def test_stage1_student_density_is_the_windowed_pair_density():
     student = scene64(4, seed=6).to(dtype=torch.float32)
-    pts = retrain.ellipsoid_points(student, retrain.unit_ball_samples(30, 1)).reshape(-1, 3)
+    pts = neural_density.ellipsoid_points(student, neural_density.unit_ball_samples(30, 1)).reshape(-1, 3)
     params = {n: t for n, t in student.tensors().items()}
     q_idx, p_idx = retrain._inside_pairs(student, pts)
     smax = student.scales.amax(-1)
     for prims in (student, windowed(student)):
         window = retrain._pair_window(prims, pts, q_idx, p_idx)
         density = retrain.stage1_density(params, prims.omega0, pts, q_idx, p_idx, smax, window)
-        expected = retrain.pair_density(prims, pts).sum(1)     # float32: the same inside test
+        expected = neural_density.pair_density(prims, pts).sum(1)     # float32: the same inside test
         torch.testing.assert_close(density, expected, rtol=1e-4, atol=1e-4)
 
 
@@ -240,7 +244,7 @@ def test_stage1_student_density_is_the_windowed_pair_density():
 def test_retrained_primitives_keep_the_window(monkeypatch, best):
     prims = windowed(scene64(6, seed=7, scale=0.2, extent=0.2, sh_degree=0)).to(dtype=torch.float32)
     frozen, student = prims.select(torch.arange(3)), prims.select(torch.arange(3, 6))
-    pts = retrain.ellipsoid_points(student, retrain.unit_ball_samples(10)).reshape(-1, 3)
+    pts = neural_density.ellipsoid_points(student, neural_density.unit_ball_samples(10)).reshape(-1, 3)
     cam = retrain.orbit_around(student, np.arange(3), 1, 8)
     scores = iter({"stage1": [0.0, 2.0, 1.0], "stage2": [0.0, 1.0, 2.0]}[best])   # PSNR before, stage 1, stage 2
     monkeypatch.setattr(retrain, "_mean_psnr", lambda *args: next(scores))
@@ -277,8 +281,8 @@ def test_deformation_maps_the_windowed_density_exactly():
     assert moved.window
     x = points_around(prims, 200)
     for i in range(len(prims)):
-        torch.testing.assert_close(neural_density(moved, i, x @ torch.as_tensor(a).T + torch.as_tensor(b)),
-                                   neural_density(prims, i, x), atol=1e-9, rtol=1e-9)
+        torch.testing.assert_close(primitive_density(moved, i, x @ torch.as_tensor(a).T + torch.as_tensor(b)),
+                                   primitive_density(prims, i, x), atol=1e-9, rtol=1e-9)
     assert split_primitives(prims, np.array([0])).window
 
 

@@ -2,12 +2,12 @@
 
 The same scene and config for both (bench-render's scene, targets with shifted colours as in
 bench-train, `batch_views` views per step, population control gathering statistics every step but
-never changing the count): trainer.train in this process with T threads, then R ranks started by
+never changing the count): loop.train in this process with T threads, then R ranks started by
 torch's elastic launcher (gloo, standalone rendezvous on a free port), one thread each.
 
 A third line, 1 rank × 1 thread, shows what one rank does alone with the whole batch (on a busy
 machine several OpenMP threads can be much slower than one). Printed per configuration: steps/s of the timed steps (after `warmup` untimed ones); for the ranks
-also the wall time per step inside the all-reduce (radfield.core.train.distributed.StepSync: it includes
+also the wall time per step inside the all-reduce (radfield.core.trainer.distributed.StepSync: it includes
 waiting for the slower rank), the all-reduced bytes per step, and the time of a bare all-reduce of
 a buffer that size (communication alone, averaged over 20 calls). On a 2-core machine the point
 is correctness and overhead, not speed-up; a shared machine makes every figure noisy.
@@ -36,8 +36,8 @@ def _setup(primitives: int, size: int, views: int, steps: int, batch: int):
 
 
 def _timed_train(prims, cams, images, cfg, warmup: int, world=None) -> float:
-    """steps/s of trainer.train over the steps after the first `warmup`."""
-    from radfield.core.train.trainer import train
+    """steps/s of loop.train over the steps after the first `warmup`."""
+    from radfield.core.trainer.loop import train
 
     marks = {}
     train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, world=world,
@@ -50,7 +50,7 @@ def rank_main(primitives: int, size: int, views: int, steps: int, batch: int, wa
     """One rank of the distributed configuration (started by the elastic launcher)."""
     import torch.distributed as dist
 
-    from radfield.core.train import distributed
+    from radfield.core.trainer import distributed
 
     torch.set_num_threads(1)
     world = distributed.connect(timeout=120, check_every=0)

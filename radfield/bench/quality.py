@@ -36,7 +36,7 @@ from typing import Any, Callable, Sequence
 
 from radfield.util.atomic import atomic_write, atomic_write_text
 from radfield.errors import RadfieldError
-from radfield.delivery.report import human_bytes
+from radfield.evaluation.report import human_bytes
 
 RUNS = "runs"
 TABLE, RESULTS, PLOT = "bench.md", "bench.json", "psnr_vs_params.png"

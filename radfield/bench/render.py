@@ -23,7 +23,7 @@ import torch
 from radfield.core import kinds as registry
 from radfield.core.geometry.cameras import Camera, Light, look_at
 from radfield.core.render.rasterize import render
-from radfield.core.render.sh import num_sh_coeffs
+from radfield.core.splat.sh import num_sh_coeffs
 from radfield.util.timing import clock
 
 

@@ -1,6 +1,6 @@
 """`radfield bench-train`: milliseconds per training step, split into its parts.
 
-The step is core/train/trainer.py's loop body with `batch_views: 1` and the default `train` config,
+The step is core/trainer/loop.py's loop body with `batch_views: 1` and the default `train` config,
 timed part by part (the parts are run in the trainer's order, on its own functions):
 
     render forward    assemble the primitives, render(...)
@@ -12,7 +12,7 @@ timed part by part (the parts are run in the trainer's order, on its own functio
 
 Population control keeps the primitive count fixed (densification starts after the run), so
 each row measures one count: `refine` then costs its checks only. The `train()` column times the
-real `trainer.train`, end to end, as a check that the parts add up: one run of warm-up + steps
+real `loop.train`, end to end, as a check that the parts add up: one run of warm-up + steps
 steps, clocked by its on_step callback (at the reads of the step statistics, every `warmup` steps:
 on a GPU the steps between them run ahead of the device), gives the ms per step after the warm-up,
 with the SH degree schedule at its last stage from step 3 on (as the parts, which render at the
@@ -35,8 +35,8 @@ import torch
 from radfield.bench.render import bench_cameras, bench_models, reference_twin
 from radfield.core.train.losses import anisotropy, photometric, psnr
 from radfield.core.render.rasterize import render
-from radfield.core.train.strategy import make_strategy
-from radfield.core.train import trainer
+from radfield.core.trainer.loop import make_strategy
+from radfield.core.trainer import loop
 
 PARTS = ("forward", "loss", "backward", "optimiser", "population")
 
@@ -44,8 +44,8 @@ PARTS = ("forward", "loss", "backward", "optimiser", "population")
 @dataclass
 class StepTiming:
     ms: dict[str, float]   # mean ms per step of each part
-    train_ms: float        # marginal ms per step of trainer.train, end to end
-    setup_ms: float        # trainer.train's cost once per call
+    train_ms: float        # marginal ms per step of loop.train, end to end
+    setup_ms: float        # loop.train's cost once per call
     pairs: float           # evaluated pixel-primitive pairs per step
 
     @property
@@ -79,13 +79,13 @@ def _targets(prims, cams, device):
 
 def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: str) -> StepTiming:
     """Time `steps` training steps (after `warmup` untimed ones), part by part, then run
-    trainer.train for as many steps, end to end."""
+    loop.train for as many steps, end to end."""
     dev = torch.device(device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     cfg = {**cfg, "sh_degree": prims.sh_degree}   # the model's own degree, as the train stage trains it
-    state = trainer.initial_state(prims, cfg["sh_degree"])
+    state = loop.initial_state(prims, cfg["sh_degree"])
     params = {n: t.to(dev).clone().requires_grad_(True) for n, t in state.params.items()}
-    optimizer = trainer.make_optimizer(params, cfg["lr"], extent=1.0, kind=state.kind)
+    optimizer = loop.make_optimizer(params, cfg["lr"], extent=1.0, kind=state.kind)
     strategy = make_strategy(state.kind, cfg["densify"], extent=1.0, near=0.01, max_primitives=None,
                              initial_count=len(prims))
     accumulators = strategy.init_state(len(prims), dev)
@@ -109,7 +109,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = clock("loss", t)
         before = {n: None if params[n].grad is None else params[n].grad.clone() for n in strategy.grad_names}
         t = clock("population", t)
-        out = render(trainer.assemble(params, state.kind, state.attrs), cams[view], background=bg, sh_degree=degree)
+        out = render(loop.assemble(params, state.kind, state.attrs), cams[view], background=bg, sh_degree=degree)
         t = clock("forward", t)
         image = out.color.detach().requires_grad_(True)
         loss = photometric(image, images[view], cfg["lambda_dssim"])
@@ -118,13 +118,13 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
         t = clock("loss", t)
         out.color.backward(image.grad)
         t = clock("backward", t)
-        grads = {n: trainer.own_gradient(params[n].grad, before[n], 1) for n in strategy.grad_names}
+        grads = {n: loop.own_gradient(params[n].grad, before[n], 1) for n in strategy.grad_names}
         strategy.accumulate(accumulators, params, grads, cams[view], step + 1)
         t = clock("population", t)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         t = clock("optimiser", t)
-        strategy.refine(accumulators, params, optimizer, step + 1, trainer.generator(0, 1, step))
+        strategy.refine(accumulators, params, optimizer, step + 1, loop.generator(0, 1, step))
         clock("population", t)
         if step >= warmup:
             for part in PARTS:
@@ -136,7 +136,7 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
 
 
 def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tuple[float, float]:
-    """trainer.train's ms per step after `warmup` steps, and the rest of the call (see the module
+    """loop.train's ms per step after `warmup` steps, and the rest of the call (see the module
     docstring), from one run of warmup + steps steps."""
     cfg = bench_config(warmup + steps)
     # the model's own SH degree, as the train stage trains it (3; the relightable kinds' 0), reached
@@ -153,7 +153,7 @@ def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tu
         clock.append(time.perf_counter())
 
     start = time.perf_counter()
-    trainer.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device=device,
+    loop.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0, device=device,
                   on_step=on_step)
     sync()
     total = time.perf_counter() - start
@@ -165,7 +165,7 @@ def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tu
 def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neural", "gaussian"), steps: int = 5,
                     warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None,
                     baseline: bool = False) -> dict:
-    """Print one row per (kind, count, size): ms per step of each part, their sum, trainer.train's
+    """Print one row per (kind, count, size): ms per step of each part, their sum, loop.train's
     marginal ms per step and its set-up ms, and evaluated pairs per second of the render forward.
     With `baseline`, each row is preceded by the same row on the reference twins
     (RADFIELD_KERNELS=torch, "torch") and followed by the speed-up of the sum and of train().

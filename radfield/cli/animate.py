@@ -52,7 +52,7 @@ def animate(
         raise RadfieldError("give exactly one of --cages, --simulate and --spec")
     simulation, camera_option = simulate, "--camera"
     if spec is not None:
-        from radfield.edit.animation import read_animation
+        from radfield.edit.animation_spec import read_animation
 
         anim = read_animation(spec)
         cages, simulation = anim["cages"], anim["simulate"]

@@ -28,7 +28,7 @@ def bake(
 
     Prints the primitive count and file size before and after and the held-out PSNR change."""
     from radfield.stages.bake import bake_model
-    from radfield.stages.evaluate import resolve_target
+    from radfield.evaluation.evaluate import resolve_target
 
     check_output(output, force, folder=False)
     options = data_options(downscale, background)

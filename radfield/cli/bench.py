@@ -58,7 +58,7 @@ def bench_train(
 
     A benchmark, not a test: ms per training step of the default recipe, split into render
     forward, loss, render backward, optimiser and population control, for each primitive kind,
-    count and view size; also trainer.train's own ms per step and the forward's pairs/s."""
+    count and view size; also loop.train's own ms per step and the forward's pairs/s."""
     from radfield.bench.render import ALL_BENCH_KINDS
     from radfield.bench.train import run_bench_train
 
@@ -87,7 +87,7 @@ def bench_dist(
 ):
     """Data-parallel training: 1 rank against several.
 
-    A benchmark, not a test: steps/s of trainer.train with 1 rank x THREADS threads against RANKS
+    A benchmark, not a test: steps/s of loop.train with 1 rank x THREADS threads against RANKS
     ranks x THREADS/RANKS threads on the same scene (torch.distributed, gloo), the all-reduce time
     per step and the all-reduced bytes per step."""
     from radfield.bench.dist import run_bench_dist
@@ -101,11 +101,18 @@ def bench_dist(
     run_bench_dist(primitives, size, views, steps, batch, ranks, threads, warmup, echo=typer.echo)
 
 
+def static_kinds() -> list[str]:
+    """The registered kinds that need no view condition (time, light), from the kind registry."""
+    from radfield.core import kinds
+
+    return [name for name in kinds.names() if not kinds.get(name).conditions]
+
+
 def bench_quality(
     dataset: Annotated[Path, typer.Argument(metavar="DATASET", help="Dataset folder (any format reconstruct reads).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder for runs/, bench.md, bench.json and psnr_vs_params.png (reused: finished runs are cached).")] = Path("bench-quality"),
     budgets: Annotated[str, typer.Option(help="Primitive budgets, comma-separated: a budget B starts from exactly B primitives and does not densify; 'none' = densification without a cap.")] = "500,2000,8000,none",
-    kinds: Annotated[str, typer.Option(help="Primitive kinds, comma-separated: neural, gaussian.")] = "neural,gaussian",
+    kinds: Annotated[str, typer.Option(help="Primitive kinds, comma-separated: registered kinds that need no view condition (on a dataset with times or lights each trains its conditioned version).")] = "neural,gaussian",
     iterations: Annotated[Optional[int], typer.Option(help="Training iterations of every run (default: train.iterations of pipeline.yaml, 3000); the densification schedule of the defaults is scaled to it.")] = None,
     jobs: Annotated[int, typer.Option(help="Runs at a time (each with OMP_NUM_THREADS=1).")] = 2,
     sets: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE", help="Passed to every reconstruct, e.g. --set data.downscale=4 (repeatable).")] = None,
@@ -123,8 +130,9 @@ def bench_quality(
     budget_list = parse_budgets(budgets)
     iterations = default_iterations() if iterations is None else iterations
     kind_list = [k.strip() for k in kinds.split(",") if k.strip()]
-    if not kind_list or any(k not in ("neural", "gaussian") for k in kind_list):
-        raise RadfieldError(f"--kinds takes neural and/or gaussian, got {kinds!r}")
+    unconditioned = static_kinds()
+    if not kind_list or any(k not in unconditioned for k in kind_list):
+        raise RadfieldError(f"--kinds takes {', '.join(unconditioned)} (registered kinds that need no view condition), got {kinds!r}")
     if iterations < 1 or jobs < 1:
         raise RadfieldError("--iterations and --jobs must be positive")
     if not dataset.is_dir():
@@ -141,6 +149,7 @@ def bench_quality(
 
 
 def bench_startup(
+    ctx: typer.Context,
     repeats: Annotated[int, typer.Option(help="Fresh processes per command; the median is printed.")] = 5,
 ):
     """Start-up time of `radfield --help` and of every command's.
@@ -148,8 +157,8 @@ def bench_startup(
     A benchmark, not a test: the start-up time of `radfield --help` and of every `radfield
     <command> --help`, each the median of REPEATS fresh processes, against the 0.5 s target."""
     from radfield.bench.startup import run_bench_startup
-    from radfield.cli.main import app, command_names
 
     if repeats < 1:
         raise RadfieldError("--repeats must be positive")
-    run_bench_startup(command_names(app), repeats, echo=typer.echo)
+    root = ctx.find_root()   # the commands the app lists (cli/main.py registers them)
+    run_bench_startup(root.command.list_commands(root), repeats, echo=typer.echo)

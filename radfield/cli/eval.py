@@ -1,5 +1,5 @@
 """`radfield eval`: a model or a run measured on a dataset split, or several compared
-(radfield.stages.evaluate, radfield.delivery.compare)."""
+(radfield.stages.evaluate, radfield.evaluation.compare)."""
 
 from __future__ import annotations
 
@@ -32,8 +32,8 @@ def eval_command(
     them. With --compare: OUTPUT/report.md and comparison.json compare the runs (train time from
     their manifests), OUTPUT/grids/ holds ground truth | run A | run B ..., and OUTPUT/<run>/ each
     run's own evaluation."""
-    from radfield.delivery.compare import compare as compare_runs
-    from radfield.stages.evaluate import eval_report
+    from radfield.evaluation.compare import compare as compare_runs
+    from radfield.evaluation.evaluate import eval_report
 
     check_output(output, force, folder=True)
     dev = str(resolve_device(device))

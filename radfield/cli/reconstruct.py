@@ -1,5 +1,5 @@
-"""`radfield reconstruct`: the cached pipeline (radfield.pipeline.registry's stages) on a dataset,
-in one process, under torchrun, or on --nproc local ranks (radfield.core.train.launch)."""
+"""`radfield reconstruct`: the cached pipeline (radfield.stages.registry's stages) on a dataset,
+in one process, under torchrun, or on --nproc local ranks (radfield.core.trainer.launch)."""
 
 from __future__ import annotations
 
@@ -36,8 +36,8 @@ def reconstruct(
     Runs the cached stages sfm → data → envelope → tetra → init → train → bind → bake → eval in the
     run directory (sfm only for a folder of photos); a stage re-runs only when its inputs or its
     config keys changed."""
-    from radfield.core.train import distributed, launch
-    from radfield.pipeline import registry
+    from radfield.core.trainer import distributed, launch
+    from radfield.stages import registry
     from radfield.pipeline.config import load_config
     from radfield.pipeline.info import conditioned_scene, run_info
     from radfield.pipeline.runner import run_pipeline

@@ -27,7 +27,7 @@ from radfield.core.render.antialias import render_model
 from radfield.core.geometry.cameras import Camera
 from radfield.core import kinds
 from radfield.core.kinds import Primitives
-from radfield.core.render.sh import C0
+from radfield.core.splat.sh import C0
 
 DEFAULT_MIN_WEIGHT = 1.0 / 255.0  # below one 8-bit level in every pixel of every training view
 

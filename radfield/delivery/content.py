@@ -17,7 +17,7 @@ from typing import NamedTuple
 import torch
 
 from radfield.delivery.export import ONE_RAY_FORMATS, Content
-from radfield.delivery.moments import MIN_OPACITY
+from radfield.core.kinds.moment_matching import MIN_OPACITY
 from radfield.errors import RadfieldError
 from radfield.run import Run, model_file
 from radfield.util.progress import progress_bar
@@ -29,7 +29,7 @@ ORBIT_VIEWS = 100   # at most this many random views besides the training camera
 def load_content(target: Path, device: str = "cpu", parts: Collection[str] = PARTS) -> Content:
     """A model file or a run directory as Content: the model on `device`, and for a run the `parts`
     (of PARTS) it has; background and extent come with the cameras."""
-    from radfield.delivery.io import load_model
+    from radfield.model_file import load_model
 
     model = load_model(model_file(target), device=device)
     content = Content(model=model, source=str(target), missing={})
@@ -225,8 +225,8 @@ def static_views(views: list[dict], model) -> list:
 def refined(gaussians, content: Content, steps: int, quiet: bool = True):
     """`gaussians` optimised `steps` steps against renders of content.model from the run's training
     cameras and as many orbit views (up to ORBIT_VIEWS), with densification
-    (radfield.delivery.moments.refine_gaussians, with the defaults' train settings)."""
-    from radfield.delivery.moments import refine_gaussians
+    (radfield.delivery.refine.refine_gaussians, with the defaults' train settings)."""
+    from radfield.delivery.refine import refine_gaussians
     from radfield.pipeline.config import load_config
 
     cameras = static_views(content.views["train"], content.model)

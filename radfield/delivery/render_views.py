@@ -34,11 +34,11 @@ from radfield.core.geometry.camera_path import orbit as make_orbit
 from radfield.core.geometry.camera_path import orbit_from_cameras, read_nerfstudio_path, write_video
 from radfield.core.geometry.cameras import distinct_poses
 from radfield.errors import RadfieldError
-from radfield.delivery.io import load_model
+from radfield.model_file import load_model
 from radfield.core.render.antialias import render_model
 from radfield.util.timing import clock
 from radfield.datasets.images import write_image
-from radfield.pipeline.config import load_config
+from radfield.pipeline.config import load_config, run_config
 from radfield.datasets.scene import load_split
 from radfield.delivery.lights import (as_bright_as, check_lit, check_outside, check_takes_light, dataset_bounds,
                                       is_relightable, light_option, orbit_lights, under)
@@ -196,7 +196,7 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
         raise RadfieldError("--light-intensity is the intensity of --light, --light-dir or --light-orbit: give one")
     # a run edited from a model file (radfield edit MODEL -o RUN) has no config and no dataset of its own
     run = Run(run_dir) if run_dir is not None else None
-    config = run.config(options) if run is not None else load_config(None, options=options or {})
+    config = run_config(run, options) if run is not None else load_config(None, options=options or {})
     if dataset is None:
         dataset = run.dataset() if run is not None else None
         if dataset is None and (not on_path or camera is not None):

@@ -2,11 +2,11 @@
 the built-in soft-body simulation, radfield.edit.simulate) rendered frame by frame.
 
 Every frame deforms the run's field exactly from its rest cage to the frame's cage (as `radfield
-edit` with a deform operation, radfield.edit.deform.deform_field), then renders it from one dataset
+edit` with a deform operation, radfield.edit.affine.deform_field), then renders it from one dataset
 camera or an orbit around the dataset's cameras. The output folder holds frame_NNNN.png, VIDEO
 (the frames as an MP4), SUMMARY (figures per frame and their means, the PSNR between consecutive
 frames as a flicker measure) and, for a simulation, cages/frame_NNNN/ (each pose as a cage).
-The animation spec that stands for the command's options is radfield.edit.animation's.
+The animation spec that stands for the command's options is radfield.edit.animation_spec's.
 """
 
 from __future__ import annotations
@@ -29,10 +29,11 @@ from radfield.core.geometry.camera_path import orbit_from_cameras, write_video
 from radfield.core.render.antialias import render_model
 from radfield.datasets.images import write_image
 from radfield.datasets.readers import load_dataset
-from radfield.delivery.metrics import psnr
-from radfield.edit.deform import deform_field
+from radfield.evaluation.metrics import psnr
+from radfield.edit.affine import deform_field
 from radfield.edit.field import Field
 from radfield.errors import RadfieldError
+from radfield.pipeline.config import run_config
 from radfield.run import Run
 from radfield.util.atomic import atomic_folder, atomic_write_text
 from radfield.util.progress import progress_bar
@@ -92,12 +93,12 @@ def animate(run_dir: Path, fld: Field, output: Path, *, cages: str | None = None
     the simulation's lines. Returns the summary written to SUMMARY."""
     from radfield.edit.simulate import read_simulation, simulate_cage
 
-    from radfield.edit.deform import CAGE_GRADIENTS
+    from radfield.edit.affine import CAGE_GRADIENTS
 
     if gradient not in CAGE_GRADIENTS:   # before any work; "map" belongs to the edit operations
         raise RadfieldError(f"--gradient: one of {', '.join(CAGE_GRADIENTS)} for cage poses, got {gradient!r}")
     run = Run(run_dir)
-    config = run.config()
+    config = run_config(run)
     bg = background if background is not None else tuple(config["data"]["background"])
     dataset = dataset or run.dataset()
     if dataset is None:

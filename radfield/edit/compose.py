@@ -31,9 +31,9 @@ import torch
 from radfield.errors import RadfieldError
 from radfield.core import kinds
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
-from radfield.core.render.sh import num_sh_coeffs, rotate_sh
+from radfield.core.splat.sh import num_sh_coeffs, rotate_sh
 from radfield.edit.field import Field
-from radfield.edit.operand import load_operand, same_kind
+from radfield.edit.model_operand import load_operand, same_kind
 from radfield.edit.select import number, vector
 from radfield.edit.spec import check_keys, operation
 from radfield.edit.warp import euler_rotation

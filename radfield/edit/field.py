@@ -19,7 +19,7 @@ import numpy as np
 
 from radfield.util.atomic import atomic_write
 from radfield.core.geometry.cage import bind_to_cage, read_cage, write_cage
-from radfield.delivery.io import load_model, save_model
+from radfield.model_file import load_model, save_model
 from radfield.core.kinds import Primitives
 from radfield import run as layout
 

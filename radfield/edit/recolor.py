@@ -35,9 +35,9 @@ import torch
 
 from radfield.errors import RadfieldError
 from radfield.core import kinds
-from radfield.core.render.sh import C0
+from radfield.core.splat.sh import C0
 from radfield.edit.field import Field
-from radfield.edit.operand import load_operand
+from radfield.edit.model_operand import load_operand
 from radfield.edit.select import number, vector, weights
 from radfield.edit.spec import check_keys, operation
 
@@ -45,7 +45,7 @@ from radfield.edit.spec import check_keys, operation
 def peak_density(prims, samples: int = 128, seed: int = 0) -> torch.Tensor:
     """Per primitive, as its kind measures it (radfield.core.kinds: peak_density): neural, the max
     of σ at `samples` points of its ellipsoid (its centre, the ends of its axes and random points),
-    in the primitive's own units (windowed where prims.window: retrain.neural_sigma); Gaussians,
+    in the primitive's own units (windowed where prims.window: neural_density.neural_sigma); Gaussians,
     sigmoid opacity."""
     return kinds.of(prims).peak_density(prims, samples, seed)
 

@@ -34,7 +34,7 @@ import torch
 
 from radfield.errors import RadfieldError
 from radfield.core import kinds
-from radfield.edit.deform import check_cage_orientation
+from radfield.edit.affine import check_cage_orientation
 from radfield.edit.field import Field
 from radfield.edit.select import number, signed_distance
 from radfield.edit.spec import check_keys, operation
@@ -117,9 +117,10 @@ def oversized(fld: Field, new_tets: np.ndarray) -> np.ndarray:
 def split_and_retrain(fld: Field, new_tets: np.ndarray, steps: int, views: int, size: int, seed: int, log):
     """The field with its oversized primitives split (module docstring) and the halves retrained
     against the original field. Returns the field and the figures."""
+    from radfield.core.kinds import neural_density
     from radfield.edit import retrain
     from radfield.edit.compose import concat_prims
-    from radfield.edit.deform import split_primitives
+    from radfield.edit.affine import split_primitives
 
     original = fld.prims
     # which original primitive each current one descends from (split_primitives puts the kept ones
@@ -143,10 +144,10 @@ def split_and_retrain(fld: Field, new_tets: np.ndarray, steps: int, views: int, 
     split_parents = original.select(torch.as_tensor(np.unique(origin[touched])))
     # stage 1 target: the parents' density at points of the halves (what the halves replace)
     s64 = student.to(dtype=torch.float64).map(lambda t: t.detach())
-    pts = retrain.ellipsoid_points(s64, retrain.unit_ball_samples(48, seed + 1)).reshape(-1, 3)
+    pts = neural_density.ellipsoid_points(s64, neural_density.unit_ball_samples(48, seed + 1)).reshape(-1, 3)
     p64 = split_parents.to(dtype=torch.float64).map(lambda t: t.detach())
     with torch.no_grad():
-        target = torch.cat([retrain.pair_density(p64, pts[lo:lo + 2048]).sum(1) for lo in range(0, len(pts), 2048)])
+        target = torch.cat([neural_density.pair_density(p64, pts[lo:lo + 2048]).sum(1) for lo in range(0, len(pts), 2048)])
     cameras = retrain.orbit_around(student, np.arange(len(student)), views, size)
     with torch.no_grad():
         targets = [retrain.render_image(original.to(dtype=torch.float32), cam).double() for cam in cameras]
@@ -175,7 +176,7 @@ def remesh(fld: Field, args, ctx) -> Field:
         raise RadfieldError(f"{where}.split: expected true or false, got {split!r}")
     if not split and any(k in args for k in ("steps", "views", "size")):
         raise RadfieldError(f"{where}: steps, views and size set the retraining of split: true")
-    if split and not kinds.of(fld.prims).has_line_integral_density:
+    if split and not kinds.of(fld.prims).retrainable_locally:
         raise RadfieldError(f"{where}.split: local retraining needs a neural-primitive model")
     steps = int(number(args, "steps", where, default=100, positive=True))
     views = int(number(args, "views", where, default=12, positive=True))

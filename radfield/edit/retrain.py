@@ -5,7 +5,7 @@ a masked primitive's optical depth along a ray is the quadrature (1/max s) ∫ m
 chord (midpoint rule, `samples` points), an unmasked one's the closed form of the renderer. The
 teacher image composites these exactly as the renderer does (centre-depth order, α ≤ 0.99, α <
 1/255 skipped, stop below T = 1e-4): `teacher_render`, vectorised over (ray, primitive) pairs and
-composited by the renderer's own routine (core/render/composite.py: composite_pairs).
+composited by the renderer's own routine (core/splat/composite.py: composite_pairs).
 
 Two stages (eq. 12): stage 1 fits the MLP of the trainable primitives to the teacher's density
 (Σ m_i σ_i / max s_i) at points sampled in their ellipsoids (L1); stage 2 fits all their parameters
@@ -23,16 +23,15 @@ import time
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
-from radfield.core.render.composite import composite_pairs
-from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN, ellipsoid_frame, neural_optical_depth, ray_ellipsoid, windowed_optical_depth
+from radfield.core.splat.composite import composite_pairs
+from radfield.core.splat.kernels import ALPHA_MAX, ALPHA_MIN, ellipsoid_frame, neural_optical_depth, ray_ellipsoid, windowed_optical_depth
 from radfield.core.train.losses import psnr
-from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.kinds.neural import NeuralPrimitives, density_window, ellipsoid_radius_sq
+from radfield.core.kinds.neural import NeuralPrimitives
+from radfield.core.kinds.neural_density import density_window, ellipsoid_radius_sq, neural_sigma
 from radfield.core.render.rasterize import T_MIN, render
-from radfield.core.render.sh import sh_to_color
+from radfield.core.splat.sh import sh_to_color
 
 BACKGROUND = (1.0, 1.0, 1.0)
 # local fits run for ~100 steps, not 30k: rates well above the training defaults (means × extent)
@@ -41,93 +40,6 @@ LR_STAGE2 = {"means": 2e-2, "log_scales": 1e-2, "quats": 5e-3, "sh": 2e-2, "w1":
 
 
 # --- densities at points ---------------------------------------------------------------------
-
-def unit_ball_samples(n: int, seed: int = 0) -> torch.Tensor:
-    """(n, 3) float64 points of the closed unit ball: the centre, the 6 axis ends, the 8 cube
-    diagonals on the sphere, then uniform random points (a fixed set: classification is repeatable)."""
-    axes = torch.cat([torch.eye(3), -torch.eye(3)]).double()
-    diag = torch.tensor([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], dtype=torch.float64) / math.sqrt(3)
-    g = torch.Generator().manual_seed(seed)
-    m = max(n - 15, 0)
-    d = torch.nn.functional.normalize(torch.randn(m, 3, generator=g, dtype=torch.float64), dim=-1)
-    r = torch.rand(m, 1, generator=g, dtype=torch.float64) ** (1 / 3)
-    return torch.cat([torch.zeros(1, 3, dtype=torch.float64), axes, diag, d * r])[:n]
-
-
-def ellipsoid_points(prims, u: torch.Tensor) -> torch.Tensor:
-    """Points (P, S, 3) μ + R S u of each primitive's ellipsoid for unit-ball points u (S, 3)."""
-    rot = quat_to_rotmat(prims.quats)
-    return prims.means[:, None] + torch.einsum("pij,sj->psi", rot * prims.scales[:, None, :], u.to(prims.means.dtype))
-
-
-def neural_sigma(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
-    """Density σ_i (P, S) of each primitive i at its own points x (P, S, 3), windowed where
-    prims.window (no ellipsoid test: the callers' points lie in the ellipsoids)."""
-    smax = prims.scales.amax(-1)
-    u = (x - prims.means[:, None]) / smax[:, None, None]
-    phase = prims.omega0 * (torch.einsum("psj,pnj->psn", u, prims.w1) + prims.b1[:, None])
-    sigma = (torch.cos(phase) * prims.w2[:, None]).sum(-1) + prims.b2[:, None]
-    if not prims.window:
-        return sigma
-    r2 = ellipsoid_radius_sq(prims.means[:, None], prims.log_scales[:, None], prims.quats[:, None], x)
-    return sigma * density_window(prims, r2)
-
-
-def pair_density(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
-    """σ_j(x_q) / max s_j (Q, P) of every primitive at every point, 0 outside its ellipsoid: the
-    extinction per world unit that primitive j adds at x_q (the renderer's optical depth is its
-    integral along the ray); σ windowed where prims.window."""
-    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
-    rel = x[:, None] - prims.means[None]                                   # (Q, P, 3)
-    inside = torch.einsum("pij,qpj->qpi", m, rel).norm(dim=-1) <= 1.0
-    u = rel / smax[:, None]
-    phase = prims.omega0 * (torch.einsum("qpj,pnj->qpn", u, prims.w1) + prims.b1)
-    sigma = (torch.cos(phase) * prims.w2).sum(-1) + prims.b2
-    # the window's r² comes from the shared ellipsoid_radius_sq, the inside test stays the norm it
-    # always was: points on the sphere to rounding (unit_ball_samples puts 14 a primitive there)
-    # keep their side, so a hard-edged model's densities are bit for bit those before the window
-    if prims.window:
-        sigma = sigma * density_window(prims, ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x[:, None]))
-    return torch.where(inside, sigma / smax, torch.zeros_like(sigma))
-
-
-def field_density(prims: NeuralPrimitives, points: np.ndarray | torch.Tensor, chunk: int = 4096) -> np.ndarray:
-    """D(x) = Σ_i [x ∈ B_i] max(σ_i(x), 0) / max(s_i) at points (Q, 3): the field's density for the
-    boolean field B = [D > ε] (eq. 13). Candidates by a KD-tree of centres within the largest radius."""
-    x = torch.as_tensor(np.asarray(points, np.float64))
-    p64 = prims.to(dtype=torch.float64)
-    out = np.zeros(len(x))
-    if len(prims) == 0 or len(x) == 0:
-        return out
-    means = p64.means.detach().numpy()
-    reach = float(p64.scales.amax().detach())
-    tree = cKDTree(means)
-    with torch.no_grad():
-        for lo in range(0, len(x), chunk):
-            xs = x[lo:lo + chunk]
-            lists = tree.query_ball_point(xs.numpy(), reach)
-            qi = np.repeat(np.arange(len(xs)), [len(c) for c in lists])
-            if qi.size == 0:
-                continue
-            pj = np.concatenate([np.asarray(c, np.int64) for c in lists])
-            sub = p64.select(torch.as_tensor(pj))
-            # per pair: one point, one primitive
-            d = _pair_density_1to1(sub, xs[torch.as_tensor(qi)])
-            out[lo:lo + chunk] += np.bincount(qi, weights=np.maximum(d.numpy(), 0), minlength=len(xs))
-    return out
-
-
-def _pair_density_1to1(prims: NeuralPrimitives, x: torch.Tensor) -> torch.Tensor:
-    """σ_j(x_j) / max s_j for matched rows (primitive j, point j), 0 outside the ellipsoid; σ
-    windowed where prims.window."""
-    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
-    rel = x - prims.means
-    inside = torch.einsum("pij,pj->pi", m, rel).norm(dim=-1) <= 1.0
-    phase = prims.omega0 * (torch.einsum("pj,pnj->pn", rel / smax[:, None], prims.w1) + prims.b1)
-    sigma = (torch.cos(phase) * prims.w2).sum(-1) + prims.b2
-    if prims.window:   # r² shared, the inside test unchanged (pair_density)
-        sigma = sigma * density_window(prims, ellipsoid_radius_sq(prims.means, prims.log_scales, prims.quats, x))
-    return torch.where(inside, sigma / smax, torch.zeros_like(sigma))
 
 
 # --- the teacher: rays through masked primitives ---------------------------------------------

@@ -19,7 +19,7 @@ solved that tets flip — the docs' settings at fps 12 (h = 1/240 s) inverted te
 scene's cage at frame 3, where h = 1/600 s does not. The CFL bound (smallest tet altitude over the
 dilatational wave speed √((λ+2μ)/ρ): 1/2262 s there) is 4× more than that case needs, and a
 softer case needs fewer, so no bound is guessed: a frame whose substeps would leave any tet
-inverted or flat (volume <= 1e-9 of its rest volume, what `edit.deform` refuses to render) is
+inverted or flat (volume <= 1e-9 of its rest volume, what `edit.affine` refuses to render) is
 undone and re-run with twice the substeps, and later frames keep the larger count. A frame that
 still inverts a tet at MAX_SUBSTEPS substeps is a one-line error (the material is too soft for its
 load) before anything is rendered.

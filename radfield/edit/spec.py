@@ -23,7 +23,7 @@ import yaml
 
 from radfield.errors import RadfieldError
 from radfield.edit.field import Field
-from radfield.pipeline.config import parse_yaml, yaml_problem
+from radfield.util.yamlfile import parse_yaml, yaml_problem
 
 # modules whose import registers operations (one per operation family)
 OPERATION_MODULES: tuple[str, ...] = ("radfield.edit.warp", "radfield.edit.boolean", "radfield.edit.compose",

@@ -2,7 +2,7 @@
 
 Each moves the selected cage vertices x (weight w from the selection and its falloff) to
 x + w·(φ(x) − x) for its map φ (formulas below and in docs/usage.md, "The spec"), then deforms the
-field exactly (edit/deform.py). Coordinates are the dataset's world frame; angles in degrees.
+field exactly (edit/affine.py). Coordinates are the dataset's world frame; angles in degrees.
 
     transform  φ(x) = o + M·s·R·(x − o) + t,  R = Rz(rz)·Ry(ry)·Rx(rx)   (o: origin, default 0;
                M: `matrix`, 3 rows of 3, default I)
@@ -25,7 +25,7 @@ R = R_a(k·h), dR/dθ = K R):
 and with a selection's weight w: φ_w(x) = x + w(x)(φ(x) − x), J_w = I + w (J − I) + (φ(x) − x) ∇wᵀ
 (w = smoothstep(1 − d/f) outside the region, ∇w = −6 t (1 − t) ∇d / f, t = 1 − d/f). With
 `gradient: map` (these operations' default) every primitive takes μ' = φ_w(μ), A = J_w(μ)
-(deform.map_field); a hard selection (no falloff, not `all`) makes φ_w jump at the region's
+(affine.map_field); a hard selection (no falloff, not `all`) makes φ_w jump at the region's
 border, so there the default is the cage's interpolation instead ("smooth").
 """
 
@@ -38,7 +38,7 @@ import numpy as np
 
 from radfield.core.geometry.cage import read_cage
 from radfield.errors import RadfieldError
-from radfield.edit import deform
+from radfield.edit import affine
 from radfield.edit.field import Field
 from radfield.edit.select import number, signed_distance, vector, weights
 from radfield.edit.spec import EditContext, check_keys, operation
@@ -78,24 +78,24 @@ def parse_axis(args: Mapping, key: str, where: str, default=None) -> np.ndarray:
 def _options(args: Mapping, ctx: EditContext, where: str, closed_form: bool = False, continuous: bool = True) -> dict:
     """The operation's gradient, split and preserve_opacity (its own keys, else the command's flags).
     An operation with a closed-form map defaults to "map" where its weighted map is continuous,
-    every other case to the cage's default (deform.DEFAULT_GRADIENT)."""
+    every other case to the cage's default (affine.DEFAULT_GRADIENT)."""
     gradient = args.get("gradient", ctx.options.get("gradient"))
     if gradient is None:
-        gradient = deform.DEFAULT_MAP_GRADIENT if closed_form and continuous else deform.DEFAULT_GRADIENT
-    if gradient not in deform.GRADIENTS:
-        raise RadfieldError(f"{where}.gradient: one of {', '.join(deform.GRADIENTS)}, got {gradient!r}")
+        gradient = affine.DEFAULT_MAP_GRADIENT if closed_form and continuous else affine.DEFAULT_GRADIENT
+    if gradient not in affine.GRADIENTS:
+        raise RadfieldError(f"{where}.gradient: one of {', '.join(affine.GRADIENTS)}, got {gradient!r}")
     if gradient == "map" and not closed_form:
         raise RadfieldError(f"{where}.gradient: map needs an operation's own map (transform, twist, bend, taper); "
-                            f"a cage file takes {', '.join(deform.CAGE_GRADIENTS)}")
+                            f"a cage file takes {', '.join(affine.CAGE_GRADIENTS)}")
     if gradient == "map" and not continuous:
         raise RadfieldError(f"{where}.gradient: map needs a continuous map: 'select: all' or a falloff > 0 "
-                            f"(a hard selection's map jumps at its border; the cage's {deform.DEFAULT_GRADIENT} interpolation blends it)")
-    split = args.get("split", ctx.options.get("split", deform.SPLIT_THRESHOLD))
+                            f"(a hard selection's map jumps at its border; the cage's {affine.DEFAULT_GRADIENT} interpolation blends it)")
+    split = args.get("split", ctx.options.get("split", affine.SPLIT_THRESHOLD))
     if split is not False and split is not None:
         split = number({"split": split}, "split", where, positive=True)
     else:
         split = None
-    preserve = args.get("preserve_opacity", ctx.options.get("preserve_opacity"))   # None: auto (edit/deform.py)
+    preserve = args.get("preserve_opacity", ctx.options.get("preserve_opacity"))   # None: auto (edit/affine.py)
     if preserve is not None and not isinstance(preserve, bool):
         raise RadfieldError(f"{where}.preserve_opacity: expected true or false, got {preserve!r}")
     return {"gradient": gradient, "split": split, "preserve_opacity": preserve}
@@ -155,7 +155,7 @@ def _move_cage(fld: Field, args: Mapping, ctx: EditContext, phi, jacobian=None) 
                        continuous=select in ("all", None) or falloff > 0)
     if options["gradient"] == "map":
         phi_w, jac_w = weighted_map(phi, jacobian, select, falloff, f"{where}.select")
-        out, inverted = deform.map_field(fld, phi_w, jac_w, split=options["split"],
+        out, inverted = affine.map_field(fld, phi_w, jac_w, split=options["split"],
                                          preserve_opacity=options["preserve_opacity"], where=where)
         if inverted:
             ctx.log(f"{where}: warning: the map flattened or turned {inverted} cage tets inside out (the field follows the map itself); "
@@ -163,7 +163,7 @@ def _move_cage(fld: Field, args: Mapping, ctx: EditContext, phi, jacobian=None) 
         return out
     x = fld.cage_vertices
     new = x + w[:, None] * (phi(x) - x)
-    return deform.deform_field(fld, new, where=where, **options)
+    return affine.deform_field(fld, new, where=where, **options)
 
 
 @operation("transform")
@@ -189,7 +189,7 @@ def transform(fld: Field, args: Mapping, ctx: EditContext) -> Field:
     select, falloff = args.get("select", "all"), args.get("falloff", 0)
     if select in ("all", None) and not falloff:
         # the whole field by one affine map: exact, and the only form a cage-less field takes
-        out = deform.affine_field(fld, a, o + t - a @ o,
+        out = affine.affine_field(fld, a, o + t - a @ o,
                                   preserve_opacity=_options(args, ctx, where, closed_form=True)["preserve_opacity"])
         out.notes.append({"operation": where.rsplit(".", 1)[-1], "entry": where, "split": 0,
                           "primitives": len(out.prims), "moved_primitives": len(out.prims)})
@@ -208,7 +208,7 @@ def deform_from_cage(fld: Field, args: Mapping, ctx: EditContext) -> Field:
     if tets.shape != fld.cage_tets.shape or len(vertices) != len(fld.cage_vertices) or not np.array_equal(tets, fld.cage_tets):
         raise RadfieldError(f"{where}.cage: {path} has another topology ({len(vertices)} vertices, {len(tets)} tets) "
                             f"than the field's cage ({len(fld.cage_vertices)} vertices, {len(fld.cage_tets)} tets)")
-    return deform.deform_field(fld, vertices, where=where, **_options(args, ctx, where))
+    return affine.deform_field(fld, vertices, where=where, **_options(args, ctx, where))
 
 
 def _axis_args(args: Mapping, where: str, rate_key: str):

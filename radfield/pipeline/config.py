@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 
 from radfield.util.atomic import atomic_write_text
+from radfield.util.yamlfile import parse_yaml, yaml_problem
 from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, FRACTION, POSITIVE, Range
 from radfield.errors import RadfieldError
 
@@ -140,23 +141,6 @@ RANGES: dict[str, Range] = {
 }
 
 
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads `1e-5`, `1e3`, `1E6` and `.5e3` as floats (YAML 1.2), as users
-    write them: YAML 1.1 (PyYAML's default) wants a dot and a signed exponent (`1.0e+6`), so `1e6`
-    was the string '1e6'. The one loader of every YAML file radfield reads (the pipeline config,
-    edit, animation and simulation specs: radfield.edit.spec.read_yaml)."""
-
-
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-    list("-+.0123456789"),
-)
-
-
-def parse_yaml(text: str) -> Any:
-    """Parse YAML text with the project's loader (safe; YAML 1.2 floats)."""
-    return yaml.load(text, Loader=_Loader)
 
 
 def defaults_path() -> Path:
@@ -191,6 +175,12 @@ def load_config(
         key, value = parse_set(text)
         set_key(config, key, value, source=f"--set {text}")
     return config
+
+
+def run_config(run, options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """A run's resolved config (its RUN/config.yaml; the defaults for a run without one, such as a
+    run edited from a model file), with `options` ({"data.downscale": 2, ...}) set over it."""
+    return load_config(run.config_file if run.config_file.is_file() else None, options=options or {})
 
 
 def parse_set(text: str) -> tuple[str, Any]:
@@ -404,11 +394,3 @@ def _read_yaml_mapping(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise RadfieldError(f"config file {path} must hold a mapping of keys, got {type(data).__name__}")
     return data
-
-
-def yaml_problem(error: yaml.YAMLError) -> str:
-    """What is wrong in a YAML text and where, in one line: "expected ',' or ']', but got '<stream
-    end>' (line 3, column 1)". Every YAML file radfield reads words its syntax errors so."""
-    mark = getattr(error, "problem_mark", None)
-    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-    return f"{problem} (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else problem

@@ -53,7 +53,7 @@ from rich.console import Console
 from rich.table import Table
 
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import parse_yaml
+from radfield.util.yamlfile import parse_yaml
 from radfield.pipeline.runner import RESERVED_FIGURES, format_figures
 from radfield.run import MODEL_STAGE, Run
 
@@ -109,7 +109,7 @@ def edit_info(run: Run) -> dict[str, Any] | None:
 
 def pending_checkpoint(run: Run) -> dict[str, Any] | None:
     """The checkpoint an interrupted training left in RUN/train.work/ (see the module docstring), or None."""
-    from radfield.core.train.trainer import checkpoint_header  # torch: only when there is a checkpoint
+    from radfield.core.trainer.loop import checkpoint_header  # torch: only when there is a checkpoint
 
     path = run.checkpoint
     if not path.is_file():

@@ -2,7 +2,7 @@
 
 Prunes the primitives whose transmittance-weighted alpha stays below `bake.min_weight` in every
 training view (radfield.delivery.bake), optionally stores float16 tensors (`bake.fp16`), and writes
-one model file (radfield.delivery.io format) whose metadata says how it was made::
+one model file (radfield.model_file format) whose metadata says how it was made::
 
     "baked": {"source": "<file name>", "source_sha256": "...", "min_weight": τ, "fp16": bool,
               "primitives_before": P0, "primitives_after": P1}
@@ -26,8 +26,8 @@ import torch
 
 from radfield.delivery.bake import coverage, prune, to_fp16_and_back
 from radfield.util.progress import progress_bar
-from radfield.delivery.io import load_model, save_model
-from radfield.core.train.trainer import mean_psnr
+from radfield.model_file import load_model, save_model
+from radfield.core.trainer.loop import mean_psnr
 from radfield.datasets.scene import SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.stages.train import MODEL_FILE

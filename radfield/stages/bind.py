@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
-from radfield.delivery.io import load_model
+from radfield.model_file import load_model
 from radfield.pipeline.runner import Context, Stage
 from radfield.stages.train import MODEL_FILE
 from radfield import run as layout

@@ -51,14 +51,14 @@ import torch
 from scipy.spatial import cKDTree
 
 from radfield.errors import RadfieldError
-from radfield.delivery.io import save_model
+from radfield.model_file import save_model
 from radfield.core import kinds
-from radfield.core.render.sh import num_sh_coeffs, rgb_to_sh_dc
+from radfield.core.splat.sh import num_sh_coeffs, rgb_to_sh_dc
 from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
 from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
-from radfield.stages.data import CONDITIONS, view_conditions
+from radfield.datasets.conditions import CONDITIONS, view_conditions
 from radfield.stages.envelope import ENVELOPE
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)

@@ -1,9 +1,9 @@
 """Stage "train": optimise the initial primitives against the training views.
 
 Inputs: scene.json (data stage) and init.safetensors (init stage). Outputs in RUN/train/:
-model.safetensors, the trained model in the dataset's own world frame (radfield.delivery.io format;
+model.safetensors, the trained model in the dataset's own world frame (radfield.model_file format;
 with render.supersample > 1 its metadata records n, so every later render of the file draws it so);
-log.jsonl, one JSON record per step (radfield.core.train.trainlog: step, loss,
+log.jsonl, one JSON record per step (radfield.core.trainer.log: step, loss,
 train PSNR, primitives, seconds, population control, and test_psnr, the held-out views' PSNR
 every `train.eval_every` steps and at the last, for information only); curves.png, the log
 drawn; final_state.safetensors, the full training state at the last step (a checkpoint). The log
@@ -23,10 +23,10 @@ kinds: degree 0, eq. 14's constant colour; kinds/relight.py).
 Every `train.checkpoint_every` steps the full training state goes to RUN/train.work/; a run that
 was killed resumes from there and ends exactly where an uninterrupted run would have. Raising
 `train.iterations` (and nothing else) on a finished run continues from final_state.safetensors
-instead of starting over (radfield.core.train.trainer explains the learning-rate schedule then).
+instead of starting over (radfield.core.trainer.loop explains the learning-rate schedule then).
 
 Under torchrun (or `radfield reconstruct --nproc N`) this stage runs on rank 0 and the training
-itself on every rank (radfield.core.train.dataparallel); the outputs are rank 0's, written as above.
+itself on every rank (radfield.core.trainer.dataparallel); the outputs are rank 0's, written as above.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from radfield.delivery.io import load_model, save_model
+from radfield.model_file import load_model, save_model
 from radfield.core.kinds import Primitives
-from radfield.core.train.dataparallel import train_on_ranks
-from radfield.core.train.trainer import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint
-from radfield.core.train.trainlog import TrainLog, plot_curves, read_log
+from radfield.core.trainer.dataparallel import train_on_ranks
+from radfield.core.trainer.loop import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint
+from radfield.core.trainer.log import TrainLog, plot_curves, read_log
 from radfield.util.progress import progress_bar
 from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.init import INIT_MODEL
@@ -52,8 +52,8 @@ from radfield.pipeline.runner import Context, Stage
 from radfield import run as layout
 
 MODEL_FILE = layout.MODEL_FILE  # the trained model, the run's final one (radfield.run.Run.model)
-LOG = "log.jsonl"
-CURVES = "curves.png"
+LOG = layout.LOG_FILE
+CURVES = layout.CURVES_FILE
 FINAL_STATE = "final_state.safetensors"
 CHECKPOINT = layout.CHECKPOINT_FILE  # in RUN/train.work/ (radfield.run.Run.checkpoint)
 
@@ -94,7 +94,7 @@ def run(ctx: Context) -> dict[str, Any]:
     steps_run = state.step - first_step
     seconds = time.perf_counter() - clock
 
-    trained = replace(state.primitives(), supersample=supersample)  # the model records its n (delivery/io.py)
+    trained = replace(state.primitives(), supersample=supersample)  # the model records its n (model_file.py)
     train_psnr = mean_psnr(trained, cameras, images, background=scene.background, near=near, masks=masks)
     model = to_world(trained, norm)
     save_model(ctx.outputs[MODEL_FILE], model)

@@ -4,7 +4,7 @@ A blocking copy to a GPU (`tensor.to("cuda")`) first waits for every kernel queu
 (torch synchronises the stream), so the GPU runs dry while the host launches what follows. An
 asynchronous copy from ordinary (pageable) memory is staged at once and waits for nothing, so a
 view's few camera numbers travel that way. Reads the other way (device to host) are what the
-training loop and the renderer keep out of their steps (core/train/trainer.py: StepRecords,
+training loop and the renderer keep out of their steps (core/trainer/loop.py: StepRecords,
 core/render/rasterize.py: RenderCounts).
 """
 

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from radfield.core.train.frequency import footprint, view_stack
-from radfield.delivery.io import load_model
+from radfield.model_file import load_model
 from radfield.core.train.losses import psnr
 from radfield.core.render.rasterize import render
 from radfield.core.train.strategy import in_frustum

@@ -1,4 +1,4 @@
-"""The cost of time or of light on a shared machine (issues 29, 30): trainer.train's ms per step of
+"""The cost of time or of light on a shared machine (issues 29, 30): loop.train's ms per step of
 the static and the time-conditioned (or relightable) kinds at bench-train's scene (10k primitives,
 4 orbit views, each kind at its models' SH degree: 3, the relightable kinds' 0), measured in the
 calling thread's CPU time (with OMP_NUM_THREADS=1 the fused kernels, autograd and Adam all run in
@@ -14,18 +14,18 @@ import torch
 
 from radfield.bench.render import bench_cameras, bench_models
 from radfield.bench.train import _targets, bench_config
-from radfield.core.train import trainer
+from radfield.core.trainer import loop
 
 CONDITIONS = ("dynamic", "relight")   # the kinds neural-<condition>, gaussian-<condition>
 WARMUP = 2
 
 
 def cpu_ms_per_step(prims, cams, images, steps: int) -> float:
-    """trainer.train's thread CPU ms per step after WARMUP steps (bench-train's train() column, in CPU time)."""
+    """loop.train's thread CPU ms per step after WARMUP steps (bench-train's train() column, in CPU time)."""
     cfg = bench_config(WARMUP + steps)
     cfg["sh_degree"], cfg["sh_increase_every"] = prims.sh_degree, 1   # the model's own degree from step 3 on, as bench-train's train()
     clock = []
-    trainer.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
+    loop.train(prims, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
                   on_step=lambda step, info: clock.append(time.thread_time()))
     return 1e3 * (clock[-1] - clock[WARMUP - 1]) / steps
 

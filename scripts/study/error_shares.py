@@ -1,6 +1,6 @@
 """Where the held-out error of a generated scene comes from: each test pixel's squared error (summed
 over RGB, on the white background) split into silhouette / occlusion edges, specular highlights
-and the rest, from the analytic scene (datasets.synthetic), with two reference errors:
+and the rest, from the analytic scene (radfield.demo), with two reference errors:
 
 - silhouette: some of the pixel's 8 x 8 regular sub-rays miss the scene and some hit it;
 - occlusion edge: they all hit, but not all the same shape;
@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.core.render.sh import sh_basis
+from radfield.core.splat.sh import sh_basis
 from radfield.datasets.images import read_image
-from radfield.datasets.synthetic import get_scene, intersect, orbit_cameras, render_view, shade
+from radfield.demo.scenes import get_scene, orbit_cameras
+from radfield.demo.raytrace import intersect, render_view, shade
 
 TAU = 0.02  # specular level that counts as a highlight (about 5 of 255)
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import torch
 
 from radfield.core.render.antialias import render_model
-from radfield.delivery.io import load_model
-from radfield.delivery.metrics import psnr
+from radfield.model_file import load_model
+from radfield.evaluation.metrics import psnr
 from radfield.core.train.strategy import in_frustum
 from radfield.datasets.scene import load_scene
 

@@ -14,12 +14,12 @@ degrees, about the cameras' focus (the object's centre), at the mean distance an
 intensity of the dataset's point lights, the first one at the camera's azimuth (behind the
 camera), the N/2-th behind the object: lights the model never saw (each one's angle to the
 nearest training light is printed). The truth is the OLAT scene ray traced under that light as
-the dataset was (datasets/olat.olat_scene, synthetic.render_view with a PointLight, the camera's
+the dataset was (demo/olat.olat_scene, demo/raytrace.render_view with a PointLight, the camera's
 own jitter pattern; the script first re-traces one of the camera's test frames and prints its PSNR
 against the photo, ~65 dB: 8-bit rounding only), composited on the dataset's background; the
 render is the model drawn as `radfield render --light` draws it (delivery/lights.under,
 core/render/antialias.render_model: the model's own n × n rays a pixel). PSNR as eval measures it
-(delivery/metrics.psnr), over the whole frame; the picture is cropped to the object (2 px round
+(evaluation/metrics.psnr), over the whole frame; the picture is cropped to the object (2 px round
 it) and upscaled 3× (nearest). Defaults: camera 5 (seen from 47° above, the plinth's top in view)
 and elevation 40°: the shadows sweep over the plinth and the highlight round the red sphere. A
 study script: not part of the product.
@@ -38,13 +38,13 @@ import torch
 
 from radfield.core.geometry.camera_path import orbit_from_cameras
 from radfield.core.render.antialias import render_model
-from radfield.datasets import olat, synthetic
+from radfield.demo import olat, raytrace, scenes
 from radfield.datasets.images import write_image
 from radfield.delivery import lights as lighting
-from radfield.delivery.io import load_model
-from radfield.delivery.metrics import psnr
+from radfield.model_file import load_model
+from radfield.evaluation.metrics import psnr
 from radfield.errors import RadfieldError
-from radfield.stages.evaluate import resolve_target
+from radfield.evaluation.evaluate import resolve_target
 
 SCALE = 3            # nearest-neighbour upscaling of the strip
 MARGIN = 2           # pixels kept round the object when cropping to it
@@ -120,12 +120,12 @@ def olat_of(scene):
 
 def truth(source, camera, light, background, index: int) -> tuple[np.ndarray, np.ndarray]:
     """The OLAT scene (`source`: (scene, seed)) under `light`, ray traced as the dataset was (its
-    sampler, the test camera's own jitter pattern, datasets/olat._write_split), composited on
+    sampler, the test camera's own jitter pattern, demo/olat._write_split), composited on
     `background`: (H, W, 3), and the coverage (H, W)."""
     shapes, seed = source
     rng = np.random.default_rng([seed, 1, index])
-    rgba, _ = synthetic.render_view(shapes, camera, rng=rng,
-                                    point_light=synthetic.PointLight(tuple(light.position), light.intensity))
+    rgba, _ = raytrace.render_view(shapes, camera, rng=rng,
+                                    point_light=scenes.PointLight(tuple(light.position), light.intensity))
     return rgba[..., :3] + (1.0 - rgba[..., 3:]) * np.asarray(background, np.float32), rgba[..., 3]
 
 

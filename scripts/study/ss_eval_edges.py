@@ -8,8 +8,8 @@ import sys
 import torch
 from pathlib import Path
 from radfield.core.render.antialias import shifted
-from radfield.delivery.io import load_model
-from radfield.delivery.metrics import psnr
+from radfield.model_file import load_model
+from radfield.evaluation.metrics import psnr
 from radfield.core.render.rasterize import render
 from radfield.datasets.scene import load_scene
 run = Path(sys.argv[1]); ns = [int(x) for x in sys.argv[2:]] or [1, 2, 3]

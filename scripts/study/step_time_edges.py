@@ -5,8 +5,8 @@ run's training views: what supersampling costs a step.
 import sys
 import time
 
-from radfield.delivery.io import load_model
-from radfield.core.train.trainer import train
+from radfield.model_file import load_model
+from radfield.core.trainer.loop import train
 from radfield.datasets.scene import load_scene
 from radfield.pipeline.config import load_config
 from radfield.stages.train import to_normalized

@@ -14,8 +14,8 @@
     available(device=None, dtype=None) -> bool, build_error() -> str | None
 
 The view kernels composite a whole view per 16×16 tile (view_kernels.cpp, the method is in its
-header comment); the per-view ops replace their torch twins in core/kinds/neural.py, core/kinds/gaussian.py
-and core/render/sh.py (`view_tensors`, `ewa_view`, `sh_to_color`), and the block kernels have the
+header comment); the per-view ops replace their torch twins in core/splat/neural.py, core/splat/gaussian.py
+and core/splat/sh.py (`view_tensors`, `ewa_view`, `sh_to_color`), and the block kernels have the
 signatures and semantics of the kinds' `pair_alpha`. Every op has a hand-written backward; the torch twins stay the
 readable references the tests compare against.
 
@@ -37,7 +37,8 @@ from pathlib import Path
 
 import torch
 
-from radfield.core.render.kernels import WINDOW_GAIN
+from radfield.core.backends.seam import forced_torch
+from radfield.core.splat.kernels import WINDOW_GAIN
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "prepare_kernels.cpp",
@@ -46,12 +47,6 @@ _SOURCES = [_CSRC / "block_kernels.cpp", _CSRC / "view_kernels.cpp", _CSRC / "pr
 _NAME = "radfield_kernels"   # the build's name: one build per SIMD level (_build_name)
 _STALE_LOCK_SECONDS = 600   # a build lock older than this was left by a killed build
 _state: dict = {"tried": False, "ops": None, "error": None}
-
-
-def _forced_torch() -> bool:
-    from radfield.core.backends import forced_torch   # the seam owns the switch
-
-    return forced_torch()
 
 
 def _simd_flags() -> list[str]:
@@ -139,7 +134,7 @@ def _ops():
 
 def build_error() -> str | None:
     """Why the kernels are unavailable: the build's first error line, RADFIELD_KERNELS=torch, or None."""
-    if _forced_torch():
+    if forced_torch():
         return "RADFIELD_KERNELS=torch"
     _ops()
     return _state["error"]
@@ -149,7 +144,7 @@ def available(device: torch.device | str | None = None, dtype: torch.dtype | Non
     """True when the fused kernels can run tensors on `device` with `dtype` (builds them on the
     first call). False on non-CPU devices, for other dtypes than float32/float64, with
     RADFIELD_KERNELS=torch, or when the build failed."""
-    if _forced_torch():
+    if forced_torch():
         return False
     if device is not None and torch.device(device).type != "cpu":
         return False
@@ -198,7 +193,7 @@ class _GaussianBlock(torch.autograd.Function):
 
 def neural_block(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, window: bool = False) -> torch.Tensor:
     """α of neural primitives (P,) over blocks of image points u, v (P, A); see
-    kinds/neural.py: pair_alpha (paper eq. 7–9; `window`: the windowed density)."""
+    splat/neural.py: pair_alpha (paper eq. 7–9; `window`: the windowed density)."""
     return _NeuralBlock.apply(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, _gain(window))
 
 
@@ -209,7 +204,7 @@ def _gain(window: bool) -> float:
 
 def gaussian_block(u, v, intrinsics, mean2d, conic, opacity) -> torch.Tensor:
     """α of 2D Gaussian splats (P,) over blocks of image points u, v (P, A); see
-    kinds/gaussian.py: pair_alpha."""
+    splat/gaussian.py: pair_alpha."""
     return _GaussianBlock.apply(u, v, intrinsics, mean2d, conic, opacity)
 
 
@@ -251,7 +246,7 @@ def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, 
     returns (Σ w_i c_i (H, W, 3), Σ w_i z_i (H, W), T (H, W), counters (evaluated pairs,
     composited pairs, terminated pixels, candidate pairs)). order (V,) int64: the primitives to
     draw, front to back, each once; bounds (P, 4) int64 inclusive pixel boxes, inside the image
-    for those in `order`; the per-primitive tensors (P, ...) as kinds/neural.py: view_tensors returns
+    for those in `order`; the per-primitive tensors (P, ...) as splat/neural.py: view_tensors returns
     them (gradients are zero for the primitives not in `order`). The op keeps copies of them in
     depth order for its backward (memory O(V) per-primitive rows, nothing per pair).
     `window`: the windowed density (kinds/neural.py: density_window)."""
@@ -266,7 +261,7 @@ def gaussian_view(bounds, order, height, width, t_min, colors, depth, mean2d, co
 
 
 def neural_bounds(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
-    """kinds/base.py: ellipsoid_bounds and the depth sort in one op (no gradient): (bounds (P, 4) int64,
+    """splat/view.py: ellipsoid_bounds and the depth sort in one op (no gradient): (bounds (P, 4) int64,
     order (V,) int64, the visible primitives by camera-space depth means_cam[:, 2], stable)."""
     args = [t.detach().contiguous() for t in (means_cam, log_scales, quats, w2c_rot, intrinsics)]
     return tuple(_ops().neural_bounds(*args, width, height, float(near)))
@@ -348,7 +343,7 @@ def sh_color_parts(sh_dc, sh_rest, means, campos, degree: int) -> torch.Tensor:
 
 
 def neural_prep(prims, campos, cam_rot) -> tuple:
-    """The ellipsoid frame and MLP phases of kinds/neural.py: view_tensors in one fused op:
+    """The ellipsoid frame and MLP phases of splat/neural.py: view_tensors in one fused op:
     (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from kinds/neural.py: density_weights."""
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
                              prims.omega0)
@@ -460,7 +455,7 @@ class _GaussianPrep(torch.autograd.Function):
 
 
 def gaussian_prep(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int, height: int, near: float):
-    """The EWA projection of kinds/gaussian.py: ewa_view in one fused op: (mean2d (P, 2), conic (P, 3),
+    """The EWA projection of splat/gaussian.py: ewa_view in one fused op: (mean2d (P, 2), conic (P, 3),
     cov (P, 3) = the 2D covariance's (a, b, c) with the blur, not differentiable), from the
     camera-space means (P, 3); differentiable w.r.t. means_cam, log_scales and quats."""
     return _GaussianPrep.apply(means_cam, log_scales, quats, w2c_rot, intrinsics, width, height, near)

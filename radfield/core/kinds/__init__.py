@@ -10,7 +10,7 @@ Built in: splattable neural primitives (kinds/neural.py), 3D Gaussians (kinds/ga
 their time-conditioned variants for dynamic scenes (kinds/dynamic.py; `kind.conditions` says that
 a view must give a time) and their relightable variants for one-light-at-a-time captures
 (kinds/relight.py; a view must give a light).
-A new kind is one module that defines its primitives dataclass (a `_Primitives` subclass), a
+A new kind is one module that defines its primitives dataclass (a `Primitives` subclass), a
 `PrimitiveKind` subclass with the hooks it needs, registers it, and registers its fast renderers
 with radfield.core.backends; training, the model file, rendering, editing and export then take it
 (tests/test_kinds.py adds one inside a test). Every kind is also declared as an entry point of the
@@ -19,16 +19,14 @@ importing them and how a kind of another installed package is found (_load_decla
 """
 
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
-from radfield.core.kinds.base import (INITIAL_ALPHA, PixelRay, PrimitiveKind, ViewFrame, _Primitives, get, names,
-                                      of, register, registered, unregister)
-from radfield.core.kinds.neural import (DEFAULT_HIDDEN, DEFAULT_OMEGA0, NeuralPrimitives, density_window,
-                                        ellipsoid_radius_sq, random_neural, siren_mlp_init)
+from radfield.core.kinds.base import (INITIAL_ALPHA, PixelRay, PrimitiveKind, Primitives, get, names, of, register,
+                                      registered, unregister)
+from radfield.core.kinds.neural import DEFAULT_HIDDEN, DEFAULT_OMEGA0, NeuralPrimitives, random_neural, siren_mlp_init
+from radfield.core.kinds.neural_density import density_window, ellipsoid_radius_sq
 from radfield.core.kinds.gaussian import Gaussians, random_gaussians
 from radfield.core.kinds.dynamic import DynamicGaussians, DynamicNeuralPrimitives
 from radfield.core.kinds.relight import RelightGaussians, RelightNeuralPrimitives
-from radfield.core.render.kernels import WINDOW_GAIN
-
-Primitives = _Primitives   # any kind's primitives, for annotations
+from radfield.core.splat.kernels import WINDOW_GAIN
 
 
 def _load_declared_kinds() -> None:
@@ -51,6 +49,6 @@ _load_declared_kinds()
 
 __all__ = ["DEFAULT_HIDDEN", "DEFAULT_OMEGA0", "INITIAL_ALPHA", "WINDOW_GAIN", "DynamicGaussians",
            "DynamicNeuralPrimitives", "Gaussians", "NeuralPrimitives", "RelightGaussians", "RelightNeuralPrimitives",
-           "PixelRay", "PrimitiveKind", "Primitives", "ViewFrame", "_Primitives", "density_window",
+           "PixelRay", "PrimitiveKind", "Primitives", "density_window",
            "ellipsoid_radius_sq", "get", "names", "of", "quat_to_rotmat", "random_gaussians", "random_neural",
            "register", "registered", "rotmat_to_quat", "siren_mlp_init", "unregister"]

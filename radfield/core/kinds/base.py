@@ -3,7 +3,7 @@
 A primitive kind is one `PrimitiveKind` object, registered once (`register`), that says for its
 primitives everything the rest of radfield asks about them:
 
-- the container: a dataclass of `_Primitives` (the shared ellipsoid geometry μ, log s, q and the
+- the container: a dataclass of `Primitives` (the shared ellipsoid geometry μ, log s, q and the
   SH colour, plus the kind's own tensors) and the non-tensor `attributes` it carries (e.g. ω0);
 - its parameters: `own_params` (name -> shape after P, in trained order), the train.lr key of each
   (`lr_keys`), the tensors a model file may omit (`optional`), metadata written and validated
@@ -16,10 +16,10 @@ primitives everything the rest of radfield asks about them:
   every optimiser step (`training_rules`), and how it starts from points (`initial_radius`,
   `from_points`, `init_settings`);
 - editing and delivery: what a per-primitive affine map, a similarity or a halving does to its own
-  tensors (`deformed`, `rotated`, `halved`; the geometry and SH are mapped by edit/deform.py and
+  tensors (`deformed`, `rotated`, `halved`; the geometry and SH are mapped by edit/affine.py and
   edit/compose.py for every kind), whether two models of the kind combine (`check_combinable`,
   `harmonise`), its peak density (`peak_density`), its 3D Gaussians (`to_gaussians`), and
-  capability flags (`has_line_integral_density`, `exact_gaussians`);
+  capability flags (`retrainable_locally`, `exact_gaussians`);
 - the benchmark models it contributes (`bench_variants`, `bench_models`).
 
 The defaults below are those of a kind that has only the shared geometry and its own opacity-like
@@ -37,14 +37,13 @@ from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import torch
 
-from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.render.sh import sh_degree_from_coeffs
+from radfield.core.splat.sh import sh_degree_from_coeffs
 from radfield.errors import RadfieldError
 from radfield.util.registry import Registry
-from radfield.util.transfer import to_device
 
 if TYPE_CHECKING:
     from radfield.core.geometry.cameras import Camera
+    from radfield.core.splat.view import ViewFrame
 
 # the geometry every kind has, as the file stores it (SH last: a kind's own tensors go in between)
 GEOMETRY = {"means": (3,), "log_scales": (3,), "quats": (4,)}
@@ -55,7 +54,9 @@ INITIAL_ALPHA = 0.1  # a new primitive's opacity through its centre, 3DGS's init
 
 
 @dataclass
-class _Primitives:
+class Primitives:
+    """Any kind's primitives: the shared geometry and SH that every kind's dataclass extends."""
+
     means: torch.Tensor       # (P, 3) centres μ
     log_scales: torch.Tensor  # (P, 3) ℓ, scales s = exp(ℓ)
     quats: torch.Tensor       # (P, 4) rotation q, w x y z, need not be normalised
@@ -84,31 +85,15 @@ class _Primitives:
     def num_params(self) -> int:
         return sum(t.numel() for t in self.tensors().values())
 
-    def map(self, fn) -> "_Primitives":
+    def map(self, fn) -> "Primitives":
         """A copy with `fn` applied to every tensor (e.g. `lambda t: t.to(device)`)."""
         return replace(self, **{k: fn(v) for k, v in self.tensors().items()})
 
-    def to(self, device=None, dtype=None) -> "_Primitives":
+    def to(self, device=None, dtype=None) -> "Primitives":
         return self.map(lambda t: t.to(device=device, dtype=dtype))
 
-    def select(self, index) -> "_Primitives":
+    def select(self, index) -> "Primitives":
         return self.map(lambda t: t[index])
-
-
-class ViewFrame(NamedTuple):
-    """One view as the renderer has prepared it for every kind (core/render/rasterize.py: render),
-    in the primitives' dtype and device: the camera, its camera-to-world and world-to-camera
-    matrices (4, 4), its centre (3,), the primitives' camera-space centres (P, 3) and depths (P,),
-    the intrinsics tensor (fx, fy, cx, cy, near) the pair kernels read, and the near plane."""
-
-    camera: "Camera"
-    c2w: torch.Tensor
-    w2c: torch.Tensor
-    campos: torch.Tensor
-    means_cam: torch.Tensor
-    depth: torch.Tensor
-    intrinsics: torch.Tensor
-    near: float
 
 
 class PixelRay(NamedTuple):
@@ -130,12 +115,12 @@ class PrimitiveKind:
     hooks their primitives need; `register(kind_object)` makes it known."""
 
     name: str = "base"
-    primitives: type = _Primitives
+    primitives: type = Primitives
     own_params: dict[str, tuple] = {}          # trained tensors besides the geometry, name -> shape after P
     lr_keys: dict[str, str] = {}               # parameter -> its train.lr key, where not its own name
     optional: dict[str, tuple] = {}            # tensors a model file may hold or not, name -> shape after P
     attributes: tuple[str, ...] = ()           # non-tensor fields training and model files carry
-    has_line_integral_density: bool = False    # a density σ(x) whose line integral makes α (edit/retrain.py)
+    retrainable_locally: bool = False          # edit/retrain.py can refit a region: one density σ(x), an SH colour
     exact_gaussians: bool = False              # its primitives are 3D Gaussians (exported as they are)
     bench_variants: tuple[str, ...] = ()       # the rows it adds to bench-render / bench-train
     # what a view must say for the kind to be drawn ("time": Camera.time, the moment ξ_t in [0, 1]
@@ -164,7 +149,7 @@ class PrimitiveKind:
         """Primitives of this kind from their tensors and attributes (no copies)."""
         return self.primitives(**tensors, **(attrs or {}), **extra)
 
-    # --- the model file (radfield.delivery.io) ---------------------------------------------------
+    # --- the model file (radfield.model_file) ---------------------------------------------------
 
     def schema(self) -> dict[str, tuple]:
         """Required tensors -> shape after P, in the order a file's errors are reported ("K": the SH
@@ -179,7 +164,7 @@ class PrimitiveKind:
         """The attributes from a model file's metadata, validated (RadfieldError naming the file)."""
         return {}
 
-    # The ranges a model file's values must keep (checked on load: radfield.delivery.io). Far from
+    # The ranges a model file's values must keep (checked on load: radfield.model_file). Far from
     # what training and editing write (measured over every model of the test suite and the demo
     # scenes: |log s| <= 6.2, |μ| <= 1.1, |q| in [0.46, 4.2]), and chosen so that what the renderer
     # forms from them stays finite and normal in float32: s² and 1/s² for |log s| <= 25 (e^±50 ≈
@@ -273,7 +258,7 @@ class PrimitiveKind:
     def deformed(self, prims, idx: torch.Tensor, sub, a: torch.Tensor, scales: torch.Tensor,
                  new_scales: torch.Tensor, preserve_opacity: bool):
         """The kind's own tensors of rows `idx` under the affine maps x' = A x + b, A (S, 3, 3)
-        float64 (edit/deform.py maps the geometry and SH): (prims, possibly with a field added,
+        float64 (edit/affine.py maps the geometry and SH): (prims, possibly with a field added,
         {name: new rows}). sub: prims.select(idx) in float64; scales, new_scales (S, 3) the
         ellipsoid's radii before and after. Default: nothing of its own changes."""
         return prims, {}
@@ -283,7 +268,7 @@ class PrimitiveKind:
         return {}
 
     def halved(self, parents, offset: torch.Tensor, ratio: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The kind's own tensors of the halves of `parents` (edit/deform.py: split_primitives), each
+        """The kind's own tensors of the halves of `parents` (edit/affine.py: split_primitives), each
         moved by `offset` (S, 3) from its parent's centre, max(s) shrunk by `ratio` (S,); default: the parents'."""
         return {}
 
@@ -372,58 +357,3 @@ def float_metadata(path, meta: dict[str, str], key: str) -> float:
     if not value > 0 or value == float("inf"):
         raise RadfieldError(f"{path}: metadata {key!r} must be a positive number, got {value}")
     return value
-
-
-def ellipsoid_bounds(prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tensor]:
-    """Tight pixel bounds of each projected bounding ellipsoid B(μ, R, s), from its dual conic
-    C* = K (μμᵀ − Σ) Kᵀ (camera frame, Σ = R S² Rᵀ), and visibility. An ellipsoid that straddles
-    the near plane gets the whole image (the pair kernel clips rays at the near plane itself)."""
-    camera, means_cam, near = frame.camera, frame.means_cam, frame.near
-    with torch.no_grad():
-        rot = frame.w2c[:3, :3] @ quat_to_rotmat(prims.quats)
-        rs = rot * torch.exp(prims.log_scales)[:, None, :]
-        sigma = rs @ rs.transpose(1, 2)
-        z_ext = torch.sqrt(sigma[:, 2, 2])
-        z = means_cam[:, 2]
-        in_front = z - z_ext > near
-        visible = z + z_ext > near
-        k = to_device(camera.K, means_cam.device, means_cam.dtype)
-        dual = k @ (means_cam[:, :, None] * means_cam[:, None, :] - sigma) @ k.T
-        box = conic_box(dual, camera.width, camera.height)
-        # a primitive the near plane cuts: the whole image
-        full = (0, 0, camera.width - 1, camera.height - 1)
-        bounds = torch.stack([torch.where(in_front, side, edge) for side, edge in zip(box.unbind(-1), full)], -1)
-        return clip_bounds(bounds, visible, camera)
-
-
-def conic_box(dual: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """Integer pixel bounds (x0, y0, x1, y1) of the points inside a conic, from its dual: the tangent
-    lines u = const solve C*_00 − 2u C*_02 + u² C*_22 = 0 (likewise for v)."""
-    def extent(i):
-        c_ii, c_i2, c_22 = dual[:, i, i], dual[:, i, 2], dual[:, 2, 2]
-        root = torch.sqrt(torch.clamp_min(c_i2 * c_i2 - c_ii * c_22, 0.0))
-        lo, hi = (c_i2 + root) / c_22, (c_i2 - root) / c_22
-        return torch.minimum(lo, hi), torch.maximum(lo, hi)
-
-    (u0, u1), (v0, v1) = extent(0), extent(1)
-    # pixel j covers centre j + 0.5: first/last centres inside [u0, u1]
-    box = torch.stack([torch.ceil(u0 - 0.5), torch.ceil(v0 - 0.5), torch.floor(u1 - 0.5), torch.floor(v1 - 0.5)], -1)
-    big = float(max(width, height) + 1)
-    return torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long()
-
-
-def clip_bounds(bounds: torch.Tensor, visible: torch.Tensor, camera) -> tuple[torch.Tensor, torch.Tensor]:
-    """Boxes clipped to the image, and visibility without the boxes left empty."""
-    x0, y0 = bounds[:, 0].clamp_min(0), bounds[:, 1].clamp_min(0)
-    x1, y1 = bounds[:, 2].clamp_max(camera.width - 1), bounds[:, 3].clamp_max(camera.height - 1)
-    visible = visible & (x1 >= x0) & (y1 >= y0)
-    return torch.stack([x0, y0, x1, y1], -1), visible
-
-
-def camera_directions(u: torch.Tensor, v: torch.Tensor, intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unit camera-space directions (P, A, 3) through image points (u, v) (P, A), and the ray
-    distance of the near plane along each."""
-    fx, fy, cx, cy, near = intrinsics.unbind()
-    d = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)
-    norm = torch.linalg.vector_norm(d, dim=-1)
-    return d / norm[..., None], near * norm

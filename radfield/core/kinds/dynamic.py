@@ -44,7 +44,7 @@ import torch
 from radfield.core.kinds.base import first_bad_row, float_metadata, register
 from radfield.core.kinds.gaussian import Gaussians, GaussianKind
 from radfield.core.kinds.neural import NeuralKind, NeuralPrimitives
-from radfield.core.render.sh import join_sh, sh_parts
+from radfield.core.splat.sh import join_sh, sh_parts
 from radfield.errors import RadfieldError
 from radfield.util.transfer import device_constants, to_device
 
@@ -168,7 +168,7 @@ class DynamicNeuralKind(NeuralKind):
     attributes = NeuralKind.attributes + ("time_frequency",)
     conditions = ("time",)
     # no one density σ(x) over time: the boolean and remesh retraining (edit/retrain.py) refuse it
-    has_line_integral_density = False
+    retrainable_locally = False
     bench_variants = ("neural-dynamic",)
 
     def at_view(self, prims, camera):

@@ -16,17 +16,19 @@ import torch
 
 from radfield.core import backends
 from radfield.core.backends import fused, gpu
+from radfield.core.geometry.cameras import Camera
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.kinds.base import INITIAL_ALPHA, PrimitiveKind, ViewFrame, _Primitives, clip_bounds, register
-from radfield.core.render.kernels import gaussian_alpha
-from radfield.core.render.sh import num_sh_coeffs
+from radfield.core.kinds.base import INITIAL_ALPHA, PrimitiveKind, Primitives, register
+from radfield.core.splat.gaussian import EWA_BLUR, ewa_view, pair_alpha, splat_bounds
+from radfield.core.splat.kernels import ALPHA_MAX
+from radfield.core.splat.sh import num_sh_coeffs
+from radfield.core.splat.view import ViewFrame
 
-EWA_BLUR = 0.3          # 3DGS low-pass filter added to the 2D covariance (pixels²)
 INITIAL_OPACITY = math.log(INITIAL_ALPHA / (1.0 - INITIAL_ALPHA))  # logit of a new Gaussian's opacity, as 3DGS
 
 
 @dataclass
-class Gaussians(_Primitives):
+class Gaussians(Primitives):
     """3D Gaussians (3DGS): covariance R diag(s²) Rᵀ, opacity sigmoid(opacities)."""
 
     opacities: torch.Tensor = None  # (P,) logits
@@ -48,54 +50,6 @@ def random_gaussians(num: int, *, sh_degree: int = 0, extent: float = 1.0, scale
 
 # --- the torch twin's per-view preparation and pair kernel ---------------------------------------
 
-def jacobian_clamp(camera) -> tuple[float, float, float, float]:
-    """(lo_x, hi_x, lo_y, hi_y): as 3DGS/gsplat, the EWA Jacobian's point x/z, y/z is clamped to 1.3×
-    the field of view, which keeps the affine approximation of far off-screen splats from exploding."""
-    margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
-    return (-camera.cx / camera.fx - margin_x, (camera.width - camera.cx) / camera.fx + margin_x,
-            -camera.cy / camera.fy - margin_y, (camera.height - camera.cy) / camera.fy + margin_y)
-
-
-def ewa_view(prims: Gaussians, camera, w2c, means_cam, near):
-    """EWA splatting (Zwicker et al., as in 3DGS): ((2D mean, conic of J W Σ Wᵀ Jᵀ + 0.3 I,
-    opacity), the 2D covariance's entries (a, b, c))."""
-    x, y, z = means_cam.unbind(-1)
-    zs = torch.where(z > near, z, torch.ones_like(z))
-    lo_x, hi_x, lo_y, hi_y = jacobian_clamp(camera)
-    tx = zs * torch.clamp(x / zs, lo_x, hi_x)
-    ty = zs * torch.clamp(y / zs, lo_y, hi_y)
-    zero = torch.zeros_like(zs)
-    jac = torch.stack([camera.fx / zs, zero, -camera.fx * tx / zs**2,
-                       zero, camera.fy / zs, -camera.fy * ty / zs**2], -1).reshape(-1, 2, 3)
-    rot = w2c[:3, :3] @ quat_to_rotmat(prims.quats)
-    rs = rot * torch.exp(prims.log_scales)[:, None, :]
-    t = jac @ rs
-    cov = t @ t.transpose(1, 2)
-    a, b, c = cov[:, 0, 0] + EWA_BLUR, cov[:, 0, 1], cov[:, 1, 1] + EWA_BLUR
-    det = a * c - b * b
-    conic = torch.stack([c, -b, a], -1) / det[:, None]
-    mean2d = torch.stack([camera.fx * x / zs + camera.cx, camera.fy * y / zs + camera.cy], -1)
-    return (mean2d, conic, torch.sigmoid(prims.opacities)), (a, b, c)
-
-
-@torch.no_grad()
-def splat_bounds(mean2d, a, b, c, depth, camera, near):
-    """The 3σ pixel box of each splat (largest eigenvalue of its covariance (a, b, c)); visible
-    when in front of the near plane with a positive-definite covariance and a box in the image."""
-    det = a * c - b * b
-    lam_max = 0.5 * (a + c) + torch.sqrt(torch.clamp_min(0.25 * (a - c) ** 2 + b * b, 0.0))
-    radius = torch.ceil(3.0 * torch.sqrt(lam_max))
-    cx, cy = mean2d[:, 0], mean2d[:, 1]
-    box = torch.stack([torch.ceil(cx - radius - 0.5), torch.ceil(cy - radius - 0.5),
-                       torch.floor(cx + radius - 0.5), torch.floor(cy + radius - 0.5)], -1)
-    big = float(max(camera.width, camera.height) + 1)
-    return clip_bounds(torch.nan_to_num(box, nan=-1.0).clamp(-big, big).long(), (depth > near) & (det > 0), camera)
-
-
-def pair_alpha(u, v, intrinsics, mean2d, conic, opacity):
-    """α of splats (P,) over blocks of image points (P, A)."""
-    return gaussian_alpha(u - mean2d[:, None, 0], v - mean2d[:, None, 1], conic[:, None, :], opacity[:, None])
-
 
 def _fused_cpu_view(prims: Gaussians, frame: ViewFrame, colors: torch.Tensor, t_min: float):
     """The whole view on the fused CPU kernels: EWA projection, bounds and depth order, and the
@@ -108,6 +62,30 @@ def _fused_cpu_view(prims: Gaussians, frame: ViewFrame, colors: torch.Tensor, t_
     bounds, ids = fused.gaussian_bounds(mean2d, cov, frame.depth, camera.width, camera.height, frame.near)
     out = fused.gaussian_view(bounds, ids, camera.height, camera.width, t_min, colors, frame.depth, *view)
     return (*out, ids.numel())
+
+
+# --- the slow reference's α (core/render/reference.py) ---------------------------------------------
+
+def gaussian_pixel_alpha(prims: Gaussians, i: int, camera: Camera, u: float, v: float) -> float:
+    """EWA splat weight of Gaussian i at image point (u, v), straight from the 3DGS formulas."""
+    w2c = torch.linalg.inv(camera.c2w)
+    p = w2c[:3, :3] @ prims.means[i].double() + w2c[:3, 3]
+    x, y, z = p.tolist()
+    lim_x = (camera.cx / camera.fx + 0.15 * camera.width / camera.fx, (camera.width - camera.cx) / camera.fx + 0.15 * camera.width / camera.fx)
+    lim_y = (camera.cy / camera.fy + 0.15 * camera.height / camera.fy, (camera.height - camera.cy) / camera.fy + 0.15 * camera.height / camera.fy)
+    tx = z * min(max(x / z, -lim_x[0]), lim_x[1])
+    ty = z * min(max(y / z, -lim_y[0]), lim_y[1])
+    jac = torch.tensor([[camera.fx / z, 0, -camera.fx * tx / z**2], [0, camera.fy / z, -camera.fy * ty / z**2]], dtype=torch.float64)
+    rot = quat_to_rotmat(prims.quats[i][None].double())[0]
+    cov3 = rot @ torch.diag(torch.exp(2 * prims.log_scales[i].double())) @ rot.T
+    cov2 = jac @ w2c[:3, :3] @ cov3 @ w2c[:3, :3].T @ jac.T + EWA_BLUR * torch.eye(2, dtype=torch.float64)
+    delta = torch.tensor([u - (camera.fx * x / z + camera.cx), v - (camera.fy * y / z + camera.cy)], dtype=torch.float64)
+    # 3DGS evaluates a splat only inside the square of radius ceil(3 √λ_max) around its mean
+    radius = math.ceil(3.0 * math.sqrt(float(torch.linalg.eigvalsh(cov2)[-1])))
+    if abs(float(delta[0])) > radius or abs(float(delta[1])) > radius:
+        return 0.0
+    power = -0.5 * float(delta @ torch.linalg.inv(cov2) @ delta)
+    return min(ALPHA_MAX, float(torch.sigmoid(prims.opacities[i].double())) * math.exp(power))
 
 
 class GaussianKind(PrimitiveKind):
@@ -126,8 +104,6 @@ class GaussianKind(PrimitiveKind):
         return pair_alpha
 
     def reference_alpha(self, prims, i, ray, depth):
-        from radfield.core.render.reference import gaussian_pixel_alpha
-
         if depth <= ray.near:
             return 0.0
         return gaussian_pixel_alpha(prims, i, ray.camera, ray.u, ray.v)
@@ -158,5 +134,5 @@ class GaussianKind(PrimitiveKind):
 
 
 GAUSSIAN = register(GaussianKind())
-backends.implement("view.gaussian", backends.FUSED_CPU, _fused_cpu_view)
-backends.implement("view.gaussian", backends.TRITON, gpu.gaussian_view)
+backends.implement(backends.view_op("gaussian"), backends.FUSED_CPU, _fused_cpu_view)
+backends.implement(backends.view_op("gaussian"), backends.TRITON, gpu.gaussian_view)

@@ -2,7 +2,7 @@
 
 Density inside the ellipsoid B(μ, R, s) (paper eq. 5-6): σ(x) = W2 · cos(ω0 (W1 u + b1)) + b2 with
 u = (x − μ) / max(s), times the window 1.5 (1 − r²) where `window` is set (`density_window`). The
-renderer integrates it in closed form along each pixel's chord (core/render/kernels.py, eq. 7-9).
+renderer integrates it in closed form along each pixel's chord (core/splat/kernels.py, eq. 7-9).
 Everything the rest of radfield needs to know about the kind is said here (kinds/base.py lists
 the hooks): its parameters and file metadata (ω0, window), its renderer hooks (the per-view frame
 and MLP phases, the dual-conic bounds, the pair kernel and the fused CPU view), its population
@@ -21,11 +21,11 @@ import torch
 from radfield.core import backends
 from radfield.core.backends import fused, gpu
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.kinds.base import (INITIAL_ALPHA, PrimitiveKind, ViewFrame, _Primitives, camera_directions, first_bad_row,
-                                      ellipsoid_bounds, float_metadata, register)
-from radfield.core.render.kernels import (WINDOW_GAIN, alpha_from_optical_depth, ellipsoid_frame, neural_optical_depth,
-                                          ray_ellipsoid, windowed_optical_depth)
-from radfield.core.render.sh import num_sh_coeffs
+from radfield.core.kinds.base import INITIAL_ALPHA, PrimitiveKind, Primitives, first_bad_row, float_metadata, register
+from radfield.core.kinds.neural_density import neural_sigma, quadrature_optical_depth, unit_ball_samples
+from radfield.core.splat.neural import density_weights, pair_alpha, view_tensors
+from radfield.core.splat.sh import num_sh_coeffs
+from radfield.core.splat.view import ViewFrame, ellipsoid_bounds
 from radfield.errors import RadfieldError
 
 DEFAULT_OMEGA0 = 30.0
@@ -35,26 +35,8 @@ DEFAULT_HIDDEN = 8
 NEURAL_B2 = -math.log(1.0 - INITIAL_ALPHA) / 2.0
 
 
-def ellipsoid_radius_sq(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
-                        x: torch.Tensor) -> torch.Tensor:
-    """r² = |S⁻¹Rᵀ(x − μ)|² (...,) of points x (..., 3) in the unit-sphere frame of the ellipsoids
-    B(μ, R, s) (r² ≤ 1: inside); means, log_scales (..., 3) and quats (..., 4) broadcast against x.
-    The one place the window's radius is computed (the point sites' hard inside tests keep their
-    own |S⁻¹Rᵀ(x − μ)| ≤ 1, so a hard-edged model's results stay bit for bit)."""
-    rot = quat_to_rotmat(quats)
-    local = ((x - means)[..., None, :] @ rot)[..., 0, :] * torch.exp(-log_scales)   # Rᵀ(x − μ) / s
-    return (local * local).sum(-1)
-
-
-def density_window(prims: "NeuralPrimitives", r2: torch.Tensor) -> torch.Tensor | float:
-    """The factor on σ at points of squared ellipsoid radius r2 = |S⁻¹Rᵀ(x − μ)|² (inside: r2 ≤ 1):
-    1.5 (1 − r2) for a windowed model, 1 for a hard-edged one. Every evaluation of a neural
-    primitive's density at points takes it from here (the renderer integrates it in closed form)."""
-    return WINDOW_GAIN * (1.0 - r2) if prims.window else 1.0
-
-
 @dataclass
-class NeuralPrimitives(_Primitives):
+class NeuralPrimitives(Primitives):
     """Splattable neural primitives. Density inside the ellipsoid (radii s, paper eq. 5-6):
     σ(x) = w2 · cos(ω0 (w1 u + b1)) + b2,  u = (x − μ) / max(s), times the window 1.5 (1 − r²)
     where `window` is set (`density_window`)."""
@@ -64,10 +46,10 @@ class NeuralPrimitives(_Primitives):
     w2: torch.Tensor = None  # (P, N)
     b2: torch.Tensor = None  # (P,)
     omega0: float = DEFAULT_OMEGA0
-    # optional, written by `radfield edit --preserve-opacity` (edit/deform.py): per primitive the
+    # optional, written by `radfield edit --preserve-opacity` (edit/affine.py): per primitive the
     # symmetric rest-space metric G (xx yy zz xy xz yz) that scales the optical depth by √(d̂ᵀ G d̂)
     rest_metric: torch.Tensor | None = None  # (P, 6)
-    # the density window (render.window, core/render/kernels.py: windowed_optical_depth): σ(x) is taken
+    # the density window (render.window, core/splat/kernels.py: windowed_optical_depth): σ(x) is taken
     # times 1.5 (1 − r²), r = |S⁻¹Rᵀ(x − μ)|, so it falls to 0 on the ellipsoid and a primitive's
     # silhouette is smooth; False: the paper's hard-edged ellipsoid. The model file's `window` key
     # (absent = False); map/to/select keep it.
@@ -118,49 +100,6 @@ def neural_radius_factor(window: bool) -> float:
 
 
 # --- the torch twin's per-view preparation and pair kernel ---------------------------------------
-
-def view_tensors(prims: NeuralPrimitives, campos: torch.Tensor, cam_rot: torch.Tensor) -> tuple:
-    """What depends only on the primitive and the camera, computed once per view:
-    M = S⁻¹Rᵀ, o' = M(o − μ), c_k = ω0 (W1_k·u0 + b1_k) with u0 = (o − μ)/max(s); and, because a
-    pair's world direction is d̂ = R_cam d_cam/|d_cam|, the per-pair products M d̂ and ω0 W1 d̂
-    become M R_cam and ω0 W1 R_cam applied to the camera-space pixel direction."""
-    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)
-    rel = campos - prims.means
-    o_ell = (m * rel[:, None, :]).sum(-1)
-    w = prims.omega0 * prims.w1
-    c = (w * (rel / smax[:, None])[:, None, :]).sum(-1) + prims.omega0 * prims.b1
-    w2, b2 = density_weights(prims, rel)
-    return m @ cam_rot, o_ell, w @ cam_rot, c, w2, b2, 1.0 / smax
-
-
-def density_weights(prims: NeuralPrimitives, rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(W2, b2) as the pair kernels see them in this view (rel = o − μ); both the torch twin and
-    the fused path (whose fused op computes the rest of `view_tensors`) take them from here."""
-    w2, b2 = prims.w2, prims.b2
-    if prims.rest_metric is not None:
-        # preserve_opacity edits (edit/deform.py): optical depth in rest-space distance,
-        # I·√(d̂ᵀGd̂); I is linear in (w2, b2), so the factor at the central ray d̂ = (μ − o)/|μ − o|
-        # folds into them once per view (exact on that ray, docs/usage.md "Editing")
-        g, d = prims.rest_metric, torch.nn.functional.normalize(-rel, dim=-1)
-        quad = (g[:, :3] * d * d).sum(-1) + 2 * (g[:, 3] * d[:, 0] * d[:, 1] + g[:, 4] * d[:, 0] * d[:, 2] + g[:, 5] * d[:, 1] * d[:, 2])
-        factor = torch.sqrt(torch.clamp_min(quad, 0.0))
-        w2, b2 = w2 * factor[:, None], b2 * factor
-    return w2, b2
-
-
-def pair_alpha(u, v, intrinsics, m_cam, o_ell, w_cam, c, w2, b2, inv_smax, window: bool = False):
-    """α of primitives (P,) over blocks of image points (P, A) (paper eq. 7-9); `window`: the windowed density."""
-    d, l_near = camera_directions(u, v, intrinsics)
-    d_ell = d @ m_cam.transpose(1, 2)                    # d' = S⁻¹Rᵀ d̂
-    l_in_raw, l_out, hit = ray_ellipsoid(o_ell[:, None, :], d_ell)
-    l_in = torch.maximum(l_in_raw, l_near)               # camera inside: start at the near plane
-    a = d @ w_cam.transpose(1, 2)                        # a_k = ω0 W1_k · d̂
-    mlp = c[:, None, :], w2[:, None, :], b2[:, None], inv_smax[:, None]
-    if window:
-        optical_depth = windowed_optical_depth(l_in_raw, l_in, l_out, hit, (d_ell * d_ell).sum(-1), a, *mlp)
-    else:
-        optical_depth = neural_optical_depth(l_in, l_out, hit, a, *mlp)
-    return alpha_from_optical_depth(optical_depth)
 
 
 def _fused_cpu_view(prims: NeuralPrimitives, frame: ViewFrame, colors: torch.Tensor, t_min: float):
@@ -216,10 +155,10 @@ class NeuralKind(PrimitiveKind):
     primitives = NeuralPrimitives
     own_params = {"w1": ("N", 3), "b1": ("N",), "w2": ("N",), "b2": ()}
     lr_keys = {"w1": "mlp", "b1": "mlp", "w2": "mlp", "b2": "mlp"}
-    # `rest_metric` (P, 6), written by `radfield edit` with preserve_opacity (edit/deform.py; docs/formats.md)
+    # `rest_metric` (P, 6), written by `radfield edit` with preserve_opacity (edit/affine.py; docs/formats.md)
     optional = {"rest_metric": (6,)}
     attributes = ("omega0", "window")
-    has_line_integral_density = True
+    retrainable_locally = True
     bench_variants = ("neural", "neural-hard")
 
     # --- the model file: ω0 always, `window` ("1") only when set, so hard-edged files keep their bytes
@@ -250,7 +189,7 @@ class NeuralKind(PrimitiveKind):
         bad = first_bad_row(freq > self.MAX_FREQUENCY)
         if bad is not None:
             return "w1", bad, f"a frequency ω0·|w1| of {float(freq[bad].max()):g} exceeds {self.MAX_FREQUENCY:g}"
-        if prims.rest_metric is not None:   # G = c² A⁻ᵀA⁻¹ (edit/deform.py) is positive definite
+        if prims.rest_metric is not None:   # G = c² A⁻ᵀA⁻¹ (edit/affine.py) is positive definite
             info = torch.linalg.cholesky_ex(metric_matrix(prims.rest_metric.double())).info
             bad = first_bad_row(info != 0)
             if bad is not None:
@@ -267,8 +206,7 @@ class NeuralKind(PrimitiveKind):
         return partial(pair_alpha, window=prims.window)
 
     def reference_alpha(self, prims, i, ray, depth):
-        from radfield.core.render.kernels import ALPHA_MAX
-        from radfield.core.render.reference import quadrature_optical_depth
+        from radfield.core.splat.kernels import ALPHA_MAX
 
         optical_depth = quadrature_optical_depth(prims, i, ray.origin, ray.direction, l_min=ray.l_near)
         return min(ALPHA_MAX, 1.0 - math.exp(-max(0.0, optical_depth)))
@@ -323,7 +261,7 @@ class NeuralKind(PrimitiveKind):
         return NeuralPrimitives(**geometry, w1=w1, b1=b1, w2=w2, b2=b2.fill_(NEURAL_B2), omega0=omega0,
                                 window=settings.get("window", False))
 
-    # --- editing: the density composes with the inverse map (edit/deform.py's module docstring)
+    # --- editing: the density composes with the inverse map (edit/affine.py's module docstring)
 
     def deformed(self, prims, idx, sub, a, scales, new_scales, preserve_opacity):
         ratio = new_scales.amax(-1) / scales.amax(-1)                    # max(s') / max(s)
@@ -374,8 +312,6 @@ class NeuralKind(PrimitiveKind):
     def peak_density(self, prims, samples=128, seed=0):
         """The max of σ at `samples` points of each ellipsoid (its centre, the ends of its axes and
         random points), in the primitive's own units (windowed where prims.window)."""
-        from radfield.edit.retrain import neural_sigma, unit_ball_samples  # retraining machinery shares the sampler
-
         with torch.no_grad():
             u = unit_ball_samples(samples, seed).to(prims.means.dtype)                 # (S, 3)
             rot = quat_to_rotmat(prims.quats)
@@ -384,7 +320,8 @@ class NeuralKind(PrimitiveKind):
         return sigma.max(1).values
 
     def to_gaussians(self, prims, components=1):
-        from radfield.delivery.moments import gaussians_from_neural
+        # here, not at the top: moment_matching imports kinds.gaussian, which would register before this kind
+        from radfield.core.kinds.moment_matching import gaussians_from_neural
 
         with torch.no_grad():
             return gaussians_from_neural(prims, components=components)
@@ -397,5 +334,5 @@ class NeuralKind(PrimitiveKind):
 
 
 NEURAL = register(NeuralKind())
-backends.implement("view.neural", backends.FUSED_CPU, _fused_cpu_view)
-backends.implement("view.neural", backends.TRITON, gpu.neural_view)
+backends.implement(backends.view_op("neural"), backends.FUSED_CPU, _fused_cpu_view)
+backends.implement(backends.view_op("neural"), backends.TRITON, gpu.neural_view)

@@ -41,7 +41,7 @@ tests/test_relight_kinds.py (test_the_centre_colour_against_quadrature_of_a_colo
 
 The one seam the rest of radfield sees is `at_view` (kinds/base.py): render() and the slow
 reference first turn the primitives into static ones whose SH is degree 0 with the DC of the
-view's colour ((c − 0.5)/C0: core/render/sh.py draws max(C0·DC + 0.5, 0)), so the closed-form line
+view's colour ((c − 0.5)/C0: core/splat/sh.py draws max(C0·DC + 0.5, 0)), so the closed-form line
 integral, the fused CPU kernels and everything downstream apply unchanged, and autograd reaches
 c_dc, the network, μ and q through that DC. On the CPU that DC is one fused op with a hand-written
 backward for models of SH degree 0 (backend op relight_view_dc, core/backends/csrc/relight_kernels.cpp,
@@ -65,7 +65,7 @@ from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.kinds.base import first_bad_row, register
 from radfield.core.kinds.gaussian import Gaussians, GaussianKind
 from radfield.core.kinds.neural import NeuralKind, NeuralPrimitives
-from radfield.core.render.sh import C0, fibonacci_sphere, sh_basis
+from radfield.core.splat.sh import C0, fibonacci_sphere, sh_basis
 from radfield.errors import RadfieldError
 from radfield.util.transfer import to_device
 
@@ -132,7 +132,7 @@ def relit_colour(prims, view_dirs: torch.Tensor, light) -> torch.Tensor:
 
 
 def dc_of_colour(colour: torch.Tensor) -> torch.Tensor:
-    """The degree-0 SH (P, 1, 3) that core/render/sh.py draws as this colour (P, 3): max(C0·DC + 0.5, 0)."""
+    """The degree-0 SH (P, 1, 3) that core/splat/sh.py draws as this colour (P, 3): max(C0·DC + 0.5, 0)."""
     return ((colour - 0.5) / C0)[:, None, :]
 
 
@@ -142,7 +142,7 @@ def view_sh(prims, camera) -> torch.Tensor:
     light = view_light(camera)
     # the same in one op with a hand-written backward (fused: core/backends/csrc/relight_kernels.cpp),
     # for the DC band alone (the kinds train degree 0); None: the torch twin below
-    fused_dc = backends.kernel("relight_view_dc", prims.means.device, prims.means.dtype)
+    fused_dc = backends.kernel(backends.Op.RELIGHT_VIEW_DC, prims.means.device, prims.means.dtype)
     if fused_dc is not None and prims.sh_degree == 0:
         return fused_dc(prims.means, prims.quats, prims.sh, prims.color_w1, prims.color_b1, prims.color_w2,
                         prims.color_b2, campos, light)
@@ -284,7 +284,7 @@ class RelightNeuralKind(Relightable, NeuralKind):
     own_params = {**NeuralKind.own_params, **NETWORK}
     lr_keys = {**NeuralKind.lr_keys, **{name: "color" for name in NETWORK}}   # train.lr.color (module docstring)
     # edit/retrain.py's teacher composites the SH colour, which is not this kind's: it refuses it
-    has_line_integral_density = False
+    retrainable_locally = False
     bench_variants = ("neural-relight",)
 
 

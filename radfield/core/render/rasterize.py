@@ -16,7 +16,7 @@ Pipeline:
    - on the CPU, the fused C++ tile rasteriser (core/backends/fused.py, core/backends/csrc/view_kernels.cpp), the
      default, with fused ops for the colour and the neural frame of step 1;
    - on CUDA, the Triton tile kernels (core/backends/gpu/), with Triton kernels for step 1;
-   - the readable torch twin (core/render/composite.py: composite_view; RADFIELD_KERNELS=torch,
+   - the readable torch twin (core/splat/composite.py: composite_view; RADFIELD_KERNELS=torch,
      other devices): the pixels of each projected bound become flat (primitive, pixel) pairs,
      evaluated in depth-ordered chunks of at most `max_pairs` (pixels whose transmittance fell
      below `t_min` drop out of later chunks) and composited by `composite_pairs`, the one routine
@@ -32,9 +32,9 @@ import torch
 
 from radfield.core import backends, kinds
 from radfield.core.geometry.cameras import Camera
-from radfield.core.kinds import ViewFrame
-from radfield.core.render.composite import composite_view
-from radfield.core.render.sh import sh_parts, sh_to_color
+from radfield.core.splat.view import ViewFrame
+from radfield.core.splat.composite import composite_view
+from radfield.core.splat.sh import sh_parts, sh_to_color
 from radfield.util.transfer import to_device
 
 T_MIN = 1e-4            # 3DGS early termination threshold on transmittance
@@ -113,8 +113,8 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
     degree = prims.sh_degree if sh_degree is None else min(sh_degree, prims.sh_degree)
     kind = kinds.of(prims)
     parts = sh_parts(prims.sh)   # the trainer's (sh_dc, sh_rest), read in place by a backend's colour op
-    color_parts = backends.kernel("sh_color_parts", device, dtype) if parts is not None else None
-    color_op = backends.kernel("sh_color", device, dtype)
+    color_parts = backends.kernel(backends.Op.SH_COLOR_PARTS, device, dtype) if parts is not None else None
+    color_op = backends.kernel(backends.Op.SH_COLOR, device, dtype)
     if color_parts is not None:
         colors = color_parts(*parts, prims.means, campos, degree)
     elif color_op is not None:   # (fused: core/backends/csrc/prepare_kernels.cpp)
@@ -123,7 +123,7 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
         colors = sh_to_color(prims.sh, torch.nn.functional.normalize(prims.means - campos, dim=-1), degree)
 
     frame = ViewFrame(camera, c2w, w2c, campos, means_cam, depth, intrinsics, near)
-    view_op = backends.kernel(f"view.{kind.name}", device, dtype)
+    view_op = backends.kernel(backends.view_op(kind.name), device, dtype)
     if view_op is not None:
         # the whole view in one backend call (fused: core/backends/csrc/view_kernels.cpp; Triton:
         # core/backends/gpu/): the kind's bounds, depth order and per-view tensors, then the same

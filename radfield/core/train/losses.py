@@ -65,7 +65,7 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, padding: str = "valid", mask: tor
     x = img.reshape(-1, *img.shape[-3:])   # (B, H, W, C)
     y = ref.reshape(-1, *ref.shape[-3:])
     window = _gaussian_window(img.dtype, img.device)
-    fast = backends.kernel("ssim_map", img.device, img.dtype)
+    fast = backends.kernel(backends.Op.SSIM_MAP, img.device, img.dtype)
     if fast is not None and ref.dtype == img.dtype and not ref.requires_grad:
         ssim_map = fast(x, y, window, pad, SSIM_C1, SSIM_C2)   # fused: core/backends/csrc/loss_kernels.cpp
     else:
@@ -112,7 +112,7 @@ def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float,
     Without a mask, on a kernel backend (the fused CPU path: one C++ op, core/backends/csrc/loss_kernels.cpp)
     it and its image gradient are computed in one pass each: the composition below is its readable
     twin, whose gradient it reproduces bit for bit (its value: to the last bits of the float means)."""
-    fast = backends.kernel("photometric", img.device, img.dtype) if mask is None and img.dim() >= 3 else None
+    fast = backends.kernel(backends.Op.PHOTOMETRIC, img.device, img.dtype) if mask is None and img.dim() >= 3 else None
     if fast is not None and ref.dtype == img.dtype and ref.shape == img.shape and not ref.requires_grad:
         x, y = img.reshape(-1, *img.shape[-3:]), ref.reshape(-1, *ref.shape[-3:])
         return fast(x, y, _gaussian_window(img.dtype, img.device), lambda_dssim, SSIM_C1, SSIM_C2)
@@ -129,7 +129,7 @@ def anisotropy(log_scales: torch.Tensor) -> torch.Tensor:
     """Splat the Net's geometry regulariser (§3.3, §5.3): the standard deviation of each
     primitive's scales relative to its smallest, std(s / min(s)), averaged over primitives
     (Bessel-corrected std, as the authors' code). log_scales (P, 3)."""
-    fast = backends.kernel("anisotropy", log_scales.device, log_scales.dtype)
+    fast = backends.kernel(backends.Op.ANISOTROPY, log_scales.device, log_scales.dtype)
     if fast is not None:
         return fast(log_scales)   # fused: core/backends/csrc/loss_kernels.cpp
     return _anisotropy(log_scales)

@@ -133,7 +133,7 @@ class NonNegativeDensity:
         if not len(self._rows):
             return  # object-centric captures: no primitive has a narrow cone, nothing to do
         w2, b2 = params["w2"], params["b2"]
-        fast = backends.kernel("project_nonnegative_", w2.device, w2.dtype)
+        fast = backends.kernel(backends.Op.PROJECT_NONNEGATIVE, w2.device, w2.dtype)
         if fast is not None and w2.is_contiguous() and b2.is_contiguous() and b2.dtype == w2.dtype:
             fast(w2, b2, self._mask)   # one pass over the masked rows (fused: core/backends/csrc/positivity_kernels.cpp)
             return

@@ -39,7 +39,7 @@ more primitives qualify than there is room for, those with the largest mean grad
 the initial population already fills the budget, population control is off altogether (the
 paper "omits primitive densification" in its budget experiments).
 
-Parameters are a dict name -> leaf tensor with P rows (see radfield.core.train.trainer); every change
+Parameters are a dict name -> leaf tensor with P rows (see radfield.core.trainer.loop); every change
 of rows goes through `edit_rows`, which keeps the Adam moments aligned with the rows.
 """
 
@@ -50,10 +50,10 @@ from dataclasses import dataclass
 
 import torch
 
-from radfield.core import backends, kinds
+from radfield.core import backends
 from radfield.core.geometry.cameras import Camera
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.core.render.kernels import ALPHA_MIN
+from radfield.core.splat.kernels import ALPHA_MIN
 from radfield.util.transfer import to_device
 
 Params = dict[str, torch.Tensor]
@@ -108,14 +108,14 @@ class _Strategy:
     """What both strategies share: accumulators, visibility, budgeted growth, row surgery."""
 
     grad_names: tuple[str, ...] = ()  # parameters whose gradients `accumulate` reads
-    # how each accumulator combines over data-parallel ranks (radfield.core.train.distributed): sums
+    # how each accumulator combines over data-parallel ranks (radfield.core.trainer.distributed): sums
     # and counts add (a running maximum, as gsplat's max radii, would need a MAX all-reduce)
     REDUCTIONS = {"grad": "sum", "count": "sum"}
     split_uniform = False             # children inside the ellipsoid (neural) or ~N(0, s²) (3DGS)
     # parameters whose new rows (clones, split children) start from their parent's Adam moments
     # instead of zeros (edit_rows; a kind's own strategy sets it, core/kinds/dynamic.py)
     inherited_moments: tuple[str, ...] = ()
-    statistics_op = ""                # the backend op of a view's statistics (radfield.core.backends)
+    statistics_op: backends.Op | None = None   # the backend op of a view's statistics (radfield.core.backends)
 
     def __init__(self, schedule: Schedule, *, extent: float, near: float, grad_threshold: float,
                  grow_scale: float, prune_scale: float, max_primitives: int | None, initial_count: int,
@@ -223,7 +223,7 @@ class NeuralStrategy(_Strategy):
 
     grad_names = MLP_NAMES
     split_uniform = True
-    statistics_op = "neural_accumulate"
+    statistics_op = backends.Op.NEURAL_ACCUMULATE
 
     def __init__(self, schedule: Schedule, *, prune_threshold: float, **kwargs):
         super().__init__(schedule, **kwargs)
@@ -254,7 +254,7 @@ class GaussianStrategy(_Strategy):
     """3DGS adaptive density control (see the module docstring)."""
 
     grad_names = ("means",)
-    statistics_op = "gaussian_accumulate"
+    statistics_op = backends.Op.GAUSSIAN_ACCUMULATE
 
     def __init__(self, schedule: Schedule, *, min_opacity: float, opacity_reset_every: int, **kwargs):
         super().__init__(schedule, **kwargs)
@@ -324,20 +324,6 @@ class FixedPopulation:
         return {}
 
 
-def make_strategy(kind: str, densify: dict, *, extent: float, near: float, max_primitives: int | None,
-                  initial_count: int, pixels: int | None = None, attrs: dict | None = None):
-    """The strategy of primitive `kind` (radfield.core.kinds: its `strategy` hook) from the
-    train.densify config; `pixels`: a training view's pixel count, which scales the neural
-    thresholds (resolution_factor; None leaves them as configured). 3DGS's NDC-gradient threshold
-    needs no scaling. `attrs`: the kind's attributes (TrainState.attrs; None: the kind's defaults),
-    which a kind's own rules may read (the dynamic Gaussians' ω, core/kinds/dynamic.py)."""
-    schedule = Schedule(densify["start"], densify["stop"], densify["every"])
-    attrs = kinds.get(kind).default_attrs() if attrs is None else attrs
-    return kinds.get(kind).strategy(densify, schedule, pixels=pixels, extent=extent, near=near,
-                                    grow_scale=densify["grow_scale"], max_primitives=max_primitives,
-                                    initial_count=initial_count, attrs=attrs)
-
-
 # --- geometry tests --------------------------------------------------------------------------
 
 def in_frustum(means: torch.Tensor, radius: torch.Tensor, camera: Camera, near: float) -> torch.Tensor:
@@ -359,9 +345,11 @@ def side_normals(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.normalize(normals, dim=-1)
 
 
-def _statistics_kernel(op: str, state: dict, params: Params, grads: Params):
+def _statistics_kernel(op: backends.Op | None, state: dict, params: Params, grads: Params):
     """The backend implementation of a view's statistics (radfield.core.backends: `op`) when one
     runs the means' device and dtype and every tensor shares them; None: the torch twin of `accumulate`."""
+    if op is None:
+        return None
     means = params["means"]
     kernel = backends.kernel(op, means.device, means.dtype)
     tensors = (state["grad"], state["count"], params["log_scales"], *grads.values())

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from radfield.core.geometry.rotations import rotmat_to_quat
 from radfield.core.kinds import NeuralPrimitives
-from radfield.core.render.sh import rgb_to_sh_dc, sh_to_color
+from radfield.core.splat.sh import rgb_to_sh_dc, sh_to_color
 from radfield.edit import retrain
 from radfield.edit.boolean.shapes import Shape
 from radfield.edit.boolean.surface import cut_surface

@@ -7,10 +7,11 @@ import numpy as np
 import torch
 
 from radfield.core.geometry.rotations import quat_to_rotmat
-from radfield.edit import retrain
+from radfield.core.kinds import neural_density
+
 from radfield.edit.boolean.shapes import Shape
 
-SAMPLES = 64   # points per ellipsoid where no exact test settles a primitive (retrain.unit_ball_samples)
+SAMPLES = 64   # points per ellipsoid where no exact test settles a primitive (neural_density.unit_ball_samples)
 
 
 def classify(prims, keep_fn, shape: Shape | None = None, keep_inside: bool = True) -> np.ndarray:
@@ -32,8 +33,8 @@ def classify(prims, keep_fn, shape: Shape | None = None, keep_inside: bool = Tru
         out[outside_all] = 0 if keep_inside else 1
     todo = np.flatnonzero(out == -2)
     if todo.size:
-        pts = retrain.ellipsoid_points(prims.select(torch.as_tensor(todo)).to(dtype=torch.float64).map(lambda t: t.detach().cpu()),
-                                       retrain.unit_ball_samples(SAMPLES)).numpy()
+        pts = neural_density.ellipsoid_points(prims.select(torch.as_tensor(todo)).to(dtype=torch.float64).map(lambda t: t.detach().cpu()),
+                                       neural_density.unit_ball_samples(SAMPLES)).numpy()
         m = keep_fn(pts.reshape(-1, 3)).reshape(len(todo), SAMPLES)
         out[todo] = np.where(m.all(1), 1, np.where(~m.any(1), 0, -1))
     return out

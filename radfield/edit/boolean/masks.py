@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from radfield.edit import retrain
+from radfield.core.kinds import neural_density
+
 from radfield.edit.field import Field
 
 
@@ -18,7 +19,7 @@ def default_epsilon(prims) -> float:
 
 def field_mask(fld: Field, epsilon: float):
     """B = [D > ε] of a field, as a function of points (n, 3)."""
-    return lambda points: retrain.field_density(fld.prims, points) > epsilon
+    return lambda points: neural_density.field_density(fld.prims, points) > epsilon
 
 
 def gridded(mask, lo: np.ndarray, hi: np.ndarray, spacing: float, max_points: int = 300_000):

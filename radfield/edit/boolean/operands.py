@@ -12,7 +12,7 @@ from radfield.edit.boolean.masks import default_epsilon
 from radfield.edit.boolean.shapes import Shape, mesh_shape, parse_shape
 from radfield.edit.compose import transform_field
 from radfield.edit.field import Field
-from radfield.edit.operand import load_operand, same_kind
+from radfield.edit.model_operand import load_operand, same_kind
 from radfield.edit.select import number, vector
 from radfield.edit.warp import euler_rotation
 

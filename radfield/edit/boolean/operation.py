@@ -120,7 +120,7 @@ def read_options(fld: Field, args, where: str) -> Options:
     cap = args.get("cap", True)
     if not isinstance(cap, bool):
         raise RadfieldError(f"{where}.cap: expected true or false, got {cap!r}")
-    if not kinds.of(fld.prims).has_line_integral_density:
+    if not kinds.of(fld.prims).retrainable_locally:
         raise RadfieldError(f"{where}: boolean operations need a neural-primitive model (Gaussians have no line-integral density to mask)")
     if any(k in args for k in ("rotate", "translate", "scale")) and "model" not in args:
         raise RadfieldError(f"{where}: rotate/translate/scale place a model operand; shapes take their own coordinates")

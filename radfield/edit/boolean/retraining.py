@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from radfield.core.kinds import NeuralPrimitives
+from radfield.core.kinds import neural_density
 from radfield.edit import retrain
 from radfield.edit.compose import concat_prims
 
@@ -37,14 +38,14 @@ def retrain_boundary(frozen: NeuralPrimitives, straddlers: NeuralPrimitives, cap
 def density_teacher(student: NeuralPrimitives, n_masked: int, mask_ids, masks, seed: int, per_prim: int = 48):
     """Points in the student's ellipsoids and the teacher's density there: Σ over the masked
     (straddling) primitives of m(x)·σ/max s, plus the cap primitives' own density (eq. 15)."""
-    u = retrain.unit_ball_samples(per_prim, seed + 1)
+    u = neural_density.unit_ball_samples(per_prim, seed + 1)
     s64 = student.to(dtype=torch.float64).map(lambda t: t.detach())
-    pts = retrain.ellipsoid_points(s64, u).reshape(-1, 3)
+    pts = neural_density.ellipsoid_points(s64, u).reshape(-1, 3)
     target = torch.zeros(len(pts), dtype=torch.float64)
     with torch.no_grad():
         for lo in range(0, len(pts), 2048):
             x = pts[lo:lo + 2048]
-            dens = retrain.pair_density(s64, x)                             # (Q, S)
+            dens = neural_density.pair_density(s64, x)                             # (Q, S)
             weight = torch.ones_like(dens)
             for k in np.unique(mask_ids).tolist():
                 cols = torch.as_tensor(np.flatnonzero(mask_ids == k))

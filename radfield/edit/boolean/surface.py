@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from radfield.edit import retrain
+from radfield.core.kinds import neural_density
+
 from radfield.edit.boolean.shapes import Shape
 from radfield.edit.field import Field
 
@@ -92,7 +93,7 @@ def level_set_points(fld: Field, epsilon: float, lo: np.ndarray, hi: np.ndarray,
     shape = (np.ceil((hi - lo) / h) + 1).astype(int)
     axes = [lo[i] + h * np.arange(shape[i]) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
-    d = retrain.field_density(fld.prims, grid.reshape(-1, 3)).reshape(shape)
+    d = neural_density.field_density(fld.prims, grid.reshape(-1, 3)).reshape(shape)
     grad = np.stack(np.gradient(d, h), -1)
     points, normals = [], []
     for axis in range(3):

@@ -1,7 +1,7 @@
 // Fused CPU kernels of the rasteriser's two block kernels, forward and backward.
 //
 // They compute what the pure-torch twins in core/render/rasterize.py compute (`_neural_block`,
-// `_gaussian_block`, built from core/render/kernels.py), which stay the readable reference that
+// `_gaussian_block`, built from core/splat/kernels.py), which stay the readable reference that
 // tests/test_fused.py compares against, pair by pair: the per-pair code they share with the
 // whole-view rasteriser (view_kernels.cpp) lives in pair_kernels.h, so these tests, which hit every
 // branch on purpose, check the rasteriser's pair arithmetic too.

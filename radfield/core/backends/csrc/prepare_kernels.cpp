@@ -1,10 +1,10 @@
 // Per-view, per-primitive preparation in C++, forward and backward: what rasterize.py computes
 // once per primitive per view before compositing, as two fused ops whose readable torch twins
-// stay in core/render/rasterize.py and core/render/sh.py (tests/test_fused.py compares them, and gradchecks
+// stay in core/render/rasterize.py and core/splat/sh.py (tests/test_fused.py compares them, and gradchecks
 // these ops in float64). In torch they are some hundred small ops over (P, …) tensors, forward
 // and backward, which cost a training step at 64×64 more than the whole tile rasteriser.
 //
-//   sh_color:    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|, v = μ − o   (core/render/sh.py)
+//   sh_color:    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|, v = μ − o   (core/splat/sh.py)
 //   neural_prep: M = S⁻¹Rᵀ, m_cam = M R_cam, o' = M (o − μ), w_cam = ω0 W1 R_cam,
 //                c_k = ω0 (W1_k·(o − μ)/max(s) + b1_k), 1/max(s)           (rasterize._neural_view)
 //   gaussian_prep: EWA splatting (rasterize._gaussian_view): 2D mean, the 2D covariance
@@ -35,7 +35,7 @@ using radfield::check_params;
 using radfield::rotmat;
 using radfield::rotmat_backward;
 
-// --- SH colour (3DGS's real SH basis and order, core/render/sh.py) -----------------------------------
+// --- SH colour (3DGS's real SH basis and order, core/splat/sh.py) -----------------------------------
 
 constexpr double C0 = 0.28209479177387814;
 constexpr double C1 = 0.4886025119029199;

@@ -9,7 +9,7 @@
 //     d_l = normalise(p_l − μ), E = I / |p_l − μ|²   (point light)
 //     d_l = −direction,         E = I                (directional light)
 //     h = softplus(W1 x + b1),  c = (C0 sh_0 + 0.5 + W2 h + b2) · E    (Splat the Net eq. 14)
-//     DC = (c − 0.5) / C0        (the degree-0 SH that core/render/sh.py draws as c)
+//     DC = (c − 0.5) / C0        (the degree-0 SH that core/splat/sh.py draws as c)
 //   The forward also returns the hidden units and their softplus slopes (P, H each), so that the
 //   backward computes no transcendental function (it recomputes the geometry: square roots only).
 //
@@ -31,7 +31,7 @@ using radfield::check_params;
 using radfield::rotmat;
 using radfield::rotmat_backward;
 
-constexpr double C0 = 0.28209479177387814;   // Y_0 (core/render/sh.py)
+constexpr double C0 = 0.28209479177387814;   // Y_0 (core/splat/sh.py)
 constexpr double SOFTPLUS_THRESHOLD = 20;    // torch's softplus is the identity above it
 
 // out = v / max(|v|, 1e-12) (torch.nn.functional.normalize) of an n-vector; returns the divisor

@@ -20,7 +20,7 @@ CPU tensors, so CI (no GPU) tests them against the torch twins on tiny views (te
 The design is gsplat's/3DGS's. Per view:
 1. the kind's per-view preparation (preparation.py), one lane per primitive, forward and
    hand-written backward (prepare_kernels.py; the twins: `twin_view` of kinds/gaussian.py and kinds/neural.py, and
-   core/render/sh.py): the colours from the SH; for Gaussians the EWA projection (mean2d, the conic
+   core/splat/sh.py): the colours from the SH; for Gaussians the EWA projection (mean2d, the conic
    with the 0.3 px² blur) and the 3σ boxes in one launch; for neural primitives the dual-conic
    boxes, then the ellipsoid frame M R_cam, o′, ω0 W1 R_cam, the phases c_k and 1/max s ((W2, b2)
    stay torch: an edited model's rest metric scales them);
@@ -58,6 +58,7 @@ import re
 
 import torch
 
+from radfield.core.backends.seam import chosen
 from radfield.core.backends.gpu.binning import bin_tiles, pair_count
 from radfield.core.backends.gpu.launch import (COMPILE_OPTIONS, NEURAL_BACKWARD_OPTIONS, PREPARE_OPTIONS, TILE,
                                                interpreting)
@@ -107,9 +108,7 @@ def _installed() -> bool:
 
 
 def _chosen() -> bool:
-    from radfield.core import backends
-
-    return backends.chosen() == NAME
+    return chosen() == NAME
 
 
 def runs(device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> bool:

@@ -11,7 +11,7 @@ r: bounds (P, 4) int32 inclusive pixel boxes, mean2d (P, 2), conic (P, 3), opaci
 front to back (gpu.bin_tiles). consts = (t_min, α_min, α_max) in the inputs'
 dtype, so a float64 view compares at float64 with the twin's thresholds.
 
-Forward (paper eq. 4; the twin's rules, core/render/composite.py): a pixel evaluates a splat only
+Forward (paper eq. 4; the twin's rules, core/splat/composite.py): a pixel evaluates a splat only
 inside its box; α = min(α_max, o·exp(power)), a miss when α < α_min or power > 0; the first pair
 that would take T below t_min is not composited and ends the pixel. Each pixel keeps Σ w c, Σ w z,
 its final T and `last`, the list position after its last composited pair; each tile its counts of

@@ -1,6 +1,6 @@
 """The Triton kernels of the neural view (core/backends/gpu/views.py joins them into one autograd
 op): the closed-form line integral of a neural primitive per (pixel, primitive) pair, hard-edged
-or windowed (core/render/kernels.py: neural_optical_depth, windowed_optical_depth), composited per
+or windowed (core/splat/kernels.py: neural_optical_depth, windowed_optical_depth), composited per
 16×16 tile front to back, and its backward walking each pixel's list back to front.
 
 The same tile walk as gaussian_kernels.py (tiles.py; gaussian_kernels.py's docstring says the
@@ -26,7 +26,7 @@ from radfield.core.backends.gpu.tiles import (CHUNK, _add_sums, _alive, _composi
 @triton.jit
 def _directions(px, py, intrinsics_ptr):
     """Unit camera-space directions through the pixel centres and the near plane's ray distance
-    (kinds/base.py: camera_directions)."""
+    (splat/view.py: camera_directions)."""
     fx = tl.load(intrinsics_ptr)
     fy = tl.load(intrinsics_ptr + 1)
     cx = tl.load(intrinsics_ptr + 2)

@@ -78,7 +78,7 @@ class _NeuralPrep(torch.autograd.Function):
 
 
 def neural_prep(prims, campos: torch.Tensor, cam_rot: torch.Tensor) -> tuple:
-    """(m_cam, o_ell, w_cam, c, inv_smax) of kinds/neural.py view_tensors (without its (W2, b2)) on
+    """(m_cam, o_ell, w_cam, c, inv_smax) of splat/neural.py view_tensors (without its (W2, b2)) on
     Triton: one launch, and one for the backward."""
     view = torch.cat([campos, cam_rot.reshape(9), campos.new_full((1,), float(prims.omega0))])
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, view)
@@ -123,10 +123,10 @@ class _GaussianPrep(torch.autograd.Function):
 
 
 def gaussian_prep(prims, frame) -> tuple:
-    """(bounds, visible, (mean2d, conic, opacity)) of kinds/gaussian.py twin_view (ewa_view and
+    """(bounds, visible, (mean2d, conic, opacity)) of splat/gaussian.py (ewa_view and
     splat_bounds) on Triton: one launch, and one for the backward. The clamp of the Jacobian's point
     is the twin's, from the camera's numbers."""
-    from radfield.core.kinds.gaussian import jacobian_clamp
+    from radfield.core.splat.gaussian import jacobian_clamp
 
     camera = frame.camera
     numbers = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy, frame.near, *jacobian_clamp(camera)],
@@ -139,7 +139,7 @@ def gaussian_prep(prims, frame) -> tuple:
 
 @torch.no_grad()
 def neural_bounds(prims, frame) -> tuple[torch.Tensor, torch.Tensor]:
-    """(bounds (P, 4) int32, visible (P,) bool) of kinds/base.py ellipsoid_bounds in one launch."""
+    """(bounds (P, 4) int32, visible (P,) bool) of splat/view.py ellipsoid_bounds in one launch."""
     from radfield.core.backends.gpu import prepare_kernels as K
 
     means_cam = frame.means_cam.detach().contiguous()
@@ -158,7 +158,7 @@ def sh_color(sh: torch.Tensor, v: torch.Tensor, degree: int) -> torch.Tensor:
     """Op "sh_color" on Triton: sh.sh_to_color(sh, normalize(v), degree) (v = μ − o) in one launch, and
     one for its backward."""
     if v.shape[0] == 0:   # no grid to launch: the twin's empty result
-        from radfield.core.render.sh import sh_to_color
+        from radfield.core.splat.sh import sh_to_color
 
         return sh_to_color(sh, torch.nn.functional.normalize(v, dim=-1), degree)
     return _SHColor.apply(sh, v, degree)

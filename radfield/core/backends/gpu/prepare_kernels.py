@@ -3,10 +3,10 @@ wraps them in autograd ops): one lane per primitive, forward and hand-written ba
 the dozens of small torch ops each of their twins launches.
 
     sh_color_forward / sh_color_backward    colour = max(Σ_k Y_k(d̂) sh_k + 0.5, 0), d̂ = v/|v|,
-                                            v = μ − o (twin: core/render/sh.py sh_to_color; the
+                                            v = μ − o (twin: core/splat/sh.py sh_to_color; the
                                             fused CPU op: csrc/prepare_kernels.cpp sh_color)
 
-The basis is 3DGS's real SH up to degree 3, in its order and signs (core/render/sh.py). Imported
+The basis is 3DGS's real SH up to degree 3, in its order and signs (core/splat/sh.py). Imported
 only when the "triton" backend prepares a view (as the view kernels; TRITON_INTERPRET=1 runs them
 on CPU tensors in the tests).
 """
@@ -23,7 +23,7 @@ BLOCK = 128   # primitives per program
 @triton.jit
 def _basis(k: tl.constexpr, x, y, z):
     """Y_k at the unit direction (x, y, z) and its gradient (∂x, ∂y, ∂z), as csrc/prepare_kernels.cpp sh_basis
-    (the constants of core/render/sh.py: constexpr locals, so that a float64 kernel reads them in
+    (the constants of core/splat/sh.py: constexpr locals, so that a float64 kernel reads them in
     float64; a plain local is made a float32 scalar, a kernel cannot read a module global)."""
     C0: tl.constexpr = 0.28209479177387814
     C1: tl.constexpr = 0.4886025119029199
@@ -149,7 +149,7 @@ def sh_color_backward(grad_ptr, sh_ptr, v_ptr, g_sh_ptr, g_v_ptr, P, K, COEFFS: 
     tl.store(g_v_ptr + 3 * p + 2, tl.where(small, dz, dz - z * along) / norm, mask=live)
 
 
-# --- the neural frame of a view (twin: core/kinds/neural.py view_tensors; fused CPU op:
+# --- the neural frame of a view (twin: core/splat/neural.py view_tensors; fused CPU op:
 # csrc/prepare_kernels.cpp neural_prep): M = S⁻¹Rᵀ, m_cam = M R_cam, o' = M (o − μ),
 # w_cam = ω0 W1 R_cam, c = ω0 (W1 (o − μ)/max s + b1), 1/max s
 
@@ -392,7 +392,7 @@ def gaussian_prep_forward(means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr, me
     """mean2d (P, 2), conic (P, 3) and the covariance's (a, b, c) (P, 3) of the splats (EWA, 3DGS's
     0.3 px² blur); and (no gradient) their 3σ pixel boxes (P, 4) int32, clipped to the image, and
     visibility (P,) int8: beyond the near plane, a positive-definite covariance and a box in the
-    image (twin: core/kinds/gaussian.py splat_bounds, with IEEE roots and divisions as torch's)."""
+    image (twin: core/splat/gaussian.py splat_bounds, with IEEE roots and divisions as torch's)."""
     p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = p < P
     centre, _, _, _, _, _, _, _, t = _ewa(p, live, means_cam_ptr, log_scales_ptr, quats_ptr, view_ptr)
@@ -499,7 +499,7 @@ def _times_w_transposed(view_ptr, g_rs, s):
             (w02 * g_rs[2] + w12 * g_rs[5] + w22 * g_rs[8]) * s[2])
 
 
-# --- the neural primitives' pixel bounds (no gradient; twin: core/kinds/base.py ellipsoid_bounds)
+# --- the neural primitives' pixel bounds (no gradient; twin: core/splat/view.py ellipsoid_bounds)
 
 @triton.jit
 def _sqrt_ieee(x):

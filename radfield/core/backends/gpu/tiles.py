@@ -2,7 +2,7 @@
 tile's pixels, one front-to-back compositing step of their lists and the tile's stores (forward),
 and the backward's upstream gradients and one back-to-front step. What differs between the kinds
 is only the pair (α and its own gradients); the compositing rules are the twin's
-(core/render/composite.py), and gaussian_kernels.py's docstring states them and the backward's
+(core/splat/composite.py), and gaussian_kernels.py's docstring states them and the backward's
 suffix S.
 
 Imported only with those kernels (it imports triton).

@@ -64,7 +64,7 @@ def _prepared(tensors, bounds: torch.Tensor, visible: torch.Tensor, order: torch
 
 def _constants(like: torch.Tensor, t_min: float) -> torch.Tensor:
     """(t_min, α_min, α_max, 1) in the inputs' dtype (the kernels' thresholds are the twin's)."""
-    from radfield.core.render.kernels import ALPHA_MAX, ALPHA_MIN
+    from radfield.core.splat.kernels import ALPHA_MAX, ALPHA_MIN
 
     return device_constants((float(t_min), ALPHA_MIN, ALPHA_MAX, 1.0), like.dtype, like.device)
 
@@ -150,17 +150,18 @@ def _front_to_back(frame, visible: torch.Tensor) -> torch.Tensor:
 
 
 def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
-    """Op "view.gaussian" on Triton: the twin's per-view preparation (kinds/gaussian.py: twin_view,
-    the EWA projection and the bounds) by the preparation kernel (gaussian_prep) and depth order,
-    then the tile kernels; returns (Σ w c, Σ w z, T, counters (evaluated,
-    composited, terminated, candidate pairs), the number of visible primitives (0-dim))."""
-    from radfield.core import kinds
-
+    """Op "view.gaussian" on Triton: the twin's per-view preparation (core/splat/gaussian.py: the EWA
+    projection and the bounds) by the preparation kernel (gaussian_prep) and depth order, then the
+    tile kernels; returns (Σ w c, Σ w z, T, counters (evaluated, composited, terminated, candidate
+    pairs), the number of visible primitives (0-dim))."""
     # the twin's EWA projection and bounds in one launch (gaussian_prep)
     if len(prims.means):
         bounds, visible, (mean2d, conic, opacity) = gaussian_prep(prims, frame)
-    else:   # nothing to launch
-        bounds, visible, (mean2d, conic, opacity) = kinds.of(prims).twin_view(prims, frame)
+    else:   # nothing to launch: the twin's (empty) tensors
+        from radfield.core.splat.gaussian import ewa_view, splat_bounds
+
+        (mean2d, conic, opacity), cov = ewa_view(prims, frame.camera, frame.w2c, frame.means_cam, frame.near)
+        bounds, visible = splat_bounds(mean2d, *cov, frame.depth, frame.camera, frame.near)
     camera = frame.camera
     *sums, counts = _GaussianView.apply(bounds, visible, _front_to_back(frame, visible), camera.height, camera.width,
                                         float(t_min), mean2d, conic, opacity, colors, frame.depth)
@@ -168,19 +169,19 @@ def gaussian_view(prims, frame, colors: torch.Tensor, t_min: float):
 
 
 def neural_view(prims, frame, colors: torch.Tensor, t_min: float):
-    """Op "view.neural" on Triton: the twin's bounds and per-view tensors (kinds/neural.py:
-    twin_view: the ellipsoid frame, the MLP phases, (W2, b2)), the frame and phases by the
+    """Op "view.neural" on Triton: the twin's bounds and per-view tensors (splat/neural.py:
+    view_tensors: the ellipsoid frame, the MLP phases, (W2, b2)), the frame and phases by the
     preparation kernel (neural_prep), then the tile kernels; returns as gaussian_view."""
-    from radfield.core.kinds.neural import density_weights
+    from radfield.core.splat.neural import density_weights
 
-    # the twin's bounds (kinds/base.py ellipsoid_bounds) and per-view tensors (view_tensors), each in one launch
+    # the twin's bounds (splat/view.py ellipsoid_bounds) and per-view tensors (view_tensors), each in one launch
     if len(prims.means):
         bounds, visible = neural_bounds(prims, frame)
         m_cam, o_ell, w_cam, c, inv_smax = neural_prep(prims, frame.campos, frame.c2w[:3, :3])
         w2, b2 = density_weights(prims, frame.campos - prims.means)
     else:   # nothing to launch
-        from radfield.core.kinds.base import ellipsoid_bounds
-        from radfield.core.kinds.neural import view_tensors
+        from radfield.core.splat.view import ellipsoid_bounds
+        from radfield.core.splat.neural import view_tensors
 
         bounds, visible = ellipsoid_bounds(prims, frame)
         m_cam, o_ell, w_cam, c, w2, b2, inv_smax = view_tensors(prims, frame.campos, frame.c2w[:3, :3])

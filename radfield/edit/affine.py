@@ -1,4 +1,5 @@
-"""Exact cage deformation of primitives (Neural Impostor §4.1 on splattable neural primitives).
+"""Exact deformation of primitives by affine maps, a cage's or an operation's (Neural Impostor §4.1
+on splattable neural primitives).
 
 Moving the cage vertices gives each tet an affine map x ↦ A x + b with A = E' E⁻¹, E and E' the
 edge matrices [v1 − v0, v2 − v0, v3 − v0] of the rest and the deformed tet. A primitive bound to a
@@ -45,7 +46,7 @@ The default (None, "auto") takes it exactly when some primitive's A is not a sim
 similarity G = I, and without it a non-similarity map changes a primitive's optical depth by
 max(s)/(max(s')|A⁻¹d̂|), the whole of the affine squash's 1.1 dB loss against the truth
 (docs/studies/edit-truth.md: with it squash, twist and bend land within 0.15 dB of the unedited
-run at 128 px). A similarity edit therefore still writes no `rest_metric`, bit for bit as before.
+run at 128 px). A similarity edit therefore writes no `rest_metric`: its model is the plain one.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ from radfield.core import kinds
 from radfield.core.geometry.cage import bind_to_cage, tet_volumes
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.errors import RadfieldError
-from radfield.core.render.sh import rotate_sh
+from radfield.core.splat.sh import rotate_sh
 from radfield.edit.field import Field
 
 CAGE_GRADIENTS = ("smooth", "centre", "tet")   # from the moved cage's vertices alone

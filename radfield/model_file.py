@@ -27,7 +27,7 @@ from radfield.core import kinds
 from radfield.core.kinds.base import int_metadata
 from radfield.util.atomic import atomic_write_bytes
 from radfield.errors import RadfieldError
-from radfield.core.render.sh import num_sh_coeffs
+from radfield.core.splat.sh import num_sh_coeffs
 
 FORMAT = "radfield"
 VERSION = 1

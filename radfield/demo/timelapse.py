@@ -30,7 +30,7 @@ if TYPE_CHECKING:  # light to import: `radfield demo-scene --help` names SCENES 
 
 TRAIN_VIEWS, TEST_VIEWS, TIMES = 36, 4, 24
 # name -> the module that renders it (imported when used: torch for smoke)
-SCENES = {"smoke": "radfield.datasets.smoke", "moving": "radfield.datasets.moving"}
+SCENES = {"smoke": "radfield.demo.smoke", "moving": "radfield.demo.moving"}
 
 
 def moments(count: int) -> list[float]:
@@ -50,7 +50,7 @@ def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None 
     docstring); `progress(1)` after each image; `held_out_times`: test frames at the midpoints.
     Written to a temporary sibling folder and renamed, so `out_dir` is complete or absent; an
     existing non-empty `out_dir` is refused."""
-    from radfield.datasets.synthetic import CAMERA_ANGLE_X, CAMERA_RADIUS, orbit_cameras
+    from radfield.demo.scenes import CAMERA_ANGLE_X, CAMERA_RADIUS, orbit_cameras
 
     if name not in SCENES:
         raise RadfieldError(f"unknown dynamic scene {name!r} (available: {', '.join(SCENES)})")
@@ -81,7 +81,7 @@ def _write_split(render: Callable, root: Path, split: str, cameras: list[Camera]
                  progress: Callable[[int], None] | None) -> None:
     from radfield.core.geometry.cameras import opencv_to_opengl
     from radfield.datasets.images import write_image
-    from radfield.datasets.synthetic import CAMERA_ANGLE_X
+    from radfield.demo.scenes import CAMERA_ANGLE_X
 
     (root / split).mkdir()
     frames = []
@@ -95,3 +95,22 @@ def _write_split(render: Callable, root: Path, split: str, cameras: list[Camera]
                 progress(1)
     meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
     (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+
+
+def write(name: str, folder: Path, *, train_views: int | None = None, test_views: int | None = None, size: int = 64,
+          seed: int = 0, quiet: bool = True, times: int | None = None, held_out_times: bool = False) -> str:
+    """The dynamic family's writer (radfield.demo): `generate_dynamic` with a progress bar, and what
+    it wrote in one line."""
+    from radfield.util.progress import progress_bar
+
+    n_train = TRAIN_VIEWS if train_views is None else train_views
+    n_test = TEST_VIEWS if test_views is None else test_views
+    count = TIMES if times is None else times
+    test_count = count - 1 if held_out_times else count
+    with progress_bar(quiet) as progress:
+        task = progress.add_task(f"rendering {name}", total=max(0, n_train * count + n_test * test_count))
+        generate_dynamic(name, folder, n_train, n_test, count, size, seed, progress=lambda done: progress.advance(task, done),
+                         held_out_times=held_out_times)
+    between = f" (test at the {test_count} times between)" if held_out_times else ""
+    return (f"wrote {name}: {n_train} train + {n_test} test cameras at {count} times{between} "
+            f"({n_train * count} + {n_test * test_count} frames) of {size}x{size} to {folder}")

@@ -3,7 +3,7 @@ which starts the local ranks itself through torch's elastic launcher: standalone
 free port).
 
 Rank 0 runs the pipeline as a single process would (it alone takes the run directory's lock and
-writes into it); the other ranks only join the training (radfield.core.train.dataparallel) and exit
+writes into it); the other ranks only join the training (radfield.core.trainer.dataparallel) and exit
 when rank 0 says it is done. A failure is one line `radfield: error: …` and exit status 1: under
 torchrun every rank that notices it prints its line (and records it in torchrun's error file, so
 torchrun's summary names it); with --nproc the workers only record it and the launcher prints
@@ -23,7 +23,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from radfield.core.train import distributed
+from radfield.core.trainer import distributed
 from radfield.errors import RadfieldError
 
 _LAUNCHED_HERE = "RADFIELD_LAUNCHER"  # set for the workers of --nproc: the launcher reports errors
@@ -48,7 +48,7 @@ def follow() -> None:
         distributed.connect()
         done = False
         try:
-            from radfield.core.train.dataparallel import follow as follow_rank0
+            from radfield.core.trainer.dataparallel import follow as follow_rank0
 
             done = follow_rank0()
         finally:

@@ -16,12 +16,12 @@ import json
 from pathlib import Path
 from typing import Any, Sequence
 
-from radfield.delivery import report
+from radfield.evaluation import report
 from radfield.util.atomic import atomic_folder, atomic_write_text
 from radfield.errors import RadfieldError
 from radfield.datasets.images import read_image, write_image
 from radfield.run import MODEL_STAGE, Run
-from radfield.stages.evaluate import GRIDS, REPORT, RENDERS, eval_report, resolve_target
+from radfield.evaluation.evaluate import GRIDS, RENDERS, REPORT, eval_report, resolve_target
 
 COMPARISON = "comparison.json"
 

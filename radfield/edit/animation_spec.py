@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from radfield.errors import RadfieldError
-from radfield.edit.deform import CAGE_GRADIENTS as GRADIENTS   # an animation has cage poses only: no "map"
+from radfield.edit.affine import CAGE_GRADIENTS as GRADIENTS   # an animation has cage poses only: no "map"
 from radfield.edit.select import number, vector
 from radfield.edit.simulate import parse_simulation
 from radfield.edit.spec import check_keys, read_yaml

@@ -1,7 +1,7 @@
 """Training over several ranks: rank 0 sends the trainer's inputs, every rank runs the trainer.
 
 Rank 0 (the one that runs the pipeline) calls `train_on_ranks` with exactly the arguments of
-radfield.core.train.trainer.train; with several ranks it first broadcasts them (cameras, images, valid
+radfield.core.trainer.loop.train; with several ranks it first broadcasts them (cameras, images, valid
 masks, alpha channels, the initial primitives, the state to resume from, the train config) to the other ranks,
 which wait in `follow` and then run the same trainer with them. So the other ranks need no
 dataset, run directory or config file of their own (they may be on other machines), and they
@@ -14,16 +14,16 @@ from dataclasses import asdict, fields
 
 import torch
 
-from radfield.core.train import distributed
+from radfield.core.trainer import distributed
 from radfield.core.geometry.cameras import Camera, Light
 from radfield.core import kinds
-from radfield.core.train.trainer import TrainState, state_from_tensors, state_tensors, train
+from radfield.core.trainer.loop import TrainState, state_from_tensors, state_tensors, train
 
 
 def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, extent, seed, device="cpu",
                    near=0.01, start_state=None, masks=None, alphas=None, on_step=None, held_out=None,
                    checkpoint=None) -> TrainState:
-    """trainer.train on every rank of distributed.current() (just trainer.train with one)."""
+    """loop.train on every rank of distributed.current() (just loop.train with one)."""
     world = distributed.current()
     kwargs = dict(background=[float(c) for c in background], extent=float(extent), seed=int(seed), near=float(near))
     if world.size > 1:

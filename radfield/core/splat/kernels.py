@@ -6,14 +6,11 @@ flat batches and `torch.compile` can fuse it into one loop.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 
 import torch
 
 from radfield.core.geometry.rotations import quat_to_rotmat
 
-if TYPE_CHECKING:
-    from radfield.core.kinds.neural import NeuralPrimitives
 
 WINDOW_GAIN = 1.5       # the window 1.5 (1 − r²): the central chord's optical depth is the hard-edged one's
 
@@ -175,25 +172,3 @@ def gaussian_alpha(dx, dy, conic, opacity) -> torch.Tensor:
     power = -0.5 * (conic[..., 0] * dx * dx + conic[..., 2] * dy * dy) - conic[..., 1] * dx * dy
     alpha = torch.clamp_max(opacity * torch.exp(torch.clamp_max(power, 0.0)), ALPHA_MAX)
     return torch.where((alpha < ALPHA_MIN) | (power > 0), torch.zeros_like(alpha), alpha)
-
-
-def neural_line_integral(prims: NeuralPrimitives, origins: torch.Tensor, dirs: torch.Tensor,
-                         l_min: torch.Tensor | float = 0.0) -> torch.Tensor:
-    """Optical depth I of every primitive along every ray: origins, dirs (R, 3) with unit dirs ->
-    (R, P). Integration starts at ray distance l_min (near plane, or 0 for a camera inside).
-    A convenience wrapper over the same per-pair kernel the rasteriser uses (windowed where
-    prims.window is set)."""
-    m, smax = ellipsoid_frame(prims.means, prims.log_scales, prims.quats)       # (P,3,3), (P,)
-    rel = origins[:, None, :] - prims.means[None]                               # (R, P, 3)
-    o_ell = torch.einsum("pij,rpj->rpi", m, rel)
-    d_ell = torch.einsum("pij,rj->rpi", m, dirs)
-    l_in_raw, l_out, hit = ray_ellipsoid(o_ell, d_ell)
-    l_min = torch.as_tensor(l_min, dtype=l_in_raw.dtype, device=l_in_raw.device)
-    l_in = torch.maximum(l_in_raw, l_min[:, None] if l_min.ndim == 1 else l_min)
-    w = prims.omega0 * prims.w1                                                 # (P, N, 3)
-    a = torch.einsum("pnj,rj->rpn", w, dirs)
-    c = torch.einsum("pnj,rpj->rpn", w, rel / smax[:, None]) + prims.omega0 * prims.b1
-    if prims.window:
-        return windowed_optical_depth(l_in_raw, l_in, l_out, hit, (d_ell * d_ell).sum(-1), a, c, prims.w2, prims.b2,
-                                      1.0 / smax)
-    return neural_optical_depth(l_in, l_out, hit, a, c, prims.w2, prims.b2, 1.0 / smax)

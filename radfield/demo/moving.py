@@ -1,6 +1,6 @@
 """`radfield demo-scene moving`: the `objects` scene's opaque shapes moving and turning over time,
 ray traced exactly at each time (synthetic.render_view, 2x2 rays per pixel), as a D-NeRF dataset
-(datasets/timelapse.py). It covers what the smoke volume does not: time-varying opaque surfaces,
+(demo/timelapse.py). It covers what the smoke volume does not: time-varying opaque surfaces,
 sharp silhouettes and shading that changes as faces turn to the light.
 
 Each shape k moves rigidly over ξ ∈ [0, 1]: turned by angle_k · ξ about axis_k through its own
@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from radfield.core.geometry.cameras import Camera
-from radfield.datasets.shapes import Box, Cylinder, Sphere, Torus
-from radfield.datasets.synthetic import Scene, get_scene, render_view
+from radfield.demo.shapes import Box, Cylinder, Sphere, Torus
+from radfield.demo.scenes import Scene, get_scene
+from radfield.demo.raytrace import render_view
 
 
 @dataclass(frozen=True)

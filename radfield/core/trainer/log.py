@@ -1,6 +1,6 @@
 """The training log: one JSON object per optimiser step in a JSON-lines file, and its curves.
 
-A record holds what the trainer reports after a step (radfield.core.train.trainer.train's on_step):
+A record holds what the trainer reports after a step (radfield.core.trainer.loop.train's on_step):
 step, loss, psnr (of that step's training views), primitives, seconds (wall time since training
 began, summed over resumed attempts), what population control did (cloned, split, pruned, when
 it ran) and test_psnr on the steps where held-out views were measured. The log is appended to

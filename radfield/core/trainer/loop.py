@@ -39,7 +39,7 @@ run is a pure function of its inputs and the step count: a checkpoint holds para
 moments, strategy accumulators and the step, and resuming from it reproduces the uninterrupted
 run bit for bit on the CPU. Checkpoints are safetensors files with a JSON header, never pickles.
 
-Data parallel (`world`, radfield.core.train.distributed.StepSync): each rank renders its share of the
+Data parallel (`world`, radfield.core.trainer.distributed.StepSync): each rank renders its share of the
 step's views, one all-reduce sums the gradients and the strategy's per-step increments, and every
 rank applies the same step; with one rank the hooks are the identity.
 """
@@ -58,14 +58,15 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
 from radfield.core import kinds
-from radfield.core.render.antialias import FootprintFloor, jitter_offsets, render_supersampled, shifted
+from radfield.core.train.footprint import FootprintFloor
+from radfield.core.render.antialias import jitter_offsets, render_supersampled, shifted
 from radfield.util.atomic import atomic_write
 from radfield.core.geometry.cameras import Camera
-from radfield.core.train.distributed import StepSync, World
+from radfield.core.trainer.distributed import StepSync, World
 from radfield.errors import RadfieldError
 from radfield.core.train.losses import anisotropy, photometric, psnr
-from radfield.core.render.sh import join_sh, num_sh_coeffs
-from radfield.core.train.strategy import make_strategy
+from radfield.core.train.strategy import Schedule
+from radfield.core.splat.sh import join_sh, num_sh_coeffs
 
 CHECKPOINT_FORMAT = "radfield-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -98,6 +99,19 @@ class TrainState:
         return assemble(self.params, self.kind, self.attrs).map(lambda t: t.detach().clone())
 
 
+def make_strategy(kind: str, densify: dict, *, extent: float, near: float, max_primitives: int | None,
+                  initial_count: int, pixels: int | None = None, attrs: dict | None = None):
+    """The strategy of primitive `kind` (radfield.core.kinds: its `strategy` hook) from the
+    train.densify config; `pixels`: a training view's pixel count, which scales the neural
+    thresholds (resolution_factor; None leaves them as configured). 3DGS's NDC-gradient threshold
+    needs no scaling. `attrs`: the kind's attributes (TrainState.attrs; None: the kind's defaults),
+    which a kind's own rules may read (the dynamic Gaussians' ω, core/kinds/dynamic.py)."""
+    schedule = Schedule(densify["start"], densify["stop"], densify["every"])
+    attrs = kinds.get(kind).default_attrs() if attrs is None else attrs
+    return kinds.get(kind).strategy(densify, schedule, pixels=pixels, extent=extent, near=near,
+                                    grow_scale=densify["grow_scale"], max_primitives=max_primitives,
+                                    initial_count=initial_count, attrs=attrs)
+
 def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images: torch.Tensor,
           cfg: dict, *, background: Sequence[float], extent: float, seed: int, device: str | torch.device = "cpu",
           near: float = 0.01, max_pairs: int = 1 << 20, start_state: TrainState | None = None,
@@ -124,9 +138,9 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
     refinement, held-out, checkpoint and last step; a caller that clocks single steps sets it to 1.
     held_out(primitives): measured every cfg["eval_every"] steps (0: never) and at the last step.
     checkpoint(state): every cfg["checkpoint_every"] steps before the last.
-    world: the ranks of a data-parallel training (radfield.core.train.distributed; None: this process
+    world: the ranks of a data-parallel training (radfield.core.trainer.distributed; None: this process
     alone). Each rank then renders its share of the step's views and the gradients are summed
-    over the ranks before the Adam step, so every rank holds the same model (radfield.core.train.dataparallel).
+    over the ranks before the Adam step, so every rank holds the same model (radfield.core.trainer.dataparallel).
     """
     if len(train_cameras) != len(train_images) or not len(train_cameras):
         raise ValueError(f"training needs one image per camera, got {len(train_cameras)} cameras "
@@ -298,7 +312,7 @@ def assemble(params: dict[str, torch.Tensor], kind: str, attrs: dict) -> kinds.P
     """Primitives of `kind` built from the parameter tensors and the kind's attributes
     (differentiable: no copies)."""
     tensors = {n: t for n, t in params.items() if n not in ("sh_dc", "sh_rest")}
-    sh = join_sh(params["sh_dc"], params["sh_rest"])   # the fused renderer reads the two parts (core/render/sh.py)
+    sh = join_sh(params["sh_dc"], params["sh_rest"])   # the fused renderer reads the two parts (core/splat/sh.py)
     return kinds.get(kind).assemble(tensors, attrs, sh=sh)
 
 

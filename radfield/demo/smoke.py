@@ -23,7 +23,7 @@ as written to 1e-4 (tests/test_dynamic_data.py). One ray through each pixel cent
 smooth over several pixels. Images are premultiplied RGBA on a transparent background (0), as the
 other demo scenes'.
 
-Cameras and files: datasets/timelapse.py (every camera of synthetic.orbit_cameras' spiral at every
+Cameras and files: demo/timelapse.py (every camera of synthetic.orbit_cameras' spiral at every
 time k / (times − 1)). The puffs stay inside every camera's view at every time (their 4σ
 ellipsoids within VIEW_RADIUS of the origin).
 """
@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from radfield.core.geometry.cameras import Camera, pixel_rays
-from radfield.datasets.synthetic import CAMERA_ANGLE_X, CAMERA_RADIUS
+from radfield.demo.scenes import CAMERA_ANGLE_X, CAMERA_RADIUS
 
 SEGMENTS = 128       # quadrature pieces per ray (see the module docstring)
 WINDOW = 5.0         # a puff matters along a ray within this many of its standard deviations there
@@ -160,9 +160,9 @@ def render_smoke(camera: Camera, xi: float, puffs=PUFFS, segments: int = SEGMENT
 def generate_smoke(out_dir: str | os.PathLike, n_train: int | None = None, n_test: int | None = None,
                    times: int | None = None, size: int = 64, seed: int = 0,
                    progress: Callable[[int], None] | None = None, held_out_times: bool = False) -> Path:
-    """Write the smoke scene as a D-NeRF folder (datasets/timelapse.py: every camera at every
+    """Write the smoke scene as a D-NeRF folder (demo/timelapse.py: every camera at every
     time, or the test cameras at the midpoints with `held_out_times`; defaults 36 + 4 cameras × 24 times)."""
-    from radfield.datasets.timelapse import generate_dynamic
+    from radfield.demo.timelapse import generate_dynamic
 
     return generate_dynamic("smoke", out_dir, n_train, n_test, times, size, seed, progress, held_out_times)
 
@@ -180,4 +180,4 @@ def describe() -> dict:
     }
 
 
-render = render_smoke  # what datasets/timelapse.py calls
+render = render_smoke  # what demo/timelapse.py calls

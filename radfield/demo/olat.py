@@ -53,9 +53,10 @@ import numpy as np
 
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.datasets.images import write_image
-from radfield.datasets.shapes import Cylinder, Material
-from radfield.datasets.synthetic import (CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, get_scene,
-                                         orbit_cameras, render_view, write_mesh)
+from radfield.demo.shapes import Cylinder, Material
+from radfield.demo.scenes import CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, get_scene, orbit_cameras
+from radfield.demo.raytrace import render_view
+from radfield.demo.static import write_mesh
 from radfield.errors import RadfieldError
 from radfield.util.atomic import new_folder
 
@@ -202,3 +203,20 @@ def _describe(scene: Scene, seed: int, lights: int) -> dict:
         "camera_angle_x": CAMERA_ANGLE_X,
         "primitives": [{"type": type(p).__name__.lower(), **dataclasses.asdict(p)} for p in scene.primitives],
     }
+
+
+def write(name: str, folder: Path, *, train_views: int | None = None, test_views: int | None = None, size: int = 64,
+          seed: int = 0, quiet: bool = True, lights: int | None = None) -> str:
+    """The one-light-at-a-time family's writer (radfield.demo): `generate_olat` with a progress bar,
+    and what it wrote in one line."""
+    from radfield.util.progress import progress_bar
+
+    n_train = TRAIN_VIEWS if train_views is None else train_views
+    n_test = TEST_VIEWS if test_views is None else test_views
+    count = LIGHTS if lights is None else lights
+    with progress_bar(quiet) as progress:
+        task = progress.add_task(f"rendering {name}", total=max(0, (n_train + n_test) * count))
+        generate_olat(folder, n_train, n_test, count, size, seed, progress=lambda done: progress.advance(task, done),
+                      name=name)
+    return (f"wrote {name}: {n_train} train + {n_test} test cameras under {count} point lights each, every frame its "
+            f"own light ({n_train * count} + {n_test * count} frames) of {size}x{size} to {folder}")
