@@ -2,7 +2,6 @@
 the ops each implements, the switch that forces the twins, and `using()`. The backends register
 with it in the package (core/backends/__init__.py); fused.py and gpu/ read the switch from here."""
 
-
 from __future__ import annotations
 
 import contextlib
@@ -34,6 +33,7 @@ class Op(enum.StrEnum):
     PROJECT_NONNEGATIVE = "project_nonnegative_"
 
 
+_OP_NAMES = frozenset(Op)
 VIEW_PREFIX = "view."
 
 
@@ -43,7 +43,7 @@ def view_op(kind: str) -> str:
 
 
 def _checked(op: str) -> str:
-    if op in Op._value2member_map_ or (op.startswith(VIEW_PREFIX) and len(op) > len(VIEW_PREFIX)):
+    if op in _OP_NAMES or (op.startswith(VIEW_PREFIX) and len(op) > len(VIEW_PREFIX)):
         return op
     raise KeyError(f"unknown backend op {op!r} (ops: {', '.join(Op)}, or view.<kind>)")
 
