@@ -5,7 +5,7 @@ tensors, `sh` (P,K,3); metadata format=radfield, kind, version, sh_degree, and w
 (radfield.core.kinds: its `schema`, `optional`, `write_metadata` and `read_metadata` say it).
 Neural primitives: `w1` (P,N,3), `b1` (P,N), `w2` (P,N), `b2` (P,), optional `rest_metric` (P,6);
 metadata omega0, and `window` ("1", written only when set; absent means "0"): the density window
-of render.window (`prims.window`, core/kinds/neural.py: density_window). Gaussians: `opacities`
+of render.window (`prims.window`, core/kinds/neural_density.py: density_window). Gaussians: `opacities`
 (P,) logits. Every kind: optional metadata `supersample` (an integer 1..4 as a string, written only
 when > 1; absent means 1): the rays per pixel side the model was trained with (render.supersample),
 carried as `prims.supersample` and honoured by every render of the model (core/render/antialias.py: render_model).

@@ -468,7 +468,7 @@ def test_sh_colour_matches_the_torch_twin(degree, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_neural_bounds_are_the_twins(dtype):
-    """gpu.neural_bounds (one launch) against kinds/base.py ellipsoid_bounds: the same boxes and
+    """gpu.neural_bounds (one launch) against splat/view.py ellipsoid_bounds: the same boxes and
     visibility for 400 ellipsoids around a camera close to them (some behind it, some cut by the
     near plane: the whole image, some off-screen), on a 37×21 view."""
     from radfield.core.splat.view import ViewFrame

@@ -6,8 +6,8 @@ Formats (all in the dataset's world frame):
   vertex ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3`` (float32), opacity as
   a logit, log σ scales, w x y z quaternion, ``f_rest`` channel-major (all R coefficients of bands
   1-3, then G, then B; zeros past the model's degree). Gaussians are written exactly; neural
-  primitives through their kind (delivery/refine.py: moment matching, `components` Gaussians each; `radfield
-  export` then refines them for a run with delivery/refine.py: refine_gaussians and passes Gaussians in).
+  primitives through their kind (core/kinds/moment_matching.py: `components` Gaussians each; `radfield export`
+  then refines them for a run with delivery/refine.py: refine_gaussians and passes Gaussians in).
   A windowed model (prims.window) needs no warning: the moments are those of its windowed density.
 - ``splat``     antimatter15's .splat: 32 bytes a splat, position 3×f32, linear σ 3×f32, RGBA 4×u8
   (0.5 + C0·f_dc and sigmoid(opacity), ×255 truncated), rotation 4×u8 ((q/|q|)·128 + 128, w x y z),

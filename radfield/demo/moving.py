@@ -1,5 +1,5 @@
 """`radfield demo-scene moving`: the `objects` scene's opaque shapes moving and turning over time,
-ray traced exactly at each time (synthetic.render_view, 2x2 rays per pixel), as a D-NeRF dataset
+ray traced exactly at each time (raytrace.render_view, 2x2 rays per pixel), as a D-NeRF dataset
 (demo/timelapse.py). It covers what the smoke volume does not: time-varying opaque surfaces,
 sharp silhouettes and shading that changes as faces turn to the light.
 

@@ -1,6 +1,6 @@
 """`radfield demo-scene olat` and `olat-glossy`: the objects of a synthetic scene lit by one point
 light at a time, a new light position in every frame (shadows and highlights that move with the
-light), ray traced exactly (synthetic.render_view with a synthetic.PointLight), written as a
+light), ray traced exactly (raytrace.render_view with a scenes.PointLight), written as a
 one-light-at-a-time dataset: the NeRF-synthetic layout whose frames carry `light_position` and
 `light_intensity` (datasets/transforms.py). SCENES names them, each with the synthetic scene it
 lights (its `base`, recorded in scene.json):
@@ -20,7 +20,7 @@ Both are written the same way:
     mesh.ply                                      the objects triangulated (the object's bounds, and init)
     scene.json                                    name, base, seed, the light rig, the shading and the shapes
 
-Cameras: synthetic.orbit_cameras' spiral (40 train + 8 test by default); each photographs the
+Cameras: scenes.orbit_cameras' spiral (40 train + 8 test by default); each photographs the
 object under `lights` (5) point lights, as OLAT captures repeat a camera under many lights, so
 200 train and 40 test frames. Lights: one golden-angle spiral of (train + test cameras) × lights
 points on a sphere of radius LIGHT_RADIUS (2.5× studio's bounding radius of 1.1, 2.1× glossy's
@@ -30,7 +30,7 @@ interleaved in the spiral, so every frame has its own light and no test light is
 camera c of a split takes that split's lights c, c + cameras, c + 2·cameras, …, so each camera
 sees lights from low and high.
 
-Shading (synthetic.shade): Lambert + Blinn-Phong highlights of the scene's materials, under the
+Shading (raytrace.shade): Lambert + Blinn-Phong highlights of the scene's materials, under the
 point light's irradiance intensity / r² with hard shadows (a shadow ray to the point), plus the
 base scene's ambient term (studio's sky dome; glossy's is constant) at AMBIENT = 0.2 (the studio's
 0.5 would leave shadows half lit: 0.2 keeps 80% of a lit surface's diffuse light with the point

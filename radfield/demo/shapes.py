@@ -64,7 +64,7 @@ def _rows(o: np.ndarray, d: np.ndarray) -> np.ndarray:
 def _box_distance(q: np.ndarray) -> np.ndarray:
     """Exact signed Euclidean distance to the box {|q_i| <= 0} from q = |x_local| − half-extents
     (M, k): what every shape's `sdf` reduces to. A ray marcher may step by an exact distance without
-    crossing a surface (synthetic.py, `Deformation`: the deformed demo scenes)."""
+    crossing a surface (deformations.py, `Deformation`: the deformed demo scenes)."""
     return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(-1), 0.0)
 
 

@@ -23,7 +23,7 @@ as written to 1e-4 (tests/test_dynamic_data.py). One ray through each pixel cent
 smooth over several pixels. Images are premultiplied RGBA on a transparent background (0), as the
 other demo scenes'.
 
-Cameras and files: demo/timelapse.py (every camera of synthetic.orbit_cameras' spiral at every
+Cameras and files: demo/timelapse.py (every camera of scenes.orbit_cameras' spiral at every
 time k / (times − 1)). The puffs stay inside every camera's view at every time (their 4σ
 ellipsoids within VIEW_RADIUS of the origin).
 """

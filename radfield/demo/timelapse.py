@@ -5,7 +5,7 @@ at every time, written as a D-NeRF dataset (the NeRF-synthetic layout whose fram
     train/r_CCC_tTTT.png, test/r_CCC_tTTT.png     camera CCC at time index TTT: RGBA, transparent background
     scene.json                                    name, seed, times, the rig and the scene's own description
 
-Cameras are synthetic.orbit_cameras' spiral over the upper hemisphere (36 train + 4 test by
+Cameras are scenes.orbit_cameras' spiral over the upper hemisphere (36 train + 4 test by
 default: the paper's 40-camera setup); times are k / (N − 1), k = 0 … N − 1 (N = 24 by default).
 With `held_out_times` the test cameras photograph the N − 1 midpoints (k + ½) / (N − 1) instead,
 so no test time is a training time: interpolation in time is measured, not only new views.

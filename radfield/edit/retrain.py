@@ -12,7 +12,7 @@ Two stages (eq. 12): stage 1 fits the MLP of the trainable primitives to the tea
 to teacher renders from views around them (L1 on colour) with the fast renderer. Neural primitives only.
 
 For a windowed model (prims.window) every σ here, at points and along rays, is the windowed
-density 1.5 (1 − r²) σ (core/kinds/neural.py: density_window; the closed form windowed_optical_depth),
+density 1.5 (1 − r²) σ (core/kinds/neural_density.py: density_window; the closed form windowed_optical_depth),
 the student's in stage 1 included, and the fitted primitives keep the flag.
 """
 

@@ -69,9 +69,10 @@ OPTION_FLAGS = {"seed": "--seed", "device": "--device", "data.downscale": "--dow
                 "render.near": "--near", "bake.min_weight": "--min-weight"}
 
 
-# The range of every numeric key of pipeline.yaml (tests/test_config.py: every one is listed): an
-# out-of-range value is refused when it is set (one line naming where it came from), before the
-# run directory is touched, so a mistake never replaces a trained model by a broken one.
+# The range of every numeric key of pipeline.yaml (tests/test_pipeline.py: every one is listed, every
+# default inside): an out-of-range value is refused when it is set (one line naming where it came
+# from), before the run directory is touched, so a mistake never replaces a trained model by a
+# broken one.
 RANGES: dict[str, Range] = {
     "seed": AT_LEAST_0,
     "data.downscale": AT_LEAST_1,
@@ -139,8 +140,6 @@ RANGES: dict[str, Range] = {
     "render.time_frequency": Range(0, 100, open_low=True, note="1: the paper's ω; 2π: one period"),
     "bake.min_weight": Range(0, 1, open_high=True),
 }
-
-
 
 
 def defaults_path() -> Path:

@@ -249,7 +249,7 @@ def neural_view(bounds, order, intrinsics, height, width, t_min, colors, depth, 
     for those in `order`; the per-primitive tensors (P, ...) as splat/neural.py: view_tensors returns
     them (gradients are zero for the primitives not in `order`). The op keeps copies of them in
     depth order for its backward (memory O(V) per-primitive rows, nothing per pair).
-    `window`: the windowed density (kinds/neural.py: density_window)."""
+    `window`: the windowed density (kinds/neural_density.py: density_window)."""
     return _View.apply("neural", bounds, order, intrinsics, height, width, t_min, _gain(window), colors, depth,
                        m_cam, o_ell, w_cam, c, w2, b2, inv_smax)
 
@@ -268,7 +268,7 @@ def neural_bounds(means_cam, log_scales, quats, w2c_rot, intrinsics, width: int,
 
 
 def gaussian_bounds(mean2d, cov, depth, width: int, height: int, near: float):
-    """kinds/gaussian.py: splat_bounds and the depth sort in one op (no gradient), from the splats'
+    """splat/gaussian.py: splat_bounds and the depth sort in one op (no gradient), from the splats'
     2D means (P, 2), covariances (a, b, c) (P, 3) and depths (P,): (bounds, order) as neural_bounds."""
     args = [t.detach().contiguous() for t in (mean2d, cov, depth)]
     return tuple(_ops().gaussian_bounds(*args, width, height, float(near)))
@@ -344,7 +344,7 @@ def sh_color_parts(sh_dc, sh_rest, means, campos, degree: int) -> torch.Tensor:
 
 def neural_prep(prims, campos, cam_rot) -> tuple:
     """The ellipsoid frame and MLP phases of splat/neural.py: view_tensors in one fused op:
-    (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from kinds/neural.py: density_weights."""
+    (m_cam, o_ell, w_cam, c, inv_smax); (w2, b2) come from splat/neural.py: density_weights."""
     return _NeuralPrep.apply(prims.means, prims.log_scales, prims.quats, prims.w1, prims.b1, campos, cam_rot,
                              prims.omega0)
 

@@ -233,7 +233,7 @@ class PrimitiveKind:
 
     def training_rules(self, cameras, cfg: dict, attrs: dict, near: float) -> list:
         """Projections applied after every optimiser step, in order (each has apply(params, step));
-        the footprint floor of core/render/antialias.py follows them for every kind."""
+        the footprint floor of core/train/footprint.py follows them for every kind."""
         return []
 
     # --- initialisation (stages/init.py) ---------------------------------------------------------

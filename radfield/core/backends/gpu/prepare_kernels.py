@@ -321,7 +321,7 @@ def neural_prep_backward(g_m_cam_ptr, g_o_ell_ptr, g_w_cam_ptr, g_c_ptr, g_inv_s
     _store_rotation_backward(g_quats_ptr, p, live, qn, qnorm, (g0, g1, g2, g3, g4, g5, g6, g7, g8))
 
 
-# --- the Gaussians' EWA projection (twin: core/kinds/gaussian.py ewa_view; fused CPU op:
+# --- the Gaussians' EWA projection (twin: core/splat/gaussian.py ewa_view; fused CPU op:
 # csrc/prepare_kernels.cpp gaussian_prep): mean2d, the conic of J W Σ Wᵀ Jᵀ + 0.3 I, its (a, b, c)
 
 @triton.jit
