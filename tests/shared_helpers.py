@@ -4,6 +4,7 @@ the path). Fixtures live in conftest.py."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -11,7 +12,9 @@ import numpy as np
 import torch
 
 from radfield.core import backends, kinds
-from radfield.core.kinds import NeuralPrimitives, RelightGaussians, RelightNeuralPrimitives
+from radfield.core.kinds import (DynamicGaussians, DynamicNeuralPrimitives, NeuralPrimitives, RelightGaussians,
+                                  RelightNeuralPrimitives)
+from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.core.kinds.relight import init_network
 from radfield.core.render.antialias import render_model
 from radfield.core.render.rasterize import render
@@ -59,6 +62,21 @@ def with_network(prims, seed=0, amplitude=0.4, hidden=8):
                                        omega0=prims.omega0, window=prims.window, **net)
     return RelightGaussians(means=prims.means, log_scales=prims.log_scales, quats=prims.quats, sh=prims.sh,
                             opacities=prims.opacities, **net)
+
+
+def with_time(prims, seed=0, omega=2 * math.pi):
+    """A time-conditioned model of static `prims` (neural or Gaussian) whose temporal tensors are
+    random (colour, and phases or opacity, change clearly over time) at time frequency `omega`."""
+    g = torch.Generator().manual_seed(seed)
+    n, dtype = len(prims), prims.means.dtype
+    if isinstance(prims, NeuralPrimitives):
+        fields = {k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1", "b1", "w2", "b2")}
+        return DynamicNeuralPrimitives(**fields, omega0=prims.omega0, window=prims.window, time_frequency=omega,
+                                       w_t=(torch.rand(n, prims.hidden, generator=g, dtype=dtype) * 2 - 1) * 0.1,
+                                       sh_t=torch.randn(n, TEMPORAL_TERMS, 3, generator=g, dtype=dtype) * 0.3)
+    return DynamicGaussians(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "opacities")},
+                            time_frequency=omega, sh_t=torch.randn(n, TEMPORAL_TERMS, 3, generator=g, dtype=dtype) * 0.3,
+                            opacity_t=torch.randn(n, TEMPORAL_TERMS, generator=g, dtype=dtype) * 0.5)
 
 
 def drawn(model, camera) -> np.ndarray:

@@ -191,8 +191,7 @@ def test_a_registered_backend_runs_where_it_says_it_runs():
         return losses._anisotropy(log_scales)
 
     backends.register(backends.Backend("test-f64", lambda device, dtype: dtype == torch.float64
-                                       and (device is None or torch.device(device).type == "cpu")),
-                      before=backends.FUSED_CPU)
+                                       and (device is None or torch.device(device).type == "cpu"), rank=0))
     try:
         backends.implement("anisotropy", "test-f64", anisotropy)
         assert backends.names()[0] == "test-f64"

@@ -1,6 +1,7 @@
-"""Time in datasets (issue 29, data side): D-NeRF and nerfstudio frames with a `time`, their bad
-inputs as one-line errors, the time kept through scene.json, and `radfield demo-scene smoke`
-(an animated volume rendered by quadrature, checked against an independent ray marcher)."""
+"""Time in datasets (issue 29, data side): D-NeRF frames with a `time`, their bad times as one-line
+errors, and `radfield demo-scene smoke` (an animated volume rendered by quadrature, checked against
+an independent ray marcher). What time shares with the other view conditions (nerfstudio frames,
+frames with and without one, scene.json, static datasets): test_conditions.py."""
 
 import json
 import shutil
@@ -13,14 +14,11 @@ import torch
 from radfield.demo import moving, smoke
 from radfield.datasets.images import read_image
 from radfield.datasets.readers import load_dataset
-from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
-from radfield.demo.static import generate_scene
 from radfield.demo.scenes import get_scene, orbit_cameras
 from radfield.demo.raytrace import render_view
 from radfield.demo.timelapse import generate_dynamic
-from radfield.pipeline.config import load_defaults
 
-from shared_helpers import frames, nerfstudio_copy, rewrite
+from shared_helpers import frames, rewrite
 
 TIMES = [0.0, 0.5, 1.0]
 
@@ -31,11 +29,6 @@ def smoke_data(tmp_path_factory) -> Path:
     return smoke.generate_smoke(tmp_path_factory.mktemp("smoke") / "smoke", n_train=2, n_test=1, times=3, size=16)
 
 
-@pytest.fixture(scope="module")
-def blobs(tmp_path_factory) -> Path:
-    return generate_scene("blobs", tmp_path_factory.mktemp("blobs") / "blobs", n_train=3, n_test=1, size=16, mesh=False)
-
-
 # --- reading time -------------------------------------------------------------------------------
 
 
@@ -44,30 +37,15 @@ def test_smoke_is_a_d_nerf_dataset_whose_cameras_carry_their_time(smoke_data):
     assert len(train) == 2 * 3 and len(frames(smoke_data / "transforms_test.json")) == 3
     assert [f["time"] for f in train] == TIMES * 2
     dataset = load_dataset(smoke_data, "train")
-    assert [cam.time for cam in dataset.cameras] == TIMES * 2
+    assert [cam.conditions.get("time") for cam in dataset.cameras] == TIMES * 2
     # one camera photographs every time: the same pose, other moments
     assert torch.equal(dataset.cameras[0].c2w, dataset.cameras[2].c2w)
     assert not torch.equal(dataset.cameras[0].c2w, dataset.cameras[3].c2w)
-    assert [cam.time for cam in load_dataset(smoke_data, "all", downscale=2).cameras] == TIMES * 3
-
-
-def test_nerfstudio_frames_carry_their_time(smoke_data, tmp_path):
-    root = nerfstudio_copy(smoke_data, tmp_path / "ns")
-    dataset = load_dataset(root, "all")
-    assert dataset.format == "nerfstudio"
-    by_name = {cam.name: cam.time for cam in dataset.cameras}
-    assert by_name == {Path(f["file_path"]).stem: f["time"] for f in frames(root / "transforms.json")}
-
-
-def test_a_static_dataset_has_no_time(blobs):
-    assert all(cam.time is None for cam in load_dataset(blobs, "all").cameras)
+    assert [cam.conditions.get("time") for cam in load_dataset(smoke_data, "all", downscale=2).cameras] == TIMES * 3
 
 
 # every case: (file to edit, how, frame named, what the message says)
 BAD_TIMES = {
-    "some frames of a file": ("transforms_train.json", lambda fs: fs[4].pop("time"), 4, "has no 'time' but frames[0] has one"),
-    "the first frame only": ("transforms_train.json", lambda fs: [f.pop("time") for f in fs[1:]], 1, "has no 'time' but frames[0] has one"),
-    "one split file": ("transforms_test.json", lambda fs: [f.pop("time") for f in fs], 0, "of {root}/transforms_train.json has one"),
     "a string": ("transforms_train.json", lambda fs: fs[1].update(time="0.5"), 1, "'time' must be a number in [0, 1], not '0.5'"),
     "a bool": ("transforms_test.json", lambda fs: fs[2].update(time=True), 2, "'time' must be a number in [0, 1], not True"),
     "null": ("transforms_train.json", lambda fs: fs[3].update(time=None), 3, "not None"),
@@ -89,39 +67,6 @@ def test_bad_times_are_one_line_naming_file_and_frame_and_nothing_is_written(cas
     assert err.startswith(f"radfield: error: {root / name}: frames[{index}] ({file_path})"), err
     assert message.format(root=root) in err
     assert not (tmp_path / "run").exists()
-
-
-def test_nerfstudio_with_only_some_times_is_one_line(smoke_data, tmp_path, cli):
-    root = nerfstudio_copy(smoke_data, tmp_path / "ns")
-    rewrite(root / "transforms.json", lambda fs: fs[3].pop("time"))
-    code, _, err = cli("reconstruct", root, "-o", tmp_path / "run")
-    assert code == 1 and err.count("\n") == 1
-    assert f"{root / 'transforms.json'}: frames[3] (images/r_001_t000.png) has no 'time'" in err, err
-    assert not (tmp_path / "run").exists()
-
-
-# --- the run's scene keeps time -----------------------------------------------------------------
-
-
-def test_scene_json_round_trip_keeps_time(smoke_data, tmp_path):
-    scene_json, _ = read_dataset(smoke_data, load_defaults()["data"])
-    assert [view["time"] for view in scene_json["splits"]["train"]] == TIMES * 2
-    path = tmp_path / "scene.json"
-    path.write_text(json.dumps(scene_json))
-    scene = load_scene(path)
-    assert scene.dynamic and scene.times("test") == TIMES and scene.time_steps() == TIMES
-    assert [cam.time for cam in scene.cameras("train")] == TIMES * 2
-    assert [cam.time for cam in scene.dataset("test").cameras] == TIMES
-    normalised = scene.normalization.camera(scene.cameras("train")[1])
-    assert normalised.time == 0.5 and normalised.c2w[:3, 3].norm() <= 1.0 + 1e-9
-
-
-def test_a_static_scene_json_has_no_time_key(blobs):
-    scene_json, _ = read_dataset(blobs, load_defaults()["data"])
-    assert all("time" not in view for views in scene_json["splits"].values() for view in views)
-    scene = scene_from_json(scene_json, blobs / "scene.json")
-    assert not scene.dynamic and scene.time_steps() == [] and set(scene.times("train")) == {None}
-    assert all(cam.time is None for cam in scene.cameras("train"))
 
 
 # --- demo-scene smoke ---------------------------------------------------------------------------
@@ -210,7 +155,7 @@ def test_moving_starts_as_the_objects_scene_and_its_shapes_move(tmp_path):
                < smoke.VIEW_RADIUS for xi in np.linspace(0, 1, 11))
     out = generate_dynamic("moving", tmp_path / "moving", n_train=1, n_test=1, times=2, size=8)
     assert [f["time"] for f in frames(out / "transforms_test.json")] == [0.0, 1.0]
-    assert [cam.time for cam in load_dataset(out, "train").cameras] == [0.0, 1.0]
+    assert [cam.conditions.get("time") for cam in load_dataset(out, "train").cameras] == [0.0, 1.0]
 
 
 def test_held_out_times_put_every_test_frame_between_two_training_times(cli, tmp_path):

@@ -3,6 +3,7 @@ videos, `radfield export --time`, and the viewer's time slider.
 
 A dynamic model drawn at a moment is exactly the static model its kind returns for that moment
 (kinds/dynamic.py: at_time), so every check compares with render()/export of at_time(model, T).
+(Their options mistaken, and a static model's refusal of them: test_conditions.py.)
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ from radfield.core.kinds import DynamicNeuralPrimitives, random_gaussians, rando
 from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
-from radfield.delivery.content import at_moment, gaussians_for
+from radfield.conditions import Asked
+from radfield.delivery.content import gaussians_for, under_conditions
 from radfield.delivery.export import Content, as_gaussians, nerfstudio_transforms, read_gaussian_ply, view_cameras
 from radfield.model_file import load_model, save_model
-from radfield.delivery.times import parse_times
+from radfield.conditions.time import parse_times
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import load_config
 
@@ -54,7 +56,6 @@ def smoke(tmp_path_factory, run_radfield):
     assert run_radfield("demo-scene", "smoke", "-o", root / "smoke", "--size", SIZE, "--times", 3,
                         "--train-views", 3, "--test-views", 2, "-q") == 0
     save_model(root / "dynamic.safetensors", dynamic_model())
-    save_model(root / "static.safetensors", random_neural(20, extent=0.5, seed=4))
     return root
 
 
@@ -77,7 +78,7 @@ def test_render_time_draws_that_moment_once_a_camera(cli, smoke, tmp_path):
     # without --time every view is drawn at its own time: r_000_t002 shows time 1
     code, _, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "own", "-q")
     assert code == 0, err
-    own = next(c for c in cameras if c.time == 1.0)
+    own = next(c for c in cameras if c.conditions.get("time") == 1.0)
     code, _, err = cli("render", smoke / "dynamic.safetensors", "-d", smoke / "smoke", "-o", tmp_path / "one",
                        "--time", "1", "--camera", own.name, "-q")
     assert code == 0, err
@@ -132,28 +133,6 @@ def test_time_lapse_videos(cli, smoke, tmp_path):
         assert int(np.argmin(errors)) == k, errors
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--time", "1.5"], "--time must be a moment in [0, 1]"),
-    (["--time", "nan"], "--time must be a moment in [0, 1]"),
-    (["--times", "0:1"], "--times takes START:STOP:COUNT"),
-    (["--times", "a:b:3"], "--times takes START:STOP:COUNT"),
-    (["--times", "0:1:0"], "COUNT must be at least 1"),
-    (["--times", "0:1.5:3"], "STOP must be a moment in [0, 1]"),
-    (["--times", "-1:1:3"], "START must be a moment in [0, 1]"),
-    (["--time", "0.5", "--times", "0:1:3"], "exclude each other"),
-    (["--orbit", "3"], "this model is dynamic (neural-dynamic): give a time for the orbit (--time T"),
-    (["--orbit", "3", "--times", "0:1:4"], "--times gives 4 moments but the orbit has 3 frames"),
-    (["--camera", "nope"], "--camera 'nope': no view of that name"),
-    (["--static", "--time", "0.5"], "--time is for a dynamic model; this one (neural) is static"),
-])
-def test_bad_times_are_one_line(cli, smoke, tmp_path, args, message):
-    model = smoke / ("static.safetensors" if "--static" in args else "dynamic.safetensors")
-    args = [a for a in args if a != "--static"]
-    code, _, err = cli("render", model, "-d", smoke / "smoke", "-o", tmp_path / "out", "--video", tmp_path / "v.mp4", *args)
-    assert code == 1 and message in err and err.count("\n") == 1, err
-    assert not (tmp_path / "out").exists() and not (tmp_path / "v.mp4").exists()
-
-
 def test_parse_times():
     assert parse_times("0:1:5") == [0.0, 0.25, 0.5, 0.75, 1.0]
     assert parse_times("0.3:0.3:1") == [0.3]
@@ -186,19 +165,6 @@ def test_export_time_writes_that_moment(cli, smoke, tmp_path):
     assert torch.allclose(written.opacities, expected.opacities) and torch.allclose(written.sh[:, 0], expected.sh[:, 0])
 
 
-@pytest.mark.parametrize("model, args, message", [
-    ("dynamic", ["-f", "ply-3dgs"], "the model is dynamic (neural-dynamic) and ply-3dgs holds one moment: give a time (--time T"),
-    ("dynamic", ["-f", "splat"], "give a time (--time T"),
-    ("dynamic", ["-f", "ply-3dgs", "--time", "-0.1"], "--time must be a moment in [0, 1]"),
-    ("static", ["-f", "ply-3dgs", "--time", "0.5"], "--time is for a dynamic model; this one (neural) is static"),
-])
-def test_export_time_mistakes_are_one_line(cli, smoke, tmp_path, model, args, message):
-    out = tmp_path / ("out.splat" if "splat" in args else "out.ply")
-    code, _, err = cli("export", smoke / f"{model}.safetensors", "-o", out, *args)
-    assert code == 1 and message in err and err.count("\n") == 1, err
-    assert not out.exists()
-
-
 def timed_views(smoke) -> dict[str, list[dict]]:
     """scene.json-like VIEW dicts (with their times) of the smoke dataset's splits."""
     views = {}
@@ -208,7 +174,7 @@ def timed_views(smoke) -> dict[str, list[dict]]:
                 "name": camera.name, "image": f"/x/{camera.name}.png", "fx": camera.fx, "fy": camera.fy,
                 "cx": camera.cx, "cy": camera.cy, "width": camera.width, "height": camera.height,
                 "c2w": camera.c2w.tolist(), "file_width": camera.width, "file_height": camera.height,
-                "distortion": None, "time": camera.time})
+                "distortion": None, "time": camera.conditions["time"]})
     return views
 
 
@@ -218,12 +184,12 @@ def test_refined_export_of_a_run_refines_against_that_moment(smoke):
     cameras without times; without a moment a dynamic model reaches no conversion."""
     model = load_model(smoke / "dynamic.safetensors")
     views = timed_views(smoke)
-    assert {c.time for c in view_cameras(views["train"])} == {0.0, 0.5, 1.0}
+    assert {c.conditions.get("time") for c in view_cameras(views["train"])} == {0.0, 0.5, 1.0}
     with pytest.raises(RadfieldError, match="give a time"):
-        at_moment(Content(model=model, views=views, source="run"), "ply-3dgs", None)
+        under_conditions(Content(model=model, views=views, source="run"), "ply-3dgs", {})
     settings = {"background": (1.0, 1.0, 1.0), "extent": 1.0, "source": "run"}
     dynamic = Content(model=model, views=views, **settings)
-    at_moment(dynamic, "ply-3dgs", 0.3)
+    assert under_conditions(dynamic, "ply-3dgs", {"time": Asked("--time", value=0.3)}) == {"time": 0.3}
     untimed = {split: [{k: v for k, v in view.items() if k != "time"} for view in split_views]
                for split, split_views in views.items()}
     static = Content(model=kinds.of(model).at_time(model, 0.3), views=untimed, **settings)
@@ -234,7 +200,7 @@ def test_refined_export_of_a_run_refines_against_that_moment(smoke):
         assert torch.equal(getattr(dynamic.model, name), getattr(static.model, name)), name
     # and that moment's model is not any moment's: the Gaussians of T = 0.3 are not those of T = 0.9
     other = Content(model=model, views=views, **settings)
-    at_moment(other, "ply-3dgs", 0.9)
+    under_conditions(other, "ply-3dgs", {"time": Asked("--time", value=0.9)})
     gaussians_for(other, "ply-3dgs", 1, 20)
     assert not torch.equal(other.model.sh, dynamic.model.sh)
 
@@ -251,7 +217,7 @@ def test_viewer_time_slider(smoke, tmp_path):
     from radfield.delivery.viewer import Viewer, viewer_cameras, viewer_scene
 
     model = load_model(smoke / "dynamic.safetensors")
-    scene = viewer_scene(smoke / "dynamic.safetensors", time=0.25)
+    scene = viewer_scene(smoke / "dynamic.safetensors", asked={"time": Asked("--time", value=0.25)})
     viewer = Viewer(scene, port=0, log=lambda line: None)
     try:
         camera = Camera(20.0, 20.0, 8.0, 8.0, SIZE, SIZE, look_at((2.5, 0.5, 0.8), (0, 0, 0)))
@@ -271,14 +237,9 @@ def test_viewer_time_slider(smoke, tmp_path):
     finally:
         viewer.server.stop()
     with pytest.raises(RadfieldError, match="--time is for a dynamic model"):
-        viewer_scene(static, time=0.5)
+        viewer_scene(static, asked={"time": Asked("--time", value=0.5)})
     # a dynamic dataset photographs each camera at every moment: one frustum a pose
     assert len(viewer_cameras(timed_views(smoke))) == 5 and len(view_cameras(timed_views(smoke)["train"])) == 9
-
-
-def test_view_rejects_a_bad_time(cli, smoke):
-    code, _, err = cli("view", smoke / "dynamic.safetensors", "--time", "3", "--port", "0")
-    assert code == 1 and "--time must be a moment in [0, 1]" in err and err.count("\n") == 1
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

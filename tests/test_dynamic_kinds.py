@@ -2,7 +2,7 @@
 
 At a fixed time a dynamic model is the static model with phases b1 + ξ W_t and the DC S(ξ) (eq.
 10-13), on every backend; the gradients of the temporal tensors against finite differences; a view
-without a time is one error; model files round-trip and refuse bad values; population control
+at a time outside [0, 1] is one error (one without a time: test_conditions.py); model files round-trip and refuse bad values; population control
 keeps the new tensors' rows; and a tiny dynamic reconstruction fits what a static one cannot.
 """
 
@@ -14,7 +14,7 @@ import torch
 
 from radfield.core import backends, kinds
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.core.kinds import DynamicGaussians, DynamicNeuralPrimitives, Gaussians, NeuralPrimitives
+from radfield.core.kinds import DynamicNeuralPrimitives, Gaussians, NeuralPrimitives
 from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.core.render.rasterize import render
 from radfield.core.render.reference import reference_render
@@ -24,7 +24,7 @@ from radfield.core.trainer.loop import (assemble, initial_state, load_checkpoint
 from radfield.model_file import load_model, save_model
 from radfield.errors import RadfieldError
 
-from shared_helpers import refine_everything
+from shared_helpers import refine_everything, with_time
 
 BG = (0.2, 0.3, 0.4)
 
@@ -38,31 +38,14 @@ def temporal_dc_offset(coeffs, xi, omega):
     return out
 
 
-def dynamic_neural(prims: NeuralPrimitives, omega=2 * math.pi, seed=0) -> DynamicNeuralPrimitives:
-    g = torch.Generator().manual_seed(seed)
-    n, hidden, dtype = len(prims), prims.hidden, prims.means.dtype
-    fields = {k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "w1", "b1", "w2", "b2")}
-    return DynamicNeuralPrimitives(**fields, omega0=prims.omega0, window=prims.window, time_frequency=omega,
-                                   w_t=(torch.rand(n, hidden, generator=g, dtype=dtype) * 2 - 1) * 0.1,
-                                   sh_t=torch.randn(n, TEMPORAL_TERMS, 3, generator=g, dtype=dtype) * 0.3)
-
-
-def dynamic_gaussians(prims: Gaussians, omega=2 * math.pi, seed=0) -> DynamicGaussians:
-    g = torch.Generator().manual_seed(seed)
-    n, dtype = len(prims), prims.means.dtype
-    return DynamicGaussians(**{k: getattr(prims, k) for k in ("means", "log_scales", "quats", "sh", "opacities")},
-                            time_frequency=omega, sh_t=torch.randn(n, TEMPORAL_TERMS, 3, generator=g, dtype=dtype) * 0.3,
-                            opacity_t=torch.randn(n, TEMPORAL_TERMS, generator=g, dtype=dtype) * 0.5)
-
-
 def dynamic_views(size=16):
     """3 cameras × 3 moments of a random dynamic neural model, and the model."""
     from radfield.core.kinds import random_neural
 
     base = random_neural(12, scale=0.3, extent=0.45, b2=1.5, w2_amplitude=0.4, seed=3)
-    truth = dynamic_neural(base, seed=5)
+    truth = with_time(base, seed=5)
     truth.sh_t *= 3.0    # colours that change clearly over time
-    cams = [Camera(fx=20.0, fy=20.0, cx=size / 2, cy=size / 2, width=size, height=size, time=xi,
+    cams = [Camera(fx=20.0, fy=20.0, cx=size / 2, cy=size / 2, width=size, height=size, conditions={"time": xi},
                    c2w=look_at((2.2 * math.cos(a), 2.2 * math.sin(a), 0.6), (0, 0, 0)), name=f"c{k}@{xi}")
             for k, a in enumerate((0.0, 2.1, 4.2)) for xi in (0.0, 0.5, 1.0)]
     with torch.no_grad():
@@ -71,11 +54,8 @@ def dynamic_views(size=16):
 
 
 def scene(render_scene, kind, dtype=torch.float64):
-    if kind == "neural-dynamic":
-        prims, cam = render_scene("neural-window", dtype)
-        return dynamic_neural(prims), cam
-    prims, cam = render_scene("gaussian", dtype)
-    return dynamic_gaussians(prims), cam
+    prims, cam = render_scene("neural-window" if kind == "neural-dynamic" else "gaussian", dtype)
+    return with_time(prims), cam
 
 
 def static_at(prims, xi):
@@ -97,7 +77,7 @@ def test_at_a_fixed_time_a_dynamic_model_renders_as_its_static_model(render_scen
     for backend in backends.available("cpu", torch.float64):
         with backends.using(backend):
             for xi in (0.0, 0.37, 1.0):
-                dynamic = render(prims, replace(cam, time=xi), background=BG, near=0.05)
+                dynamic = render(prims, cam.at(time=xi), background=BG, near=0.05)
                 static = render(static_at(prims, xi), cam, background=BG, near=0.05)
                 assert static.meta["contributing_pairs"] > 100 and dynamic.meta == static.meta
                 torch.testing.assert_close(dynamic.color, static.color, rtol=0, atol=1e-12)
@@ -132,7 +112,7 @@ def test_a_moment_and_its_gradients_are_eq_10_13_written_out(render_scene, kind,
 
 def test_the_slow_reference_draws_a_dynamic_model_at_the_views_time(render_scene):
     prims, cam = scene(render_scene, "gaussian-dynamic")
-    small = replace(cam.scaled(0.5), time=0.6)
+    small = cam.scaled(0.5).at(time=0.6)
     slow = reference_render(prims, small, background=BG, near=0.05)
     assert (render(prims, small, background=BG, near=0.05).color - slow).abs().max() < 1e-6
 
@@ -142,7 +122,7 @@ def test_the_slow_reference_draws_a_dynamic_model_at_the_views_time(render_scene
 def test_gradients_of_the_temporal_tensors_match_finite_differences(render_scene, kind, name):
     prims, cam = scene(render_scene, kind)
     prims = prims.select(slice(3, 8))   # in front of the camera, a handful
-    cam = replace(Camera(fx=cam.fx / 3, fy=cam.fy / 3, cx=3.6, cy=3.1, width=7, height=6, c2w=cam.c2w), time=0.63)
+    cam = Camera(fx=cam.fx / 3, fy=cam.fy / 3, cx=3.6, cy=3.1, width=7, height=6, c2w=cam.c2w).at(time=0.63)
     for backend in backends.available("cpu", torch.float64):
         with backends.using(backend):
             def f(x):
@@ -154,19 +134,12 @@ def test_gradients_of_the_temporal_tensors_match_finite_differences(render_scene
             assert torch.autograd.gradcheck(f, (x,), eps=1e-6, atol=1e-5, rtol=1e-3), backend
 
 
-def test_a_view_without_a_time_is_one_error_and_static_kinds_ignore_time(render_scene):
+def test_a_view_at_a_time_outside_0_1_is_one_error(render_scene):
+    # (a view without a time, and the kinds that ignore one: test_conditions.py)
     for kind in ("neural-dynamic", "gaussian-dynamic"):
         prims, cam = scene(render_scene, kind)
-        with pytest.raises(RadfieldError, match=r"^this model is dynamic: give a time \(--time T\)$"):
-            render(prims, cam)
-        with pytest.raises(RadfieldError, match=r"time 1.5 of view .* is outside \[0, 1\]"):
-            render(prims, replace(cam, time=1.5))
-        with pytest.raises(RadfieldError, match="give a time"):
-            kinds.of(prims).to_gaussians(prims)
-    static, cam = render_scene("neural", torch.float64)
-    neural = kinds.of(static)
-    assert neural.conditions == () and neural.at_view(static, cam) is static
-    torch.testing.assert_close(render(static, replace(cam, time=0.5)).color, render(static, cam).color, rtol=0, atol=0)
+        with pytest.raises(RadfieldError, match=r"^time 1.5 of view .* is outside \[0, 1\]"):
+            render(prims, cam.at(time=1.5))
 
 
 @pytest.mark.parametrize("kind", ["neural-dynamic", "gaussian-dynamic"])
@@ -178,7 +151,7 @@ def test_model_files_round_trip_and_refuse_bad_values(render_scene, kind, tmp_pa
     assert type(loaded) is type(prims) and loaded.time_frequency == pytest.approx(2 * math.pi)
     for name, t in prims.tensors().items():
         assert torch.equal(getattr(loaded, name), t), name
-    moment = replace(cam, time=0.25)
+    moment = cam.at(time=0.25)
     assert torch.equal(render(loaded, moment).color, render(prims, moment).color)
 
     with pytest.raises(RadfieldError, match=r"metadata 'time_frequency' must be a positive number"):
@@ -208,7 +181,7 @@ def test_population_control_carries_the_temporal_tensors(render_scene, densify_c
             rows = {tuple(r.flatten().tolist()) for r in before[name]}
             assert all(tuple(r.flatten().tolist()) in rows for r in params[name].detach()), name
     grown_prims = assemble(params, kind, kinds.get(kind).attrs(prims))
-    assert render(grown_prims, replace(cam, time=0.5)).meta["visible"] > 0
+    assert render(grown_prims, cam.at(time=0.5)).meta["visible"] > 0
 
 
 def peak_opacity(params, prims, times):
@@ -301,11 +274,11 @@ def test_a_killed_dynamic_run_resumes_to_the_uninterrupted_model(cfg, tmp_path, 
 
     _, cams, images = dynamic_views()
     if kind == "neural-dynamic":
-        start = dynamic_neural(kinds.get("neural").from_points(
+        start = with_time(kinds.get("neural").from_points(
             {k: getattr(random_gaussians(30, sh_degree=1, extent=0.5, scale=0.12, seed=3), k)
              for k in ("means", "log_scales", "quats", "sh")}, {}, seed=1), seed=2)
     else:
-        start = dynamic_gaussians(random_gaussians(30, sh_degree=1, extent=0.5, scale=0.12, seed=3), seed=2)
+        start = with_time(random_gaussians(30, sh_degree=1, extent=0.5, scale=0.12, seed=3), seed=2)
     train_cfg = cfg("train", iterations=12, sh_degree=1, sh_increase_every=6, batch_views=2, checkpoint_every=5)
     train_cfg["densify"] = {**train_cfg["densify"], "start": 4, "stop": 8, "every": 4}
     train_cfg["densify"]["gaussian"] = {**train_cfg["densify"]["gaussian"], "opacity_reset_every": 8}

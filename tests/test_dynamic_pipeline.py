@@ -1,7 +1,8 @@
 """Dynamic scenes through the pipeline (issue 29): `reconstruct` picks the time-conditioned kind on
 a dataset whose views carry a time (data.time=ignore trains the static kind: the baseline), the
 envelope holds the object at every moment, `eval` reports per-time figures and a PSNR-over-time
-plot, bake keeps the kind, and a dynamic kind on static data is one error line."""
+plot, and bake keeps the kind. (A static run, a dynamic kind on views without time or with
+data.time=ignore, bad time settings: test_conditions.py.)"""
 
 import json
 from pathlib import Path
@@ -12,7 +13,6 @@ import pytest
 
 from radfield.core.geometry.envelope import read_envelope, visual_hull
 from radfield.datasets.scene import read_dataset, scene_from_json
-from radfield.demo.static import generate_scene
 from radfield.demo.timelapse import generate_dynamic
 from radfield.model_file import load_model
 from radfield.pipeline.config import load_defaults
@@ -31,11 +31,6 @@ def smoke(tmp_path_factory) -> Path:
 def moving(tmp_path_factory) -> Path:
     """The moving opaque shapes at 24 px: 12 train cameras a moment (enough for per-moment hulls)."""
     return generate_dynamic("moving", tmp_path_factory.mktemp("moving") / "moving", n_train=12, n_test=1, times=3, size=24)
-
-
-@pytest.fixture(scope="module")
-def blobs(tmp_path_factory) -> Path:
-    return generate_scene("blobs", tmp_path_factory.mktemp("blobs") / "blobs", n_train=4, n_test=1, size=16, mesh=False)
 
 
 def metrics(run: Path) -> dict:
@@ -109,13 +104,6 @@ def test_eval_reports_every_moment_consistently_with_the_overall_mean(cli, smoke
     assert (tmp_path / "again" / "figures" / "psnr_over_time.png").is_file()
 
 
-def test_a_static_run_has_no_per_time_figures(cli, blobs, tmp_path):
-    m = reconstruct(cli, blobs, tmp_path / "run")
-    assert m["kind"] == "neural" and "per_time" not in m and all("time" not in v for v in m["per_view"])
-    assert "Over time" not in (tmp_path / "run" / "eval" / "report.md").read_text()
-    assert not any((tmp_path / "run" / "eval" / "figures").iterdir())
-
-
 # --- the envelope of a moving object -------------------------------------------------------------
 
 
@@ -144,7 +132,7 @@ def test_the_envelope_of_a_moving_object_holds_it_at_every_moment(cli, moving, t
     assert figures["source"] == "hull" and figures["moments"] == 3 and figures["fallback"] is None
     train = scene_from_json(read_dataset(moving, load_defaults()["data"])[0], moving).dataset("train")
     cameras, masks = train.cameras, list(train.load_images()[1].numpy())
-    assert sorted({c.time for c in cameras}) == TIMES
+    assert sorted({c.conditions["time"] for c in cameras}) == TIMES
     union = uncovered(*read_envelope(tmp_path / "run" / "envelope" / "envelope.ply"), cameras, masks)
     assert union == [0] * len(cameras)
     # the plain visual hull, carved by the views of every moment at once, cuts moving parts away
@@ -171,7 +159,7 @@ def test_a_monocular_dynamic_capture_gets_the_box_about_the_cameras_focus(cli, m
     assert figures["method"] == "box" and figures["moments"] == 3
     # the box about the cameras' focus holds the object at every moment (each view's silhouette)
     train = scene_from_json(read_dataset(mono, load_defaults()["data"])[0], mono).dataset("train")
-    assert sorted(c.time for c in train.cameras) == TIMES
+    assert sorted(c.conditions["time"] for c in train.cameras) == TIMES
     v, f = read_envelope(tmp_path / "run" / "envelope" / "envelope.ply")
     assert len(v) == 8
     assert uncovered(v, f, train.cameras, list(train.load_images()[1].numpy())) == [0, 0, 0]
@@ -201,34 +189,3 @@ def test_a_caged_dynamic_run_edits_bakes_and_evaluates_at_every_moment(cli, smok
     code, out, err = cli("bake", tmp_path / "edited", "-o", tmp_path / "baked.safetensors", "-q")
     assert code == 0, err
     assert load_model(tmp_path / "baked.safetensors").kind == "neural-dynamic"
-
-
-# --- mistakes: one line, nothing written ------------------------------------------------------------
-
-
-@pytest.mark.parametrize("kind", ["neural-dynamic", "gaussian-dynamic"])
-def test_a_dynamic_kind_on_static_data_is_one_error_line(cli, blobs, tmp_path, kind):
-    code, out, err = cli("reconstruct", blobs, "-o", tmp_path / "run", "--set", f"train.primitive={kind}", "-q")
-    assert code == 1 and err.count("\n") == 1 and not (tmp_path / "run").exists()
-    assert f"{blobs}" in err and f"train.primitive is {kind}" in err and "carry no time" in err
-
-
-def test_a_dynamic_kind_with_time_ignored_is_one_error_line(cli, smoke, tmp_path):
-    code, _, err = cli("reconstruct", smoke, "-o", tmp_path / "run", "--set", "train.primitive=neural-dynamic",
-                       "--set", "data.time=ignore", "-q")
-    assert code == 1 and err.count("\n") == 1 and "data.time is ignore" in err and not (tmp_path / "run").exists()
-
-
-@pytest.mark.parametrize("setting, words", [("data.time=never", "must be one of auto, ignore"),
-                                            ("render.time_frequency=0", "render.time_frequency must be in (0, 100]")])
-def test_bad_time_settings_are_one_error_line(cli, smoke, tmp_path, setting, words):
-    code, _, err = cli("reconstruct", smoke, "-o", tmp_path / "run", "--set", setting, "-q")
-    assert code == 1 and err.count("\n") == 1 and words in err and not (tmp_path / "run").exists()
-
-
-def test_a_dynamic_model_is_not_measured_on_views_without_time(cli, smoke, blobs, tmp_path):
-    reconstruct(cli, smoke, tmp_path / "run", steps="20")
-    for verb in ("eval", "bake"):
-        out = tmp_path / (verb + (".safetensors" if verb == "bake" else ""))
-        code, _, err = cli(verb, tmp_path / "run", "--dataset", blobs, "-o", out, "-q")
-        assert code == 1 and err.count("\n") == 1 and "carry no time" in err and not out.exists(), (verb, err)

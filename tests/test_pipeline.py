@@ -12,7 +12,8 @@ import pytest
 import yaml
 
 from radfield.errors import RadfieldError
-from radfield.pipeline.config import NULLABLE, RANGES, load_config, load_defaults, parse_set, save_resolved, section
+from radfield.pipeline import schema
+from radfield.pipeline.config import load_config, load_defaults, parse_set, save_resolved, section
 from radfield.pipeline.info import format_info, run_info
 from radfield.pipeline.runner import INPUT, Context, NotApplicable, Stage, read_manifest, run_pipeline
 from radfield.run import MODEL_FILE, Run
@@ -384,26 +385,27 @@ def test_defaults_hold_every_section() -> None:
 
 def _numeric_keys(config: dict, prefix: str = "") -> dict[str, Any]:
     """Every dotted key of `config` whose default is a number or a list of numbers (not a boolean),
-    or null where the key takes an int (config.NULLABLE)."""
+    or null where the key takes an int (`int | None` in pipeline/schema.py)."""
     out = {}
     for name, value in config.items():
         key = f"{prefix}{name}"
         if isinstance(value, dict):
             out.update(_numeric_keys(value, key + "."))
-        elif value is None and key in NULLABLE or isinstance(value, (int, float)) and not isinstance(value, bool) or \
+        elif value is None and schema.keys()[key].type is int or isinstance(value, (int, float)) and not isinstance(value, bool) or \
                 isinstance(value, list) and value and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             out[key] = value
     return out
 
 
 def test_every_number_of_the_defaults_has_its_range() -> None:
-    """config.RANGES covers every numeric key of pipeline.yaml and no other, and every default lies
-    in its range (so a new key cannot go unchecked, and an out-of-range value is refused on set)."""
+    """Every numeric key of pipeline.yaml, and no other, has a range in pipeline/schema.py, and every
+    default lies in its range (so a new key cannot go unchecked, and an out-of-range value is refused on set)."""
     numeric = _numeric_keys(load_defaults())
-    assert set(RANGES) == set(numeric), (set(numeric) - set(RANGES), set(RANGES) - set(numeric))
+    ranges = {name: key.range for name, key in schema.keys().items() if key.range is not None}
+    assert set(ranges) == set(numeric), (set(numeric) - set(ranges), set(ranges) - set(numeric))
     for key, default in numeric.items():
         for value in default if isinstance(default, list) else [] if default is None else [default]:
-            assert RANGES[key].holds(value), (key, value)
+            assert ranges[key].holds(value), (key, value)
 
 
 def test_overrides_parse_and_merge(tmp_path: Path) -> None:

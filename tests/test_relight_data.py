@@ -1,8 +1,9 @@
-"""Lights in datasets (issue 30, data side): NeRF-synthetic and nerfstudio frames with a
-`light_position` or `light_direction` (and `light_intensity`), their bad inputs as one-line errors,
-the light kept through scene.json and moved by the normalisation, the point light of the analytic
-ray tracer (1/r², hard shadows) and `radfield demo-scene olat` and `olat-glossy` (its cast shadow
-and its highlight move with the light)."""
+"""Lights in datasets (issue 30, data side): NeRF-synthetic frames with a `light_position` or
+`light_direction` (and `light_intensity`), their bad lights as one-line errors, the light moved by
+the normalisation, the point light of the analytic ray tracer (1/r², hard shadows) and `radfield
+demo-scene olat` and `olat-glossy` (its cast shadow and its highlight move with the light). What
+a light shares with the other view conditions (nerfstudio frames, frames with and without one,
+scene.json, static datasets): test_conditions.py."""
 
 import json
 import math
@@ -17,13 +18,13 @@ from radfield.datasets.images import read_image
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.demo.olat import LIGHT_RADIUS, PILLAR_RADIUS, PILLAR_TOP, generate_olat, olat_scene
 from radfield.datasets.readers import load_dataset
-from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
+from radfield.datasets.scene import read_dataset, scene_from_json
 from radfield.demo.scenes import PointLight
 from radfield.demo.static import generate_scene
 from radfield.demo.raytrace import intersect, render_view, shade
 from radfield.pipeline.config import load_defaults
 
-from shared_helpers import frames, nerfstudio_copy, rewrite
+from shared_helpers import frames, rewrite
 
 CAMERAS, LIGHTS = 2, 3  # train cameras and lights per camera of the tiny olat scene
 
@@ -56,10 +57,11 @@ def test_olat_frames_carry_point_lights_that_become_the_cameras_lights(olat_data
     assert len(train) == CAMERAS * LIGHTS and len(frames(olat_data / "transforms_test.json")) == LIGHTS
     cameras = load_dataset(olat_data, "train").cameras
     for frame, camera in zip(train, cameras):
-        assert camera.light.position == tuple(frame["light_position"]) and camera.light.direction is None
-        assert camera.light.intensity == frame["light_intensity"] == LIGHT_RADIUS**2
+        light = camera.conditions.get("light")
+        assert light.position == tuple(frame["light_position"]) and light.direction is None
+        assert light.intensity == frame["light_intensity"] == LIGHT_RADIUS**2
     # one camera under several lights: the same pose, other lights
-    assert torch.equal(cameras[0].c2w, cameras[1].c2w) and cameras[0].light != cameras[1].light
+    assert torch.equal(cameras[0].c2w, cameras[1].c2w) and cameras[0].conditions["light"] != cameras[1].conditions["light"]
 
 
 def test_directional_lights_and_intensities_are_read(olat_data, tmp_path):
@@ -75,9 +77,9 @@ def test_directional_lights_and_intensities_are_read(olat_data, tmp_path):
     for name in ("transforms_train.json", "transforms_test.json"):
         rewrite(root / name, directional)
     cameras = load_dataset(root, "train").cameras
-    assert [cam.light.direction for cam in cameras] == [(0.0, 0.0, -1.0)] * len(cameras)
-    assert [cam.light.intensity for cam in cameras] == [0.5 + k for k in range(len(cameras))]
-    assert all(cam.light.position is None for cam in cameras)
+    assert [cam.conditions.get("light").direction for cam in cameras] == [(0.0, 0.0, -1.0)] * len(cameras)
+    assert [cam.conditions.get("light").intensity for cam in cameras] == [0.5 + k for k in range(len(cameras))]
+    assert all(cam.conditions.get("light").position is None for cam in cameras)
 
 
 def test_an_intensity_defaults_to_one(olat_data, tmp_path):
@@ -85,28 +87,13 @@ def test_an_intensity_defaults_to_one(olat_data, tmp_path):
     shutil.copytree(olat_data, root)
     for name in ("transforms_train.json", "transforms_test.json"):
         rewrite(root / name, lambda fs: [f.pop("light_intensity") for f in fs])
-    assert {cam.light.intensity for cam in load_dataset(root, "all").cameras} == {1.0}
-
-
-def test_nerfstudio_frames_carry_their_light(olat_data, tmp_path):
-    root = nerfstudio_copy(olat_data, tmp_path / "ns")
-    dataset = load_dataset(root, "all")
-    assert dataset.format == "nerfstudio"
-    by_name = {cam.name: cam.light.position for cam in dataset.cameras}
-    assert by_name == {Path(f["file_path"]).stem: tuple(f["light_position"]) for f in frames(root / "transforms.json")}
-
-
-def test_a_static_dataset_has_no_light(blobs):
-    assert all(cam.light is None for cam in load_dataset(blobs, "all").cameras)
+    assert {cam.conditions.get("light").intensity for cam in load_dataset(root, "all").cameras} == {1.0}
 
 
 # every case: (file to edit, how, frame named, what the message says)
 BAD_LIGHTS = {
-    "some frames of a file": ("transforms_train.json", lambda fs: fs[4].pop("light_position"), 4,
-                              "has no light but frames[0] has one"),
-    "one split file": ("transforms_test.json", lambda fs: [(f.pop("light_position"), f.pop("light_intensity"))
-                                                           for f in fs], 0,
-                       "has no light but frames[0] of {root}/transforms_train.json has one"),
+    "an intensity left without its light": ("transforms_train.json", lambda fs: fs[4].pop("light_position"), 4,
+                                            "has no light but frames[0] has one"),
     "two numbers": ("transforms_train.json", lambda fs: fs[1].update(light_position=[1.0, 2.0]), 1,
                     "'light_position' must be three finite numbers [x, y, z], not [1.0, 2.0]"),
     "a string": ("transforms_test.json", lambda fs: fs[2].update(light_position="3 0 1"), 2,
@@ -154,15 +141,6 @@ def test_an_intensity_without_a_light_is_one_line(blobs, tmp_path, cli):
     assert not (tmp_path / "run").exists()
 
 
-def test_nerfstudio_with_only_some_lights_is_one_line(olat_data, tmp_path, cli):
-    root = nerfstudio_copy(olat_data, tmp_path / "ns")
-    rewrite(root / "transforms.json", lambda fs: fs[3].pop("light_position"))
-    code, _, err = cli("reconstruct", root, "-o", tmp_path / "run")
-    assert code == 1 and err.count("\n") == 1, err
-    assert f"{root / 'transforms.json'}: frames[3] (images/r_001_l00.png) has no light" in err, err
-    assert not (tmp_path / "run").exists()
-
-
 def test_a_light_inside_the_mesh_box_is_refused_one_outside_it_is_not(olat_data, tmp_path, cli):
     """With a mesh.ply the bounds are its box: a light beside the objects but inside the box is
     refused; the same dataset without its inside light reads."""
@@ -180,22 +158,7 @@ def test_a_light_inside_the_mesh_box_is_refused_one_outside_it_is_not(olat_data,
     assert not (tmp_path / "run").exists()
 
 
-# --- the run's scene keeps the light ------------------------------------------------------------
-
-
-def test_scene_json_round_trip_keeps_the_light(olat_data, tmp_path):
-    scene_json, _ = read_dataset(olat_data, load_defaults()["data"])
-    train = frames(olat_data / "transforms_train.json")
-    assert [view["light"] for view in scene_json["splits"]["train"]] == [
-        {"position": f["light_position"], "intensity": f["light_intensity"]} for f in train]
-    path = tmp_path / "scene.json"
-    path.write_text(json.dumps(scene_json))
-    scene = load_scene(path)
-    assert scene.relightable
-    expected = [tuple(f["light_position"]) for f in train]
-    assert [cam.light.position for cam in scene.cameras("train")] == expected
-    assert [light.position for light in scene.lights("train")] == expected
-    assert [cam.light.position for cam in scene.dataset("train").cameras] == expected
+# --- the normalisation moves a light ------------------------------------------------------------
 
 
 def test_normalisation_moves_a_point_light_with_the_cameras_and_keeps_its_irradiance(olat_data):
@@ -204,18 +167,18 @@ def test_normalisation_moves_a_point_light_with_the_cameras_and_keeps_its_irradi
     assert abs(norm.scale - 1 / 4.0) < 1e-9    # cameras at radius 4 about the origin
     camera = scene.cameras("train")[2]
     normalised = norm.camera(camera)
-    position = torch.tensor(camera.light.position, dtype=torch.float64)
-    moved = torch.tensor(normalised.light.position, dtype=torch.float64)
+    position = torch.tensor(camera.conditions.get("light").position, dtype=torch.float64)
+    moved = torch.tensor(normalised.conditions.get("light").position, dtype=torch.float64)
     torch.testing.assert_close(moved, norm.apply(position), rtol=0, atol=1e-12)
     # the light keeps its place relative to the camera: the same vector, scaled
     torch.testing.assert_close(moved - normalised.c2w[:3, 3], (position - camera.c2w[:3, 3]) * norm.scale)
     # intensity / r² at any point is the same in both frames
     for point in ([0.0, 0.0, 0.0], [0.3, -0.5, 0.2], [1.0, 1.0, -0.5]):
         x = torch.tensor(point, dtype=torch.float64)
-        world = camera.light.intensity / (position - x).square().sum()
-        frame = normalised.light.intensity / (moved - norm.apply(x)).square().sum()
+        world = camera.conditions.get("light").intensity / (position - x).square().sum()
+        frame = normalised.conditions.get("light").intensity / (moved - norm.apply(x)).square().sum()
         assert abs(world - frame) < 1e-12 * world
-    assert normalised.light.intensity != camera.light.intensity
+    assert normalised.conditions.get("light").intensity != camera.conditions.get("light").intensity
 
 
 def test_normalisation_keeps_a_directional_light(olat_data, tmp_path):
@@ -226,20 +189,8 @@ def test_normalisation_keeps_a_directional_light(olat_data, tmp_path):
                                          for f in fs])
     scene = scene_from_json(read_dataset(root, load_defaults()["data"])[0], root / "scene.json")
     camera = scene.cameras("test")[0]
-    assert scene.normalization.camera(camera).light == camera.light
-    assert camera.light.direction == pytest.approx((0.0, 0.6, -0.8))
-
-
-STATIC_VIEW_KEYS = {"name", "image", "fx", "fy", "cx", "cy", "width", "height", "c2w", "file_width", "file_height",
-                    "distortion"}
-
-
-def test_a_static_scene_json_has_no_light_key(blobs):
-    scene_json, _ = read_dataset(blobs, load_defaults()["data"])
-    assert all(set(view) == STATIC_VIEW_KEYS for views in scene_json["splits"].values() for view in views)
-    scene = scene_from_json(scene_json, blobs / "scene.json")
-    assert not scene.relightable and set(scene.lights("train")) == {None}
-    assert all(cam.light is None for cam in scene.cameras("train"))
+    assert scene.normalization.camera(camera).conditions.get("light") == camera.conditions.get("light")
+    assert camera.conditions.get("light").direction == pytest.approx((0.0, 0.6, -0.8))
 
 
 # --- the point light of the ray tracer ----------------------------------------------------------
@@ -313,7 +264,7 @@ def test_olat_files_and_lights(name, request):
     assert description["name"] == name and description["base"] == base and description["lights_per_camera"] == LIGHTS
     # the dataset reads as a relightable one: every camera carries its frame's light
     cameras = load_dataset(olat_data, "all").cameras
-    assert [cam.light.position for cam in cameras] == train + test
+    assert [cam.conditions.get("light").position for cam in cameras] == train + test
 
 
 @pytest.mark.parametrize("name", OLAT_SCENES)

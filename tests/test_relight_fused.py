@@ -49,7 +49,7 @@ def relight_model(kind, num=14, hidden=12, sh_degree=0, dtype=torch.float64, see
 
 def camera(light, size=(24, 20)):
     return Camera(fx=30.0, fy=33.0, cx=12.3, cy=9.7, width=size[0], height=size[1],
-                  c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0)), light=light)
+                  c2w=look_at((0.3, -3.0, 0.5), (0, 0, 0))).at(light=light)
 
 
 def view_dc_with_grads(prims, cam, backend):

@@ -2,10 +2,11 @@
 
 Under one light a relightable model is the static model of its view's colours (c_dc + c_θ(d, d_l))·E
 (eq. 14), on every backend; a zero network draws c_dc; the gradients of the network, c_dc, μ and q
-against finite differences; a view without a light is one error; model files round-trip and
-refuse bad values; population control keeps the network's rows; a turned primitive turns its
-colour field; a tiny relighting reconstruction fits what a light-blind one cannot; and the centre
-colour against quadrature of the exact volume-rendering integral with colour varying along the ray.
+against finite differences; model files round-trip and refuse bad values; population control keeps
+the network's rows; a turned primitive turns its colour field; a tiny relighting reconstruction
+fits what a light-blind one cannot; and the centre colour against quadrature of the exact
+volume-rendering integral with colour varying along the ray. (A view without a light is one error,
+and the other kinds ignore one: test_conditions.py.)
 """
 
 import math
@@ -38,7 +39,7 @@ NETWORK = ("color_w1", "color_b1", "color_w2", "color_b2")
 
 def scene(render_scene, kind, dtype=torch.float64):
     prims, cam = render_scene("neural-window" if kind == "neural-relight" else "gaussian", dtype)
-    return with_network(prims), replace(cam, light=POINT)
+    return with_network(prims), cam.at(light=POINT)
 
 
 def colour_by_hand(prims, i, campos, light):
@@ -65,7 +66,7 @@ def test_under_one_light_a_relight_model_renders_as_its_static_model(render_scen
     assert spec.name == kind and spec.conditions == ("light",)
     images = {}
     for light in (POINT, SUN):
-        lit = replace(cam, light=light)
+        lit = cam.at(light=light)
         static = spec.at_view(prims, lit)
         assert type(static) in (NeuralPrimitives, Gaussians) and static.sh_degree == 0
         campos = cam.c2w[:3, 3]
@@ -92,7 +93,7 @@ def test_a_zero_network_under_unit_irradiance_draws_exactly_c_dc(render_scene, k
     static = parent(**{k: getattr(prims, k) for k in parent.__dataclass_fields__ if k != "supersample"})
     for backend in backends.available("cpu", torch.float64):
         with backends.using(backend):
-            relit = render(zero, replace(cam, light=SUN), background=BG, near=0.05)   # E = intensity = 1
+            relit = render(zero, cam.at(light=SUN), background=BG, near=0.05)   # E = intensity = 1
             plain = render(static, cam, background=BG, near=0.05)
             torch.testing.assert_close(relit.color, plain.color, rtol=0, atol=1e-12)
             torch.testing.assert_close(relit.alpha, plain.alpha, rtol=0, atol=0)
@@ -103,7 +104,7 @@ def test_a_zero_network_under_unit_irradiance_draws_exactly_c_dc(render_scene, k
 def test_gradients_of_the_colour_field_match_finite_differences(render_scene, kind, name):
     prims, cam = scene(render_scene, kind)
     prims = prims.select(slice(3, 8))   # in front of the camera, a handful
-    cam = replace(Camera(fx=cam.fx / 3, fy=cam.fy / 3, cx=3.6, cy=3.1, width=7, height=6, c2w=cam.c2w), light=POINT)
+    cam = Camera(fx=cam.fx / 3, fy=cam.fy / 3, cx=3.6, cy=3.1, width=7, height=6, c2w=cam.c2w).at(light=POINT)
     for backend in backends.available("cpu", torch.float64):
         with backends.using(backend):
             def f(x):
@@ -114,29 +115,6 @@ def test_gradients_of_the_colour_field_match_finite_differences(render_scene, ki
             grad = torch.autograd.grad(f(x).sum(), x)[0]
             assert float(grad.abs().max()) > 1e-6      # the view depends on it
             assert torch.autograd.gradcheck(f, (x,), eps=1e-6, atol=1e-5, rtol=1e-3), backend
-
-
-def test_a_view_without_a_light_is_one_error_and_other_kinds_ignore_the_light(render_scene):
-    for kind in ("neural-relight", "gaussian-relight"):
-        prims, cam = scene(render_scene, kind)
-        with pytest.raises(RadfieldError, match=r"^this model is relightable: give a light \(--light X,Y,Z or "
-                                                r"--light-dir X,Y,Z\)$"):
-            render(prims, replace(cam, light=None))
-        with pytest.raises(RadfieldError, match="exported under one light: give a light"):
-            kinds.of(prims).to_gaussians(prims)
-    static, cam = render_scene("neural", torch.float64)
-    assert kinds.of(static).at_view(static, replace(cam, light=POINT)) is static
-    torch.testing.assert_close(render(static, replace(cam, light=POINT)).color, render(static, cam).color, rtol=0, atol=0)
-    from radfield.core.kinds.dynamic import DynamicNeuralPrimitives, TEMPORAL_TERMS
-
-    n = len(static)
-    dynamic = DynamicNeuralPrimitives(**{k: getattr(static, k) for k in ("means", "log_scales", "quats", "sh", "w1",
-                                                                         "b1", "w2", "b2")},
-                                      w_t=torch.full((n, static.hidden), 0.05, dtype=torch.float64),
-                                      sh_t=torch.full((n, TEMPORAL_TERMS, 3), 0.1, dtype=torch.float64))
-    moment = replace(cam, time=0.4)
-    torch.testing.assert_close(render(dynamic, replace(moment, light=POINT)).color, render(dynamic, moment).color,
-                               rtol=0, atol=0)
 
 
 def test_at_light_is_the_static_model_of_one_light_for_every_view(render_scene):
@@ -222,14 +200,14 @@ def test_a_turned_model_turns_its_colour_field(render_scene):
             assert torch.equal(getattr(turned, name), getattr(prims, name))
         for light, moved in ((POINT, Light(position=tuple(rot @ np.array(POINT.position) + shift), intensity=9.0)),
                              (SUN, Light(direction=tuple(rot @ np.array(SUN.direction)), intensity=1.0))):
-            before = render(prims, replace(cam, light=light), background=BG, near=0.05)
-            after = render(turned, replace(cam, c2w=move @ cam.c2w, light=moved), background=BG, near=0.05)
+            before = render(prims, cam.at(light=light), background=BG, near=0.05)
+            after = render(turned, replace(cam, c2w=move @ cam.c2w).at(light=moved), background=BG, near=0.05)
             assert before.meta["contributing_pairs"] > 100
             torch.testing.assert_close(after.color, before.color, rtol=0, atol=1e-9)
         # and without turning the frame the colours would differ: the network is not rotation-invariant
         unturned = replace(turned, quats=prims.quats)
-        assert not torch.allclose(kinds.of(prims).at_view(unturned, replace(cam, c2w=move @ cam.c2w, light=moved)).sh,
-                                  kinds.of(prims).at_view(turned, replace(cam, c2w=move @ cam.c2w, light=moved)).sh)
+        assert not torch.allclose(kinds.of(prims).at_view(unturned, replace(cam, c2w=move @ cam.c2w).at(light=moved)).sh,
+                                  kinds.of(prims).at_view(turned, replace(cam, c2w=move @ cam.c2w).at(light=moved)).sh)
 
 
 def relight_views(size=16):
@@ -239,7 +217,7 @@ def relight_views(size=16):
     base = random_neural(12, scale=0.3, extent=0.45, b2=1.5, w2_amplitude=0.4, seed=3)
     truth = with_network(base, seed=5, amplitude=0.3)   # colours within about [0, 1.8]
     lights = [Light(position=(2.5 * math.cos(a), 2.5 * math.sin(a), 1.5), intensity=8.5) for a in (0.3, 1.9, 3.5, 5.1)]
-    cams = [Camera(fx=20.0, fy=20.0, cx=size / 2, cy=size / 2, width=size, height=size, light=light,
+    cams = [Camera(fx=20.0, fy=20.0, cx=size / 2, cy=size / 2, width=size, height=size, conditions={"light": light},
                    c2w=look_at((2.2 * math.cos(a), 2.2 * math.sin(a), 0.6), (0, 0, 0)), name=f"c{k}/l{j}")
             for k, a in enumerate((0.0, 2.1)) for j, light in enumerate(lights)]
     with torch.no_grad():
@@ -311,7 +289,7 @@ def test_the_centre_colour_against_quadrature_of_a_colour_varying_along_the_ray(
     base.window = True
     prims = with_network(base, seed=2)
     cam = Camera(fx=14.0, fy=14.0, cx=8.0, cy=6.0, width=16, height=12, c2w=look_at((0.2, -2.6, 0.4), (0, 0, 0)),
-                 light=POINT)
+                 conditions={"light": POINT})
     static = kinds.of(prims).at_view(prims, cam)
     drawn = render(prims, cam, background=BG, near=0.05).color
     a = torch.nn.functional.normalize(torch.randn(3, 3, 3, generator=torch.Generator().manual_seed(0),
@@ -358,11 +336,12 @@ def test_data_parallel_training_sends_the_cameras_light():
 
     for light in (POINT, SUN, None):
         cam = Camera(fx=20.0, fy=21.0, cx=8.0, cy=7.5, width=16, height=15, c2w=look_at((2.0, 0.5, 0.3), (0, 0, 0)),
-                     name="c", time=0.25, light=light)
+                     name="c", conditions={"time": 0.25}).at(light=light)
         back = camera_from_meta(json.loads(json.dumps(camera_meta(cam))), cam.c2w)
-        assert back.light == light and torch.equal(back.c2w, cam.c2w)
-        assert (back.fx, back.fy, back.cx, back.cy, back.width, back.height, back.name, back.time) == \
-            (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.name, cam.time)
+        assert back.conditions.get("light") == light and torch.equal(back.c2w, cam.c2w)
+        assert dict(back.conditions) == dict(cam.conditions) and back.conditions["time"] == 0.25
+        assert (back.fx, back.fy, back.cx, back.cy, back.width, back.height, back.name) == \
+            (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.name)
 
 
 def test_peak_density_joining_and_the_slow_reference_follow_the_parent_kind(render_scene):

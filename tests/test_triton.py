@@ -275,8 +275,6 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     records (steps 3 and 6) the host reads one number a view, the binning's pair count
     (binning.pair_count), and nothing else: no render counter, no visible count (conftest.HostReads;
     the blocking copies to the device are test_cuda.py's)."""
-    from dataclasses import replace
-
     from radfield.core.geometry.cameras import Light
     from radfield.core.kinds import random_neural
     from radfield.core.trainer import loop
@@ -287,9 +285,9 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     with torch.no_grad():
         images = torch.stack([render(random_neural(30, seed=1), c).color.clamp(0, 1) for c in cams])
     if kind.endswith("dynamic"):
-        cams = [replace(c, time=i / 2) for i, c in enumerate(cams)]
+        cams = [c.at(time=i / 2) for i, c in enumerate(cams)]
     if kind.endswith("relight"):
-        cams = [replace(c, light=Light(position=(2.0, i - 1.0, 2.0))) for i, c in enumerate(cams)]
+        cams = [c.at(light=Light(position=(2.0, i - 1.0, 2.0))) for i, c in enumerate(cams)]
     cfg = load_defaults()["train"]
     cfg.update(iterations=6, batch_views=2, log_every=3, checkpoint_every=100, eval_every=0, nonnegative_density=180.0,
                min_footprint=0.5, ray_jitter=0.5, random_background=True, sh_degree=0)

@@ -29,7 +29,8 @@ from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.core.kinds.relight import DEFAULT_COLOR_HIDDEN, init_network
 from radfield.core.render.rasterize import render
 from radfield.core.splat.sh import rgb_to_sh_dc
-from radfield.delivery.lights import light_at
+from radfield.conditions import Asked
+from radfield.conditions.light import light_at
 from radfield.delivery.viewer import tet_edges, viser_camera
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -269,7 +270,7 @@ def test_play_advances_the_time_by_the_wall_time_and_loops(red_to_blue, lit_from
     from radfield.delivery.viewer import PLAY_SECONDS, Viewer, viewer_scene
 
     monkeypatch.setenv("RADFIELD_KERNELS", "torch")
-    viewer = Viewer(viewer_scene(red_to_blue, time=0.1), port=0, log=lambda line: None)
+    viewer = Viewer(viewer_scene(red_to_blue, asked={"time": Asked("--time", value=0.1)}), port=0, log=lambda line: None)
     try:
         assert viewer.play_button.label == "Play" and not viewer.playing
         viewer.advance_play(time.monotonic() + 1.0)

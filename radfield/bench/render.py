@@ -85,8 +85,9 @@ def bench_cameras(count: int, width: int, height: int) -> list[Camera]:
         a = 2 * math.pi * i / count
         eye = (3.2 * math.cos(a), 3.2 * math.sin(a), 1.0)
         cams.append(Camera(fx=focal, fy=focal, cx=width / 2, cy=height / 2, width=width, height=height,
-                           c2w=look_at(eye, (0, 0, 0)), name=f"orbit{i}", time=(i + 0.5) / count,
-                           light=Light(position=(0.0, 0.0, 3.0), intensity=9.0)))
+                           c2w=look_at(eye, (0, 0, 0)), name=f"orbit{i}",
+                           conditions={"time": (i + 0.5) / count,
+                                       "light": Light(position=(0.0, 0.0, 3.0), intensity=9.0)}))
     return cams
 
 

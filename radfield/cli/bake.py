@@ -29,6 +29,7 @@ def bake(
     Prints the primitive count and file size before and after and the held-out PSNR change."""
     from radfield.stages.bake import bake_model
     from radfield.evaluation.evaluate import resolve_target
+    from radfield.pipeline.schema import typed
 
     check_output(output, force, folder=False)
     options = data_options(downscale, background)
@@ -39,8 +40,9 @@ def bake(
     model, scene, _, config = resolve_target(target, dataset, options)
     if output.resolve() == Path(model).resolve():
         raise RadfieldError(f"{output}: would overwrite the model being baked")
-    f = bake_model(model, scene, output, min_weight=config["bake"]["min_weight"], fp16=config["bake"]["fp16"],
-                   split=split, near=config["render"]["near"], device=str(resolve_device(device)), quiet=quiet)
+    settings = typed(config)
+    f = bake_model(model, scene, output, min_weight=settings.bake.min_weight, fp16=settings.bake.fp16,
+                   split=split, near=settings.render.near, device=str(resolve_device(device)), quiet=quiet)
     typer.echo(f"baked {f['primitives_before']} -> {f['primitives_after']} primitives ({f['pruned']} pruned), "
                f"{f['size_before']} -> {f['size_after']} bytes{' (float16)' if f['fp16'] else ''}; "
                f"{split} PSNR {f['psnr_before']:.2f} -> {f['psnr_after']:.2f} dB ({f['psnr_change']:+.3f}); wrote {output}")

@@ -4,12 +4,15 @@ torch at module level: `radfield --help` must not pay for it."""
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 
+from radfield import conditions
 from radfield.errors import RadfieldError
 from radfield.util.numbers import three_numbers
 from radfield.util.progress import progress_bar
@@ -52,6 +55,50 @@ def check_options(checks: dict[str, tuple[float | None, Range]]) -> None:
     for option, (value, allowed) in checks.items():
         if value is not None and not allowed.holds(value):
             raise RadfieldError(f"{option} must be {allowed.describe()}, got {value:g}")
+
+
+AT = Annotated[Optional[list[str]], typer.Option("--at", metavar="NAME=VALUE", help="A conditioned model: this value of a view condition for every view, e.g. time=0.5 (any registered condition; repeat for several conditions).")]
+def condition_options(verb: str):
+    """Decorator: add every registered view condition's options of `verb` (render, export, view;
+    Condition.options, e.g. --time and --light) and `--at NAME=VALUE` to a command, and hand the
+    command what they asked as `asked` (condition name -> conditions.Asked; each value checked,
+    one line otherwise). The command declares `asked` where the options go and none of them."""
+
+    def decorate(command):
+        signature = inspect.signature(command, eval_str=True)
+        owners: dict[str, conditions.Condition] = {}
+        added = []
+        for condition in conditions.registered():
+            for name, annotation in condition.options(verb).items():
+                owners[name] = condition
+                default = 0 if annotation.__origin__ is int else None
+                added.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation))
+        added.append(inspect.Parameter("at", inspect.Parameter.KEYWORD_ONLY, default=None, annotation=AT))
+        own = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in signature.parameters.values()]
+        cut = [p.name for p in own].index("asked")
+
+        @functools.wraps(command)
+        def with_conditions(**values):
+            given = {name: values.pop(name) for name in owners}
+            asked = {}
+            for condition in conditions.registered():
+                request = condition.asked({k: v for k, v in given.items() if owners[k] is condition})
+                if request is not None:
+                    asked[condition.name] = request
+            for text in values.pop("at") or ():
+                name, _, value = text.partition("=")
+                if not value:
+                    raise RadfieldError(f"--at takes NAME=VALUE, e.g. time=0.5, got {text!r}")
+                condition = conditions.get(name.strip())
+                if condition.name in asked:
+                    raise RadfieldError(f"--at {text}: a {condition.name} is given twice ({asked[condition.name].option})")
+                asked[condition.name] = conditions.Asked(f"--at {condition.name}", value=condition.parse(value.strip()))
+            return command(**values, asked=asked)
+
+        with_conditions.__signature__ = signature.replace(parameters=own[:cut] + added + own[cut + 1:])
+        return with_conditions
+
+    return decorate
 
 
 def parse_background(text: str) -> tuple[float, float, float]:

@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from radfield import conditions
+
 from radfield.cli.common import Background, Dataset, Device, Downscale, Force, Quiet, check_output, data_options, resolve_device
 from radfield.errors import RadfieldError
 
@@ -54,13 +56,10 @@ def eval_command(
     typer.echo(f"{metrics['split']}: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {lp}, "
                f"{metrics['fps']:.1f} fps over {metrics['views']} views ({metrics['num_primitives']} "
                f"{metrics['kind']} primitives); report in {output / 'report.md'}")
-    if metrics.get("per_time"):   # a dynamic scene: the spread over its moments (the report plots it)
-        moments = metrics["per_time"]
-        worst, best = min(moments, key=lambda t: t["psnr"]), max(moments, key=lambda t: t["psnr"])
-        typer.echo(f"{len(moments)} moments: PSNR from {worst['psnr']:.2f} dB (time {worst['time']:.4g}) "
-                   f"to {best['psnr']:.2f} dB (time {best['time']:.4g})")
-    if metrics.get("per_light"):   # a one-light-at-a-time capture: the spread over its lights (the report's table)
-        lights = metrics["per_light"]
-        worst, best = min(lights, key=lambda t: t["psnr"]), max(lights, key=lambda t: t["psnr"])
-        typer.echo(f"{len(lights)} lights: PSNR from {worst['psnr']:.2f} dB to {best['psnr']:.2f} dB "
-                   f"(report.md 'Per light')")
+    for condition in conditions.registered():   # the spread over a condition's values (the report's section)
+        rows = metrics.get(f"per_{condition.name}")
+        if rows:
+            worst, best = min(rows, key=lambda row: row["psnr"]), max(rows, key=lambda row: row["psnr"])
+            label = lambda row: f"{condition.name} {condition.label(condition.from_row(row))}"
+            typer.echo(f"{len(rows)} {condition.unit}: PSNR from {worst['psnr']:.2f} dB ({label(worst)}) "
+                       f"to {best['psnr']:.2f} dB ({label(best)})")

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import check_output
+from radfield.cli.common import check_output, condition_options
 from radfield.errors import RadfieldError
 
 # The default export of a neural run (issue 28; docs/studies/export-fidelity.md): 2 Gaussians a
@@ -19,16 +19,14 @@ REFINE_STEPS = 2000
 REFINE_COMPONENTS = 2   # a model file (no cameras, moment matching only) keeps 1: more are worse unrefined
 
 
+@condition_options("export")
 def export(
     target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory or a .safetensors model file (model files: ply-3dgs, splat, points only).")],
     format: Annotated[str, typer.Option("--format", "-f", help="ply-3dgs (3D-Gaussian PLY for 3DGS viewers), splat (antimatter15 .splat for web viewers), points (centres as a coloured point cloud PLY), cage (.vtk or .msh), envelope (PLY), cameras (nerfstudio transforms.json).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="File to write (.ply, .splat, .vtk, .msh or .json, as the format needs).")],
     components: Annotated[Optional[int], typer.Option(help=f"ply-3dgs/splat from neural primitives: Gaussians fitted to each primitive by moment matching (default {REFINE_COMPONENTS} for a refined run, 1 otherwise).")] = None,
     refine: Annotated[Optional[int], typer.Option(metavar="STEPS", help=f"ply-3dgs/splat from a neural run: optimise the moment-matched Gaussians this many steps against renders of the model from the run's training cameras and as many random views around the object, with 3DGS densification (default {REFINE_STEPS} for a run, 0 for a model file; 0: moment matching only).")] = None,
-    time: Annotated[Optional[float], typer.Option("--time", help="A dynamic model: ply-3dgs, splat and points of the moment T in [0, 1] (a static model of that moment; required for a dynamic model).")] = None,
-    light: Annotated[Optional[str], typer.Option("--light", metavar="X,Y,Z", help="A relightable model: ply-3dgs, splat and points under a point light at X,Y,Z (the dataset's world frame; a static model of that lighting; a light is required for a relightable model).")] = None,
-    light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: under a directional light shining along X,Y,Z instead.")] = None,
-    light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir (a point light's irradiance is K/r²; default: the mean of the run's dataset lights, else 1).")] = None,
+    asked=None,   # the view conditions' options (cli/common.condition_options: --time, --light, ...)
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT if it exists.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ):
@@ -40,10 +38,9 @@ def export(
     rays, which ply-3dgs/splat viewers cannot: a one-line warning on stderr. A dynamic model is
     exported at one moment: --time T; a relightable model under one light: --light X,Y,Z (or
     --light-dir X,Y,Z)."""
-    from radfield.delivery.content import at_moment, gaussians_for, load_content, parts_for, under_light
-    from radfield.delivery.lights import light_from_options
+    from radfield import conditions
+    from radfield.delivery.content import gaussians_for, load_content, parts_for, under_conditions
     from radfield.delivery.export import FORMATS, check_target, export as export_content, supersample_warning
-    from radfield.delivery.times import check_time
 
     if format not in FORMATS:
         raise RadfieldError(f"unknown --format {format!r} (choose one of {', '.join(FORMATS)})")
@@ -51,17 +48,11 @@ def export(
         raise RadfieldError(f"--components must be at least 1, got {components}")
     if refine is not None and refine < 0:
         raise RadfieldError(f"--refine must be 0 or more steps, got {refine}")
-    if time is not None:
-        check_time(time)
-    lit = light_from_options(light, light_dir, light_intensity)
-    if light_intensity is not None and lit is None:
-        raise RadfieldError("--light-intensity is the intensity of --light or --light-dir: give one")
     check_target(format, output)
     check_output(output, force, folder=False)   # the output policy of every command (docs/usage.md, 'Outputs')
     content = load_content(target, parts=parts_for(format))
     kind = content.model.kind
-    at_moment(content, format, time)   # a dynamic model: its static model of that moment
-    lit = under_light(content, format, lit, light_intensity)   # a relightable model: its static model of that lighting
+    values = under_conditions(content, format, asked)   # a conditioned model: its static model of those values
     warning = supersample_warning(content.model, format)
     if warning:
         typer.echo(warning, err=True)
@@ -71,13 +62,9 @@ def export(
     figures = export_content(content, format, output, components=components)
     if made:
         figures["from"] = made.how
-    if time is not None:
-        figures["time"] = f"{time:g}"
-    if lit is not None:
-        vector = lit.position if lit.position is not None else lit.direction
-        figures["light" if lit.position is not None else "light direction"] = ",".join(f"{x:g}" for x in vector)
-        figures["light intensity"] = f"{lit.intensity:g}"
-    if (time is not None or lit is not None) and not made and "from" in figures:
+    for name, value in values.items():
+        figures.update(conditions.get(name).figures(value))
+    if values and not made and "from" in figures:
         figures["from"] = kind
     typer.echo(f"wrote {format} to {output} (" + ", ".join(f"{k} {v}" for k, v in figures.items()) + ")")
     if made:

@@ -1,5 +1,6 @@
-"""The `radfield` command line (Typer): the app, its error handling, and the registration of the
-commands, one module per command in radfield/cli/ (every `bench-*` benchmark in cli/bench.py).
+"""The `radfield` command line (Typer): the app, its error handling, and the registry of the
+commands (`COMMANDS`, in help order), one module per command in radfield/cli/ (every `bench-*`
+benchmark in cli/bench.py).
 
 A command module parses its options, calls the library and prints; it imports torch and the
 other heavy libraries inside the command, so that `radfield --help` and `radfield COMMAND --help`
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import sys
 import types
+from collections.abc import Callable
 from typing import Annotated
 
 import typer
@@ -19,6 +21,7 @@ import radfield
 from radfield.cli import animate, bake, bench, demo_scene, edit, eval as eval_, export, info, reconstruct, render, view
 from radfield.cli.common import KINDS, kind_names
 from radfield.errors import RadfieldError
+from radfield.util.registry import Registry
 
 
 def _click():
@@ -109,14 +112,19 @@ def _root(version: Annotated[bool, typer.Option("--version", callback=_version, 
     """radfield: editable radiance fields from multi-view images."""
 
 
-# in the order `radfield --help` lists them, the README's: the commands, then the benchmarks
+# the verbs, registered in the order `radfield --help` lists them, the README's: the commands, then
+# the benchmarks (a new verb: its module in radfield/cli/ and one line here)
+COMMANDS: Registry[Callable] = Registry("command")
 for _name, _function in (("reconstruct", reconstruct.reconstruct), ("info", info.info), ("render", render.render),
                          ("eval", eval_.eval_command), ("bake", bake.bake), ("edit", edit.edit),
                          ("animate", animate.animate), ("export", export.export), ("view", view.view),
                          ("demo-scene", demo_scene.demo_scene), ("bench-quality", bench.bench_quality),
                          ("bench-render", bench.bench_render), ("bench-train", bench.bench_train),
                          ("bench-dist", bench.bench_dist), ("bench-startup", bench.bench_startup)):
+    COMMANDS.register(_name, _function)
+for _name, _function in COMMANDS.items():
     app.command(_name, cls=_Command)(_function)
+del _name, _function
 
 
 def command_names(typer_app: typer.Typer) -> list[str]:

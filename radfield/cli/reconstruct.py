@@ -39,6 +39,7 @@ def reconstruct(
     from radfield.core.trainer import distributed, launch
     from radfield.stages import registry
     from radfield.pipeline.config import load_config
+    from radfield.pipeline.schema import typed
     from radfield.pipeline.info import conditioned_scene, run_info
     from radfield.pipeline.runner import run_pipeline
 
@@ -49,19 +50,20 @@ def reconstruct(
              "data.background": list(parse_background(background)) if background is not None else None,
              "envelope.source": "none" if no_cage else None}
     cfg = load_config(config, sets or [], {key: value for key, value in flags.items() if value is not None})
-    resolve_device(cfg["device"])
+    settings = typed(cfg)
+    resolve_device(settings.device)
     registry.check(cfg, input_path)
     if nproc > 1 and not distributed.launched():
         return launch.launch(nproc, cfg, output, sys.argv[1:])
     with launch.leading(cfg):  # rank 0 of torchrun's ranks (nothing for a single process)
-        status = run_pipeline(registry.stages(), output, cfg, input_path=input_path, force=force or [],
+        status = run_pipeline(registry.stages(), output, settings, input_path=input_path, force=force or [],
                               from_stage=from_stage, until_stage=until_stage, quiet=quiet,
                               log=lambda line: typer.echo(line, err=True))
     typer.echo("stages: " + ", ".join(f"{name} {outcome}" for name, outcome in status.items()))
     info = run_info(output)
     evaluation = info["stages"].get("eval", {})
     if status.get("eval") in ("ran", "cached") and "psnr" in evaluation:
-        split = cfg["eval"]["split"]
+        split = settings.eval.split
         what = "held-out" if split != "train" else "training-view"
         typer.echo(f"{what} PSNR {evaluation['psnr']:.2f} dB, SSIM {evaluation['ssim']:.4f} "
                    f"({evaluation['views']} {split} views); report {output / 'eval'}")

@@ -8,11 +8,12 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import (Force, check_options, check_output, parse_background, progress_bar, resolve_device,
-                                 resolve_model)
+from radfield.cli.common import (Force, check_options, check_output, condition_options, parse_background, progress_bar,
+                                 resolve_device, resolve_model)
 from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, ELEVATION, POSITIVE
 
 
+@condition_options("render")
 def render(
     model_or_run: Annotated[Path, typer.Argument(metavar="MODEL_OR_RUN", help="A .safetensors model file, or a run directory (its final model).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created; written under a temporary name and renamed at the end; an existing non-empty one needs --force).")],
@@ -29,12 +30,7 @@ def render(
     video: Annotated[Optional[Path], typer.Option(help="Also write the frames as an MP4 video (bundled ffmpeg).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Video frame rate.", show_default="30, or the camera path's")] = None,
     camera: Annotated[Optional[str], typer.Option("--camera", help="Only this view of the split (its frame name, or its index): e.g. the fixed camera of a time-lapse (--times).")] = None,
-    time: Annotated[Optional[float], typer.Option("--time", help="A dynamic model: draw every view at this moment in [0, 1] (default: each dataset view at its own time).")] = None,
-    times: Annotated[Optional[str], typer.Option("--times", metavar="A:B:N", help="A dynamic model: N moments from A to B; one image per view and moment (<view>_t<k>.png), or along an --orbit/--camera-path of N frames a time-lapse, one moment a frame.")] = None,
-    light: Annotated[Optional[str], typer.Option("--light", metavar="X,Y,Z", help="A relightable model: draw every view under a point light at X,Y,Z (the dataset's world frame; default: each dataset view under its own light).")] = None,
-    light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: a directional light shining along X,Y,Z instead.")] = None,
-    light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir/--light-orbit (a point light's irradiance is K/r²; default: the mean of the dataset's lights, else 1).")] = None,
-    light_orbit: Annotated[int, typer.Option("--light-orbit", metavar="N", help="A relightable model: N lights circling the object at the dataset lights' mean distance and elevation; one image per view and light (<view>_l<k>.png), or along an --orbit/--camera-path of N frames one light a frame.")] = 0,
+    asked=None,   # the view conditions' options (cli/common.condition_options: --time, --light, ...)
     force: Force = False,
 ):
     """Render a model's views of a dataset split, an orbit or a camera path to PNGs.
@@ -52,20 +48,15 @@ def render(
     --light X,Y,Z / --light-dir X,Y,Z, or under --light-orbit N lights; a video of the light going
     round: --camera NAME (or --orbit N) with --light-orbit and --video."""
     from radfield.delivery.render_views import render_frames
-    from radfield.delivery.lights import light_from_options
-    from radfield.delivery.times import check_time, parse_times
     from radfield.run import is_run_dir
 
     check_options({"--downscale": (downscale, AT_LEAST_1), "--near": (near, POSITIVE), "--orbit": (orbit, AT_LEAST_0),
-                   "--elevation": (elevation, ELEVATION), "--fps": (fps, POSITIVE), "--light-orbit": (light_orbit, AT_LEAST_0)})
+                   "--elevation": (elevation, ELEVATION), "--fps": (fps, POSITIVE)})
     options = {"data.downscale": downscale, "render.near": near,
                "data.background": list(parse_background(background)) if background is not None else None}
     check_output(output, force, folder=True)
     if video is not None:
         check_output(video, force, folder=False)
-    moment = check_time(time) if time is not None else None
-    moments = parse_times(times) if times is not None else None
-    lit = light_from_options(light, light_dir, light_intensity)
     dev = resolve_device(device)
     model = resolve_model(model_or_run)
     with progress_bar(quiet) as progress:
@@ -73,8 +64,7 @@ def render(
         summary = render_frames(model, model_or_run if is_run_dir(model_or_run) else None, dataset, split, output,
                                 options={k: v for k, v in options.items() if v is not None}, device=dev,
                                 orbit=orbit, elevation=elevation, camera_path=camera_path, video=video, fps=fps or 0.0,
-                                camera=camera, time=moment, times=moments,
-                                light=lit, light_orbit=light_orbit, light_intensity=light_intensity,
+                                camera=camera, asked=asked,
                                 on_start=lambda n: progress.update(task, total=n, description=f"rendering {n} images"),
                                 on_frame=lambda: progress.advance(task))
     typer.echo(f"rendered {what_was_drawn(summary)} ({summary['width']}x{summary['height']}, {summary['primitives']} "
@@ -85,8 +75,11 @@ def render(
 def what_was_drawn(summary: dict) -> str:
     """'8 views', '4 views at 1 moment', or where a view has several images '96 images: 4 views at
     24 moments' (a dynamic dataset's cameras at their moments; 1 view under 40 lights)."""
+    from radfield import conditions
+
     plural = lambda n, word: f"{n} {word}{'s' if n != 1 else ''}"
     views = plural(summary["views"], "view")
-    views += f" at {plural(summary['moments'], 'moment')}" if summary["moments"] else ""
-    views += f" under {plural(summary['lights'], 'light')}" if summary["lights"] else ""
+    for name, count in summary["drawn_under"].items():
+        preposition, noun = conditions.get(name).drawn
+        views += f" {preposition} {plural(count, noun)}"
     return views if summary["images"] == summary["views"] else f"{plural(summary['images'], 'image')}: {views}"

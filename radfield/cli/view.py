@@ -8,10 +8,11 @@ from typing import Annotated, Optional
 
 import typer
 
-from radfield.cli.common import parse_background, resolve_device
+from radfield.cli.common import condition_options, parse_background, resolve_device
 from radfield.errors import RadfieldError
 
 
+@condition_options("view")
 def view(
     target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (model, cage and cameras) or a .safetensors model file.")],
     port: Annotated[int, typer.Option(help="TCP port of the web viewer (the next free one if it is taken; 0: any free port).")] = 8080,
@@ -20,10 +21,7 @@ def view(
     moving_downscale: Annotated[int, typer.Option(help="Frames rendered while the camera moves are this many times smaller.")] = 4,
     background: Annotated[Optional[str], typer.Option(help="Background R,G,B in [0, 1] (default: the run's, else 1,1,1).")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda: where the model is rendered.")] = "cpu",
-    time: Annotated[Optional[float], typer.Option("--time", help="A dynamic model: the moment in [0, 1] shown first (the viewer's Time slider moves it).")] = None,
-    light: Annotated[Optional[str], typer.Option("--light", metavar="X,Y,Z", help="A relightable model: the point light it is first drawn under (the dataset's world frame; the light sliders move it; default: where the dataset's lights are).")] = None,
-    light_dir: Annotated[Optional[str], typer.Option("--light-dir", metavar="X,Y,Z", help="A relightable model: start with a directional light shining along X,Y,Z instead.")] = None,
-    light_intensity: Annotated[Optional[float], typer.Option("--light-intensity", help="The intensity of --light/--light-dir (default: the mean of the run's dataset lights, else 1).")] = None,
+    asked=None,   # the view conditions' options (cli/common.condition_options: --time, --light, ...)
 ):
     """Open an interactive viewer of a model in the browser, rendered on this machine.
 
@@ -31,22 +29,14 @@ def view(
     a wireframe toggle and its cameras as frustums; for a dynamic model a Time slider and a Play
     button, for a relightable model light sliders (azimuth, elevation, distance). Stop it with
     Ctrl-C (or SIGTERM: one line, exit 0)."""
-    from radfield.delivery.lights import light_from_options
-    from radfield.delivery.times import check_time
     from radfield.delivery.viewer import Viewer, viewer_scene
 
     if not 0 <= port < 65536:
         raise RadfieldError(f"--port must be in 0..65535, got {port}")
     if resolution < 16 or moving_downscale < 1:
         raise RadfieldError("--resolution must be at least 16 and --moving-downscale at least 1")
-    if time is not None:
-        check_time(time)
-    lit = light_from_options(light, light_dir, light_intensity)
-    if light_intensity is not None and lit is None:
-        raise RadfieldError("--light-intensity is the intensity of --light or --light-dir: give one")
     resolve_device(device)
-    scene = viewer_scene(target, device, parse_background(background) if background is not None else None, time, lit,
-                         light_intensity)
+    scene = viewer_scene(target, device, parse_background(background) if background is not None else None, asked)
     try:
         viewer = Viewer(scene, host=host, port=port, resolution=resolution, moving_downscale=moving_downscale,
                         log=lambda line: typer.echo(line, err=True))

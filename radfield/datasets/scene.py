@@ -11,9 +11,9 @@ writes (RUN/data/), read back as a Scene (cameras, splits, normalisation; images
 
     VIEW = {"name", "image": "/abs/file", "fx", "fy", "cx", "cy", "width", "height",
             "c2w": 4x4 list, "file_width", "file_height", "distortion": [k1, k2, p1, p2(, k3)] | null,
-            "time": ξ_t in [0, 1] (only in a dynamic dataset's views: D-NeRF, nerfstudio with time),
-            "light": {"position" | "direction": [x, y, z], "intensity": k} (only in a one-light-at-a-
-                     time capture's views: the light the image was lit by, world frame)}
+            and each condition the view carries (radfield/conditions: "time": ξ_t in [0, 1], a dynamic
+            dataset's; "light": {"position" | "direction": [x, y, z], "intensity": k}, a one-light-
+            at-a-time capture's, world frame)}
 
 Cameras are OpenCV (x right, y down, z forward) camera-to-world in the dataset's own world frame
 (for photos: the sfm stage's output, a COLMAP dataset in its normalised frame, is the dataset);
@@ -28,9 +28,8 @@ x_norm = (x − center) · scale. `center` is the median of the SfM points when 
 converge (object-centric captures: the middle of the object, where the mean of the camera centres
 would sit above it for a hemisphere of views), else the mean of the train camera centres.
 `scale` puts every train camera within radius 1 of the centre. `extent` = 1.1 × that radius, in
-world units (3DGS's camera extent; 1.1 in normalised units). A view's point light moves with the
-cameras and its intensity is multiplied by scale², which keeps the irradiance intensity / r² of
-every point as it was (`Normalization.light`); directional lights are unchanged.
+world units (3DGS's camera extent; 1.1 in normalised units). A view's conditions move with it as
+each says (`Condition.normalized`: a point light moves with the cameras, its intensity times scale²).
 
 Splits: the dataset's own (NeRF-synthetic split files, nerfstudio *_filenames lists), else every
 `data.test_every`-th view by file name is a test view (the LLFF protocol). With `data.val_every`
@@ -53,7 +52,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from radfield.core.geometry.cameras import Camera, Light
+from radfield import conditions
+from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
 from radfield.datasets import formats
 from radfield.datasets.bounds import MESH, focus_point, read_mesh
@@ -168,23 +168,9 @@ def _view_json(dataset: Dataset, view: View) -> dict[str, Any]:
         "c2w": cam.c2w.tolist(),
         "file_width": view.camera.width, "file_height": view.camera.height,
         "distortion": None if view.distortion is None else [float(k) for k in view.distortion],
-        # only when the view has one, so a static scene's scene.json stays as it was
-        **({} if cam.time is None else {"time": cam.time}),
-        **({} if cam.light is None else {"light": light_json(cam.light)}),
+        # only the conditions the view has, so a static scene's scene.json stays as it was
+        **conditions.view_json(cam.conditions),
     }
-
-
-def light_json(light: Light) -> dict[str, Any]:
-    """A scene.json VIEW's "light": {"position" | "direction": [x, y, z], "intensity": k}."""
-    key, vector = ("position", light.position) if light.position is not None else ("direction", light.direction)
-    return {key: list(vector), "intensity": light.intensity}
-
-
-def light_from_json(light: dict[str, Any] | None) -> Light | None:
-    """The Light of a scene.json VIEW's "light" (None when the view has none)."""
-    if light is None:
-        return None
-    return Light(light.get("position"), light.get("direction"), light["intensity"])
 
 
 def _points(train: Dataset) -> dict[str, np.ndarray]:
@@ -226,20 +212,12 @@ class Normalization(NamedTuple):
         return xyz / self.scale + self.center.to(xyz)
 
     def camera(self, camera: Camera) -> Camera:
-        """The same view in the normalised frame (rotation and intrinsics unchanged), lit by the
-        same light (`light`)."""
+        """The same view in the normalised frame (rotation and intrinsics unchanged), its conditions
+        moved with it (`Condition.normalized`: a point light moves with the cameras)."""
         c2w = camera.c2w.clone()
         c2w[:3, 3] = self.apply(c2w[:3, 3])
-        return replace(camera, c2w=c2w, light=self.light(camera.light))
-
-    def light(self, light: Light | None) -> Light | None:
-        """A light in the normalised frame: a point light moves with the cameras and its intensity
-        grows by scale², so that the irradiance intensity / r² at every point of the scene is what
-        it was (r grows by `scale`); a directional light is unchanged (a similarity keeps directions)."""
-        if light is None or light.position is None:
-            return light
-        position = self.apply(torch.tensor(light.position, dtype=torch.float64))
-        return Light(position=tuple(position.tolist()), intensity=light.intensity * self.scale**2)
+        moved = {name: conditions.get(name).normalized(value, self) for name, value in camera.conditions.items()}
+        return replace(camera, c2w=c2w, conditions=moved)
 
 
 @dataclass(frozen=True)
@@ -261,27 +239,10 @@ class Scene:
             raise RadfieldError(f"{self.root}: the dataset has no {split!r} split (it has {', '.join(self.splits)})")
         return self.splits[split]
 
-    @property
-    def dynamic(self) -> bool:
-        """Whether the views show moments of a changing scene (each carries a time ξ_t)."""
-        return any("time" in view for views in self.splits.values() for view in views)
-
-    @property
-    def relightable(self) -> bool:
-        """Whether each view carries the light it was lit by (a one-light-at-a-time capture)."""
-        return any("light" in view for views in self.splits.values() for view in views)
-
-    def lights(self, split: str) -> list[Light | None]:
-        """Each view's light (None under fixed lighting), in the split's order, world frame."""
-        return [light_from_json(view.get("light")) for view in self.views(split)]
-
-    def times(self, split: str) -> list[float | None]:
-        """Each view's time ξ_t in [0, 1] (None in a static scene), in the split's order."""
-        return [view.get("time") for view in self.views(split)]
-
-    def time_steps(self) -> list[float]:
-        """The distinct times of every split, ascending ([] for a static scene)."""
-        return sorted({view["time"] for views in self.splits.values() for view in views if "time" in view})
+    def values(self, condition: str, split: str) -> list:
+        """Each view's value of `condition` (None where it has none), in the split's order, world frame."""
+        read = conditions.get(condition).from_json
+        return [read(view[condition]) if condition in view else None for view in self.views(split)]
 
     def cameras(self, split: str) -> list[Camera]:
         if not self.posed:
@@ -348,8 +309,7 @@ def scene_from_json(scene: dict[str, Any], path: Path) -> Scene:
 
 def _camera(view: dict[str, Any]) -> Camera:
     return Camera(view["fx"], view["fy"], view["cx"], view["cy"], view["width"], view["height"],
-                  torch.tensor(view["c2w"], dtype=torch.float64), view["name"], view.get("time"),
-                  light_from_json(view.get("light")))
+                  torch.tensor(view["c2w"], dtype=torch.float64), view["name"], conditions.view_values(view))
 
 
 def _dataset_view(view: dict[str, Any]) -> View:
@@ -359,6 +319,6 @@ def _dataset_view(view: dict[str, Any]) -> View:
     sx, sy = view["file_width"] / view["width"], view["file_height"] / view["height"]
     camera = Camera(view["fx"] * sx, view["fy"] * sy, view["cx"] * sx, view["cy"] * sy,
                     view["file_width"], view["file_height"], torch.tensor(view["c2w"], dtype=torch.float64),
-                    view["name"], view.get("time"), light_from_json(view.get("light")))
+                    view["name"], conditions.view_values(view))
     distortion = None if view["distortion"] is None else np.asarray(view["distortion"], dtype=np.float64)
     return View(Path(view["image"]), camera, distortion)

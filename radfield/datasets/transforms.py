@@ -8,18 +8,12 @@ file level, which nerfstudio lets each frame override. Principal points use the 
 pixel coordinates as `Camera` (cx = w/2 is the centre), as instant-ngp and nerfstudio do.
 Lens distortion (k1 k2 p1 p2 [k3], OpenCV model) is recorded per view and removed on load.
 
-A dynamic dataset (D-NeRF, nerfstudio with time) gives each frame a `time`, the moment ξ_t in
-[0, 1] it shows (Splat the Net appendix C.1); it becomes the view's `Camera.time`. Either every
-frame of the dataset carries one or none does (`check_times`), so a scene is wholly static or
-wholly dynamic.
-
-A one-light-at-a-time capture (Splat the Net appendix C.2; GS³, Kang et al.) gives each frame the
-light it was lit by: `light_position` ([x, y, z], a point light in the world frame of
-`transform_matrix`) or `light_direction` ([x, y, z], a directional light, pointing from the light
-towards the scene), and optionally `light_intensity` (> 0, default 1). It becomes the view's
-`Camera.light`. As with time, every frame of the dataset carries a light or none does
-(`check_lights`), and a point light may not sit inside the object's bounds (`check_light_bounds`:
-the readers call it once every frame they read has its camera).
+A frame may carry conditions besides its camera (radfield/conditions: a dynamic dataset's `time`,
+a one-light-at-a-time capture's `light_position` or `light_direction`); each registered condition
+reads its own keys (`Condition.read_frame`) into the view's `Camera.conditions`. Either every frame
+of the dataset carries a condition or none does (`check_frames`), so a scene is wholly static or
+wholly dynamic, and each condition checks the views together once every frame read has its camera
+(`check_views`: e.g. no point light inside the object's bounds).
 """
 
 from __future__ import annotations
@@ -33,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield.core.geometry.cameras import Camera, Light, opengl_to_opencv
+from radfield import conditions
+from radfield.core.geometry.cameras import Camera, opengl_to_opencv
 from radfield.errors import RadfieldError
 from radfield.datasets.images import image_size
 from radfield.datasets.views import View
@@ -42,7 +37,6 @@ from radfield.datasets.views import View
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV order
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
-_LIGHT_KEYS = ("light_position", "light_direction")  # a frame's light is one of these (+ light_intensity)
 
 
 def read_json(path: Path) -> dict:
@@ -66,21 +60,14 @@ def read_json(path: Path) -> dict:
 
 
 def check_frames(files: list[tuple[Path, dict]]) -> None:
-    """What must agree across the frames of these transforms files (path, content) together:
-    their times (`check_times`) and their lights (`check_lights`)."""
-    check_times(files)
-    check_lights(files)
-
-
-def check_times(files: list[tuple[Path, dict]]) -> None:
-    """Every frame's `time` of these transforms files (path, content) together: a number in
-    [0, 1] on every frame, or on none. The first offending frame raises, named by file and index."""
-    first = None
-    for path, i, frame in _frames(files):
-        timed = "time" in frame
-        if timed:
-            _check_time(frame, i, path)
-        first = _all_or_none(first, path, i, frame, timed, ("a 'time'", "no 'time'"), "give every frame a time or none")
+    """Every registered condition over the frames of these transforms files (path, content)
+    together: a valid value on every frame, or none on any. The first offending frame raises,
+    named by file and index."""
+    for condition in conditions.registered():
+        first = None
+        for path, i, frame in _frames(files):
+            first = _all_or_none(first, path, i, frame, condition.in_frame(frame), condition)
+            condition.read_frame(frame, _where(frame, i, path))   # checks the value
 
 
 def _frames(files: list[tuple[Path, dict]]):
@@ -90,69 +77,24 @@ def _frames(files: list[tuple[Path, dict]]):
             yield path, i, frame
 
 
-def _all_or_none(first, path: Path, i: int, frame: dict, carried: bool, names: tuple[str, str], hint: str):
-    """A property every frame of the files carries or none does: `first` is (path, index, carried) of
-    the first frame (None before it), returned for the next frame; a frame that disagrees with it
-    raises, naming both frames. names: how the message says the frame has it or not."""
+def _all_or_none(first, path: Path, i: int, frame: dict, carried: bool, condition):
+    """A condition every frame of the files carries or none does: `first` is (path, index, carried)
+    of the first frame (None before it), returned for the next frame; a frame that disagrees with it
+    raises, naming both frames."""
     if first is None:
         return path, i, carried
     if carried != first[2]:
-        what = f"has {names[0]}" if carried else f"has {names[1]}"
+        what = f"has {condition.frame_words[0]}" if carried else f"has {condition.frame_words[1]}"
         other = "has none" if carried else "has one"
         where = "" if first[0] == path else f" of {first[0]}"
         raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}) {what} but frames[{first[1]}]{where} "
-                            f"{other}: {hint}")
+                            f"{other}: {condition.frame_hint}")
     return first
 
 
-def _check_time(frame: dict, i: int, json_path: Path) -> None:
-    value = frame["time"]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise RadfieldError(f"{json_path}: frames[{i}] ({_frame_name(frame)}): 'time' must be a number in [0, 1], "
-                            f"not {value!r:.40}")
-    if not 0.0 <= value <= 1.0:
-        raise RadfieldError(f"{json_path}: frames[{i}] ({_frame_name(frame)}): 'time' {value!r} is outside [0, 1]")
-
-
-def check_lights(files: list[tuple[Path, dict]]) -> None:
-    """Every frame's light of these transforms files (path, content) together: a valid light on
-    every frame, or none on any. The first offending frame raises, named by file and index."""
-    first = None
-    for path, i, frame in _frames(files):
-        lit = any(key in frame for key in _LIGHT_KEYS)
-        first = _all_or_none(first, path, i, frame, lit, ("a light", "no light"),
-                             "give every frame a 'light_position' or 'light_direction', or none")
-        frame_light(frame, i, path)  # checks the values (None when the frame has no light)
-
-
-def frame_light(frame: dict, i: int, json_path: Path) -> Light | None:
-    """The Light of frames[i] (None when it has none); a bad one raises naming the file and frame."""
-    where = f"{json_path}: frames[{i}] ({_frame_name(frame)})"
-    given = [key for key in _LIGHT_KEYS if key in frame]
-    if not given:
-        if "light_intensity" in frame:
-            raise RadfieldError(f"{where}: 'light_intensity' without a 'light_position' or 'light_direction'")
-        return None
-    if len(given) == 2:
-        raise RadfieldError(f"{where}: a light has a 'light_position' (a point light) or a 'light_direction' "
-                            "(a directional one), not both")
-    key = given[0]
-    vector = frame[key]
-    if not (isinstance(vector, list) and len(vector) == 3 and all(_is_number(x) for x in vector)):
-        raise RadfieldError(f"{where}: '{key}' must be three finite numbers [x, y, z], not {vector!r:.60}")
-    if key == "light_direction" and not any(vector):
-        raise RadfieldError(f"{where}: 'light_direction' must not be [0, 0, 0]")
-    intensity = frame.get("light_intensity", 1.0)
-    if not (_is_number(intensity) and intensity > 0):
-        raise RadfieldError(f"{where}: 'light_intensity' must be a positive number, not {intensity!r:.40}")
-    vector = tuple(float(x) for x in vector)
-    if key == "light_position":
-        return Light(position=vector, intensity=float(intensity))
-    return Light(direction=vector, intensity=float(intensity))
-
-
-def _is_number(value) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+def _where(frame: dict, i: int, json_path: Path) -> str:
+    """frames[i] of a file, for messages."""
+    return f"{json_path}: frames[{i}] ({_frame_name(frame)})"
 
 
 def _frame_name(frame: dict) -> str:
@@ -161,27 +103,21 @@ def _frame_name(frame: dict) -> str:
     return name if isinstance(name, str) else "no file_path"
 
 
-def check_light_bounds(placed: list[tuple[Path, int, dict, View]], root: Path) -> None:
-    """No point light of these views inside the object's bounds (datasets/bounds.py: the box of
-    `root`/mesh.ply, else the ball all these views' cameras frame). `placed`: (transforms file,
-    frame index, frame, its view) for every frame read. Checked here, once every frame read has its
-    camera, because only the cameras (or the mesh) say where the object is, and here the offending
-    frame can still be named; a light inside the object lights nothing the cameras see, and a
-    light given in the wrong units or frame usually lands there."""
-    point_lit = [item for item in placed if item[3].camera.light is not None and item[3].camera.light.position is not None]
-    if not point_lit:
-        return
+def check_views(placed: list[tuple[Path, int, dict, View]], root: Path) -> None:
+    """Each registered condition's check of the views together (`Condition.check_views`, e.g. no
+    point light inside the object's bounds: datasets/bounds.py, the box of `root`/mesh.ply, else
+    the ball all these views' cameras frame). `placed`: (transforms file, frame index, frame, its
+    view) for every frame read. Checked here, once every frame read has its camera, because only
+    the cameras (or the mesh) say where the object is, and here the offending frame can still be
+    named."""
     from radfield.datasets.bounds import MESH, object_bounds
 
-    bounds = object_bounds([view.camera for *_, view in placed], root / MESH)
-    if bounds is None:
-        return
-    for path, i, frame, view in point_lit:
-        position = view.camera.light.position
-        if bounds.contains(position):
-            raise RadfieldError(f"{path}: frames[{i}] ({_frame_name(frame)}): light_position "
-                                f"[{', '.join(f'{x:.4g}' for x in position)}] is inside the object's bounds "
-                                f"({bounds.describe()}): a point light must be outside the object")
+    bounds = cache(lambda: object_bounds([view.camera for *_, view in placed], root / MESH))
+    for condition in conditions.registered():
+        carried = [(_where(frame, i, path), view.camera.conditions[condition.name])
+                   for path, i, frame, view in placed if condition.name in view.camera.conditions]
+        if carried:
+            condition.check_views(carried, bounds)
 
 
 def placed_views(meta: dict, frames: list[tuple[int, dict]], json_path: Path) -> list[tuple[Path, int, dict, View]]:
@@ -262,10 +198,10 @@ def _camera(
         coeffs = coeffs[:4]  # the usual k1 k2 p1 p2
     distortion = coeffs if coeffs.any() else None
     c2w = opengl_to_opencv(_matrix(frame, i, json_path))
-    time = None if "time" not in frame else float(frame["time"])  # checked by read_json
-    light = frame_light(frame, i, json_path)
+    where = _where(frame, i, json_path)
+    values = {c.name: value for c in conditions.registered() if (value := c.read_frame(frame, where)) is not None}
     try:
-        return Camera(fx, fy, cx, cy, round(w), round(h), c2w, name, time, light), distortion
+        return Camera(fx, fy, cx, cy, round(w), round(h), c2w, name, values), distortion
     except RadfieldError as e:
         raise RadfieldError(f"{json_path}: frames[{i}]: {e}") from None
 

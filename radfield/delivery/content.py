@@ -4,18 +4,20 @@ the run's files are found through radfield.run.Run).
 
 Only the parts asked for are read, so that exporting a model from a run does not need the
 envelope's mesh library (pymeshlab); a part a run lacks is None, and `Content.missing` says why.
-A dynamic model is exported at one moment (`at_moment`: the static model of `--time T`), a
-relightable one under one light (`under_light`: the static model of `--light X,Y,Z`).
+A conditioned model is exported under one value of each condition (`under_conditions`: the static
+model of `--time T`, of `--light X,Y,Z`).
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Collection
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 
+from radfield import conditions
 from radfield.delivery.export import ONE_RAY_FORMATS, Content
 from radfield.core.kinds.moment_matching import MIN_OPACITY
 from radfield.errors import RadfieldError
@@ -77,61 +79,40 @@ def _load_cameras(run: Run, content: Content) -> None:
         content.missing["cameras"] = f"the run has no cameras ({run.scene} is missing)"
 
 
-def at_moment(content: Content, format: str, time: float | None) -> None:
-    """A dynamic model is exported at one moment (issue 29): content.model becomes the static model
-    of `time` (its kind's at_time, eq. 10-13) before any conversion, so that moment matching,
-    refinement (whose teacher renders the run's training cameras, each with its own time) and the
-    fidelity figure all see that moment's model. A dynamic model without a time, a time for a
-    static model, or a time for a format that holds no model: one error line."""
-    from radfield.delivery.export import MODEL_FORMATS
-    from radfield.delivery.times import check_takes_time, is_dynamic, model_at
+def under_conditions(content: Content, format: str, asked: dict[str, conditions.Asked]) -> dict[str, Any]:
+    """A conditioned model is exported under one value of each condition its kind reads (issues 29,
+    30): content.model becomes the static model of those values (its kind's at_conditions: at_time,
+    eq. 10-13; at_light, SH of degree 3 fitted over view directions) before any conversion, so
+    that moment matching, refinement (whose teacher renders the run's training cameras, each with
+    its own conditions) and the fidelity figure all see that model. A conditioned model without a
+    value, a value for a model whose kind does not read it or for a format that holds no model, or
+    a point light inside the run's object bounds: one error line. Each value resolved against the
+    run's views (a light as bright as its dataset's). Returns the values used."""
+    from radfield.delivery.export import MODEL_FORMATS, view_cameras
 
-    if time is None:
-        if format in MODEL_FORMATS and is_dynamic(content.model):
-            raise RadfieldError(f"{content.source}: the model is dynamic ({content.model.kind}) and {format} holds one "
-                                "moment: give a time (--time T, T in [0, 1])")
-        return
-    if format not in MODEL_FORMATS:
-        raise RadfieldError(f"--time is for the exports of a model ({', '.join(MODEL_FORMATS)}), not {format}")
-    check_takes_time(content.model, content.source)
-    content.model = model_at(content.model, time)
-
-
-def under_light(content: Content, format: str, light, intensity: float | None = None):
-    """A relightable model is exported under one light (issue 30): content.model becomes the static
-    model of `light` (its kind's at_light: the colour over view directions fitted by SH of degree 3)
-    before any conversion, as `at_moment` does for a time, so that moment matching, refinement and
-    the fidelity figure all see that lighting. A relightable model without a light, a light for a
-    model that is not relightable or for a format that holds no model, or a point light inside the
-    run's object bounds: one error line. `intensity`: the one the user gave (None: the run's
-    dataset lights' mean, delivery/lights.py: as_bright_as). Returns the light used (None without one)."""
-    from radfield.delivery.export import MODEL_FORMATS
-    from radfield.datasets.scene import light_from_json
-    from radfield.delivery.lights import (as_bright_as, check_outside, check_takes_light, is_relightable, light_option,
-                                          model_at)
-
-    if light is None:
-        if format in MODEL_FORMATS and is_relightable(content.model):
-            raise RadfieldError(f"{content.source}: the model is relightable ({content.model.kind}) and {format} holds "
-                                "one lighting: give a light (--light X,Y,Z or --light-dir X,Y,Z)")
-        return None
-    option = light_option(light)
-    if format not in MODEL_FORMATS:
-        raise RadfieldError(f"{option} is for the exports of a model ({', '.join(MODEL_FORMATS)}), not {format}")
-    check_takes_light(content.model, content.source, option)
-    check_outside(light, run_bounds(content), option)
-    if intensity is None:
-        light = as_bright_as(light, [light_from_json(view.get("light")) for views in (content.views or {}).values()
-                                     for view in views])
-    content.model = model_at(content.model, light)
-    return light
+    for name, request in asked.items():
+        if format not in MODEL_FORMATS:
+            raise RadfieldError(f"{request.option} is for the exports of a model ({', '.join(MODEL_FORMATS)}), not {format}")
+        conditions.check_takes(content.model, content.source, name, request.option)
+    if format in MODEL_FORMATS:
+        for condition in conditions.taken(content.model):
+            if condition.name not in asked:
+                raise RadfieldError(f"{content.source}: the model is {condition.model_words} ({content.model.kind}) and "
+                                    f"{format} holds {condition.once}: give {condition.value_words} ({condition.how_once})")
+    if not asked:
+        return {}
+    cameras = view_cameras([view for views in (content.views or {}).values() for view in views])
+    bounds = functools.cache(lambda: run_bounds(content))
+    values = {name: conditions.get(name).resolved(request, cameras, bounds).value for name, request in asked.items()}
+    content.model = conditions.fixed(content.model, values)
+    return values
 
 
 def run_bounds(content: Content):
-    """The object's bounds of a run's dataset (delivery/lights.py: dataset_bounds), None for a model
-    file or a run without cameras or dataset."""
+    """The object's bounds of a run's dataset (delivery/render_views.py: dataset_bounds), None for a
+    model file or a run without cameras or dataset."""
     from radfield.delivery.export import view_cameras
-    from radfield.delivery.lights import dataset_bounds
+    from radfield.delivery.render_views import dataset_bounds
 
     if not content.views or not Path(content.source).is_dir():
         return None
@@ -213,7 +194,7 @@ def fidelity(gaussians, teacher, content: Content) -> tuple[float, int, str] | N
 def static_views(views: list[dict], model) -> list:
     """The cameras of scene.json `views` as a static model sees them: each pose once. A dynamic or
     relighting dataset holds every camera at each of its moments or lights, which the static model
-    of one moment or light (at_moment, under_light) draws the same: measured once, not 24 times."""
+    of one moment or light (under_conditions) draws the same: measured once, not 24 times."""
     from radfield.core import kinds
     from radfield.core.geometry.cameras import distinct_poses
     from radfield.delivery.export import view_cameras

@@ -20,10 +20,12 @@ Formats (all in the dataset's world frame):
 - ``envelope``  the envelope triangle mesh as a binary PLY.
 - ``cameras``   the run's cameras as a nerfstudio ``transforms.json`` (OpenGL axes, per-frame
   intrinsics at the image files' resolution, OpenCV distortion, train/val/test file name lists;
-  a dynamic scene's frames keep their ``time``).
+  frames keep their conditions as the readers take them: a dynamic scene's ``time``, a capture's
+  ``light_position``).
 
-A dynamic model (a time-conditioned kind) is exported at one moment: `radfield export --time T`
-hands these functions the static model of that moment (delivery/content.py: at_moment).
+A conditioned model (a dynamic or relightable kind) is exported under one value of each condition:
+`radfield export --time T` hands these functions the static model of that moment
+(delivery/content.py: under_conditions).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from radfield import conditions
 from radfield.util.atomic import atomic_write, atomic_write_bytes, atomic_write_text
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.errors import RadfieldError
@@ -108,10 +111,9 @@ def export(content: Content, format: str, path: str | Path, *, components: int =
 
 
 def view_cameras(views: list[dict]) -> list[Camera]:
-    """radfield Cameras of scene.json VIEW dicts (posed views only), each at its view's time (a
-    dynamic scene's; None otherwise)."""
+    """radfield Cameras of scene.json VIEW dicts (posed views only), each with its view's conditions."""
     return [Camera(v["fx"], v["fy"], v["cx"], v["cy"], v["width"], v["height"],
-                   torch.tensor(v["c2w"], dtype=torch.float64), v["name"], v.get("time"))
+                   torch.tensor(v["c2w"], dtype=torch.float64), v["name"], conditions.view_values(v))
             for v in views if "c2w" in v]
 
 
@@ -259,8 +261,8 @@ def nerfstudio_transforms(splits: dict[str, list[dict]]) -> dict:
             dist = view.get("distortion")
             if dist:
                 frame.update(dict(zip(("k1", "k2", "p1", "p2", "k3"), dist)))
-            if "time" in view:   # a dynamic scene's moment, as nerfstudio's dynamic datasets write it
-                frame["time"] = view["time"]
+            for name, value in conditions.view_values(view).items():   # e.g. a dynamic scene's "time"
+                frame.update(conditions.get(name).to_frame(value))
             frames[frame["file_path"]] = frame   # a view in two splits is one frame
             lists.setdefault(f"{split}_filenames", []).append(str(view["image"]))
     return {"camera_model": "OPENCV", "frames": list(frames.values()), **lists}

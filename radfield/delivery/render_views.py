@@ -9,21 +9,19 @@ rays (its `supersample`, core/antialias.render_model).
 The frames are written into a temporary folder beside the output and moved into place at the end,
 so a failed render leaves no partial output.
 
-A dynamic model (a time-conditioned kind, core/kinds/dynamic.py) draws each view at its time
-(Camera.time; delivery/times.py): a dynamic dataset's views at their own times, `time` one moment
-for every view, `times` several (timed_frames: one image per view and moment, `<view>_t<k>.png`,
-or a time-lapse along an orbit or a camera path, its frames and moments paired one to one).
-A relightable model (core/kinds/relight.py) draws each view under its light (Camera.light;
-delivery/lights.py) the same way: a relighting dataset's views under their own lights, `light`
-one light for every view, `light_orbit` N lights circling the object (lit_frames: one image per
-view and light, `<view>_l<k>.png`, or along an orbit or a camera path one light a frame).
+A conditioned model (a kind with `conditions`: time-conditioned, core/kinds/dynamic.py; relightable,
+core/kinds/relight.py) draws each view under its own value of each condition (Camera.conditions;
+radfield/conditions): a dataset's views under their own, or what the options asked (`asked`, one
+`conditions.Asked` per condition): one value for every view, or several (condition_frames: one
+image per view and value, `<view>_<tag><k>.png`, e.g. `_t0003` for a time and `_l0003` for a light,
+or along an orbit or a camera path one value a frame: a time-lapse, a light going round).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,9 +38,7 @@ from radfield.util.timing import clock
 from radfield.datasets.images import write_image
 from radfield.pipeline.config import load_config, run_config
 from radfield.datasets.scene import load_split
-from radfield.delivery.lights import (as_bright_as, check_lit, check_outside, check_takes_light, dataset_bounds,
-                                      is_relightable, light_option, orbit_lights, under)
-from radfield.delivery.times import at_time, check_takes_time, check_timed, is_dynamic
+from radfield import conditions
 from radfield.run import Run
 
 DEFAULT_FPS = 30.0
@@ -99,64 +95,39 @@ def shared_name(names: list[str]) -> str:
     return prefix.rstrip(SEPARATORS) or names[0]
 
 
-def timed_frames(cameras, names, time: float | None, times: list[float] | None, path: str | None):
-    """The (cameras, names) to draw at the moments asked for (module docstring): `time` for every
-    camera; `times` along an orbit or a camera path pairs its frames with the moments one to one
-    (a time-lapse while the camera moves; `path` names it), else every view at every moment,
-    `<name>_t<k>`."""
-    if time is not None:
-        return at_time(cameras, time), names
-    if times is None:
-        return cameras, names
-    return varied_frames(cameras, names, "time", times, "t", path, f"--times gives {len(times)} moments",
-                         "a time-lapse pairs them one to one")
-
-
-def lit_frames(cameras, names, light, lights: list | None, path: str | None):
-    """The (cameras, names) to draw under the lights asked for (module docstring): `light` for
-    every camera; `lights` (a light orbit) along an orbit or a camera path one light a frame (both
-    move), else every view under every light, `<name>_l<k>`."""
-    if light is not None:
-        return under(cameras, light), names
-    if lights is None:
-        return cameras, names
-    return varied_frames(cameras, names, "light", lights, "l", path, f"--light-orbit gives {len(lights)} lights",
-                         "the light and the camera move together, one light a frame")
-
-
-def varied_frames(cameras, names, condition: str, values: list, tag: str, path: str | None, given: str,
-                  pairing: str):
-    """The cameras with their `condition` (a Camera field: time, light) set to each of `values`:
-    along an orbit or a camera path (`path` names it) its frames and the values paired one to one,
-    else every camera at every value; frame names gain `_<tag><k>`. `given` and `pairing` word the
-    error of a path with another number of frames."""
-    suffixes = [f"_{tag}{k:04d}" for k in range(len(values))]
+def condition_frames(cameras, names, condition: conditions.Condition, asked: conditions.Asked, path: str | None):
+    """The (cameras, names) to draw under what the options asked of `condition` (module docstring):
+    one value for every camera; several along an orbit or a camera path (`path` names it) paired
+    with its frames one to one (both move), else every camera at every value, `<name>_<tag><k>`."""
+    if not asked.several:
+        return [camera.at(**{condition.name: asked.value}) for camera in cameras], names
+    values = asked.values
+    suffixes = [f"_{condition.tag}{k:04d}" for k in range(len(values))]
     if path is not None:
         if len(values) != len(cameras):
-            raise RadfieldError(f"{given} but {path} has {len(cameras)} frames: {pairing} (give as many)")
-        return ([replace(c, **{condition: v}) for c, v in zip(cameras, values)],
+            raise RadfieldError(f"{asked.option} gives {len(values)} {condition.unit} but {path} has {len(cameras)} "
+                                f"frames: {condition.pairing} (give as many)")
+        return ([c.at(**{condition.name: v}) for c, v in zip(cameras, values)],
                 [name + suffix for name, suffix in zip(names, suffixes)])
-    return ([replace(c, **{condition: v}) for c in cameras for v in values],
+    return ([c.at(**{condition.name: v}) for c in cameras for v in values],
             [name + suffix for name in names for suffix in suffixes])
 
 
-def light_orbit_lights(cameras, count: int, intensity: float | None, bounds) -> list:
-    """`count` lights circling the object (delivery/lights.py: orbit_lights) about the centre of its
-    bounds (else the cameras' focus) and the cameras' mean up, from the split's own lights."""
-    if not cameras:
-        raise RadfieldError("--light-orbit circles the dataset's lights: give --dataset for a model file")
-    params = orbit_from_cameras(cameras)
-    centre = params["target"] if bounds is None else (bounds.center if bounds.center is not None
-                                                      else (bounds.low + bounds.high) / 2)
-    return orbit_lights([camera.light for camera in cameras], centre, params["up"], count, intensity)
+def dataset_bounds(cameras, dataset):
+    """The object's bounds as the data side sees them (datasets/bounds.py: the dataset's mesh.ply,
+    else the ball its cameras frame), None without a dataset or when they say nothing."""
+    from radfield.datasets.bounds import MESH, object_bounds
+
+    if dataset is None or not cameras:
+        return None
+    return object_bounds(list(cameras), Path(dataset) / MESH)
 
 
 def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, split: str, out_dir: Path, *,
                   options: dict[str, Any] | None = None, device: str | torch.device = "cpu",
                   orbit: int = 0, elevation: float = 20.0, camera_path: Path | None = None,
                   video: Path | None = None, fps: float = 0.0, camera: str | None = None,
-                  time: float | None = None, times: list[float] | None = None,
-                  light=None, light_orbit: int = 0, light_intensity: float | None = None,
+                  asked: dict[str, conditions.Asked] | None = None,
                   on_start: Callable[[int], None] | None = None,
                   on_frame: Callable[[], None] | None = None) -> dict[str, Any]:
     """Render `split` of `dataset` (default: the run's) with the model into out_dir/<view>.png.
@@ -167,33 +138,22 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     dataset; an orbit needs one to circle. `camera`: only the split's view of that name (or index),
     e.g. the fixed camera of a time-lapse.
 
-    A dynamic model: `time` (one moment for every view) or `times` (several; timed_frames), else
-    each view's own time (a dynamic dataset's); a camera without a time is one error before
-    anything is written. A time for a static model is one error too (delivery/times.py).
-
-    A relightable model: `light` (a Light, the dataset's world frame, for every view) or
-    `light_orbit` N lights circling the object (lit_frames; at the dataset's lights' mean distance
-    and elevation), else each view's own light (a relighting dataset's); `light_intensity` is the
-    one given for either (None: the dataset lights' mean intensity, delivery/lights.py:
-    as_bright_as, as the orbit's); a camera without a light, a light for a model that is not
-    relightable, or a point light inside the object's bounds is one error (delivery/lights.py).
-
-    A time or a light given for every view draws each camera pose of the split once (split_views).
+    A conditioned model: `asked` (condition name -> what the options asked, conditions.Asked, each
+    resolved against the split's views: a light as bright as the dataset's, a light orbit about the
+    object), else each view's own values (the dataset's); a camera without a value, a value for a
+    model whose kind does not read that condition, or a point light inside the object's bounds is
+    one error before anything is written (radfield/conditions). A value given for every view draws
+    each camera pose of the split once (split_views).
 
     on_start(number of images) and on_frame() drive a progress bar. Returns images, views (the
-    distinct camera poses drawn), width, height, primitives, kind, moments (the distinct times drawn
-    of a dynamic model, else 0), lights (the distinct lights drawn of a relightable model, else 0) and
-    ms_per_frame (rendering only, after one untimed warm-up render, the device synchronised before
-    each clock reading)."""
+    distinct camera poses drawn), width, height, primitives, kind, drawn_under (condition name -> the
+    number of its distinct values drawn, for each condition the model's kind reads) and ms_per_frame
+    (rendering only, after one untimed warm-up render, the device synchronised before each clock
+    reading)."""
     on_path = bool(orbit) or camera_path is not None
     if camera is not None and on_path:
         raise RadfieldError(f"--camera and --{'orbit' if orbit else 'camera-path'} exclude each other")
-    if time is not None and times is not None:
-        raise RadfieldError("--time and --times exclude each other")
-    if light is not None and light_orbit:
-        raise RadfieldError(f"{light_option(light)} and --light-orbit exclude each other")
-    if light_intensity is not None and light is None and not light_orbit:
-        raise RadfieldError("--light-intensity is the intensity of --light, --light-dir or --light-orbit: give one")
+    asked = {name: asked[name] for name in conditions.names() if name in (asked or {})}   # registration order
     # a run edited from a model file (radfield edit MODEL -o RUN) has no config and no dataset of its own
     run = Run(run_dir) if run_dir is not None else None
     config = run_config(run, options) if run is not None else load_config(None, options=options or {})
@@ -206,33 +166,26 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
     if out_dir.exists() and not out_dir.is_dir():
         raise RadfieldError(f"{out_dir}: exists and is not a folder")
     model = load_model(model_file, device=device)
-    if time is not None or times is not None:
-        check_takes_time(model, model_file, "--time" if time is not None else "--times")
-    if light is not None or light_orbit:
-        check_takes_light(model, model_file, light_option(light) if light is not None else "--light-orbit")
+    for name, request in asked.items():
+        conditions.check_takes(model, model_file, name, request.option)
     background, near = tuple(config["data"]["background"]), config["render"]["near"]
     draw = lambda camera: render_model(model, camera, background=background, near=near)  # its own n × n rays a pixel
     # every view given its moment or light by the options: one image per pose, not per recorded one
-    one_per_pose = (is_dynamic(model) and (time is not None or times is not None)) or \
-        (is_relightable(model) and (light is not None or bool(light_orbit)))
-    cameras, names, recorded = [], [], []   # recorded: the split's views with their own moments and lights
+    one_per_pose = bool(asked)
+    cameras, names, recorded = [], [], []   # recorded: the split's views with their own conditions
     if dataset is not None:
         data = load_split(dataset, split, config["data"])
         cameras, names = split_views(data, camera, one_per_pose)
         recorded = data.cameras
-    if light_intensity is None:   # a light as bright as the dataset's (delivery/lights.py: as_bright_as)
-        light = as_bright_as(light, [view.light for view in recorded])
-    bounds = dataset_bounds(recorded, dataset) if light is not None or light_orbit else None
-    check_outside(light, bounds, light_option(light))
-    lights = light_orbit_lights(recorded, light_orbit, light_intensity, bounds) if light_orbit else None
+    bounds = functools.cache(lambda: dataset_bounds(recorded, dataset))
+    asked = {name: conditions.get(name).resolved(request, recorded, bounds) for name, request in asked.items()}
     frame_rate = fps or DEFAULT_FPS
     if on_path:
         cameras, names, frame_rate = path_cameras(cameras, names, orbit, elevation, camera_path, fps)
     path = "the orbit" if orbit else f"the camera path {camera_path}" if camera_path is not None else None
-    cameras, names = timed_frames(cameras, names, time, times, path)
-    check_timed(model, model_file, cameras, path or f"the {split} views of {dataset}")
-    cameras, names = lit_frames(cameras, names, light, lights, path)
-    check_lit(model, model_file, cameras, path or f"the {split} views of {dataset}")
+    for name, request in asked.items():
+        cameras, names = condition_frames(cameras, names, conditions.get(name), request, path)
+    conditions.check_given(model, model_file, cameras, path or f"the {split} views of {dataset}")
     if on_start is not None:
         on_start(len(cameras))
     with torch.no_grad():  # warm-up, untimed: the first render loads the fused kernels
@@ -253,8 +206,7 @@ def render_frames(model_file: Path, run_dir: Path | None, dataset: Path | None, 
         if video is not None:
             write_video(video, frames, frame_rate)
     first = cameras[0]
-    moments = {view.time for view in cameras} if is_dynamic(model) else set()
-    lit = {view.light for view in cameras} if is_relightable(model) else set()
+    drawn_under = {c.name: len({c.key(view.conditions[c.name]) for view in cameras}) for c in conditions.taken(model)}
     return {"images": len(cameras), "views": len(distinct_poses(cameras)[0]), "width": first.width,
             "height": first.height, "primitives": len(model), "kind": model.kind,
-            "ms_per_frame": 1e3 * seconds / len(cameras), "moments": len(moments), "lights": len(lit)}
+            "ms_per_frame": 1e3 * seconds / len(cameras), "drawn_under": drawn_under}

@@ -24,7 +24,7 @@ A relightable model (core/kinds/relight.py) gets a light control: "Light azimuth
 elevation" sliders (degrees about the model's centre and the dataset's up) and, for a point light,
 "Light distance"; every frame is drawn under that light (Camera.light), and moving one redraws
 every browser's view. The light starts where `--light` / `--light-dir` puts it, else at the mean
-distance and elevation of the dataset's lights (delivery/lights.py: orbit_lights), else (a model
+distance and elevation of the dataset's lights (conditions/light.py: orbit_lights), else (a model
 file) at 45 degrees and three times the model's spread, of intensity distance², which lights the
 centre with irradiance 1 as the olat demo scene's lights do.
 """
@@ -35,7 +35,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -45,8 +45,8 @@ from radfield.core.geometry.cameras import Camera
 from radfield.delivery.export import view_cameras
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.core.render.rasterize import render
-from radfield.delivery.lights import check_takes_light, is_relightable, light_angles, light_at
-from radfield.delivery.times import is_dynamic
+from radfield import conditions
+from radfield.conditions.light import light_angles, light_at, orbit_lights
 
 SETTLE_SECONDS = 0.3    # camera still this long -> render at full resolution
 POLL_SECONDS = 0.02
@@ -89,30 +89,26 @@ def tet_edges(tets: np.ndarray) -> np.ndarray:
 
 
 def viewer_scene(target, device: str = "cpu", background: tuple[float, float, float] | None = None,
-                 time: float | None = None, light=None, light_intensity: float | None = None) -> ViewerScene:
+                 asked: dict[str, conditions.Asked] | None = None) -> ViewerScene:
     """What `radfield view TARGET` shows: the model of a model file or a run, and for a run its cage
     and its dataset's cameras. An edited run has no data stage of its own: its cameras (and
     background) are its source run's (radfield.run.Run.dataset_scene), since an edit keeps the
-    world frame. `background` overrides the run's (default white); `time`: a dynamic model's first
-    moment (default 0; a time for a static model is one error, delivery/times.py); `light`: a
-    relightable model's first light (default: module docstring; a light for another model, or a
-    point light inside the run's object bounds, is one error, delivery/lights.py), as bright as the
-    dataset's lights unless `light_intensity` (the user's) is given (delivery/lights.py: as_bright_as)."""
+    world frame. `background` overrides the run's (default white). `asked` (condition name ->
+    conditions.Asked): a dynamic model's first moment (default 0), a relightable model's first
+    light (default: module docstring), each resolved against the dataset's views (a light as bright
+    as the dataset's lights unless its intensity was given); a value for a model whose kind does not
+    read that condition, or a point light inside the run's object bounds, is one error."""
+    import functools
     from pathlib import Path
 
     from radfield.datasets.scene import load_scene
-    from radfield.datasets.scene import light_from_json
     from radfield.delivery.content import load_content, run_bounds
-    from radfield.delivery.lights import as_bright_as, check_outside, light_option
-    from radfield.delivery.times import check_takes_time
     from radfield.run import Run, is_run_dir
 
+    asked = asked or {}
     content = load_content(Path(target), device, parts=("cage", "cameras"))
-    if time is not None:
-        check_takes_time(content.model, target)
-    if light is not None:
-        check_takes_light(content.model, target, light_option(light))
-        check_outside(light, run_bounds(content), light_option(light))
+    for name, request in asked.items():
+        conditions.check_takes(content.model, target, name, request.option)
     views, run_background = content.views, content.background
     if views is None and is_run_dir(target):
         scene_file = Run(target).dataset_scene()
@@ -120,12 +116,12 @@ def viewer_scene(target, device: str = "cpu", background: tuple[float, float, fl
             scene = load_scene(scene_file)
             run_background = run_background or scene.background
             views = scene.splits if scene.posed else None
-    lights = [lit for lit in (light_from_json(v.get("light")) for split in (views or {}).values() for v in split)
-              if lit is not None]
-    if light_intensity is None:
-        light = as_bright_as(light, lights)
+    recorded = view_cameras([v for split in (views or {}).values() for v in split])
+    bounds = functools.cache(lambda: run_bounds(content))
+    values = {name: conditions.get(name).resolved(request, recorded, bounds).value for name, request in asked.items()}
+    lights = [camera.conditions["light"] for camera in recorded if "light" in camera.conditions]
     return ViewerScene(content.model, background or run_background or (1.0, 1.0, 1.0), content.cage,
-                       viewer_cameras(views), time or 0.0, light, lights)
+                       viewer_cameras(views), values.get("time") or 0.0, values.get("light"), lights)
 
 
 def viewer_cameras(splits: dict[str, list[dict]] | None) -> list[Camera]:
@@ -163,8 +159,9 @@ class Viewer:
         import viser
 
         self.scene, self.resolution, self.moving_downscale, self.log = scene, resolution, moving_downscale, log
-        self.dynamic = is_dynamic(scene.model)
-        self.relightable = is_relightable(scene.model)
+        # the viewer's own controls: a Time slider and Play, light sliders (its conditions, conditions/)
+        taken = {condition.name for condition in conditions.taken(scene.model)}
+        self.dynamic, self.relightable = "time" in taken, "light" in taken
         self.time_slider = self.play_button = None
         self.playing = False
         self.play_phase = 0.0        # Play's position in [0, 1), finer than the slider's step
@@ -174,8 +171,8 @@ class Viewer:
         self.up = dataset_up(scene.cameras)
         self.start_light = (scene.light or self.default_light()) if self.relightable else None
         # one tiny render first: the fused kernels load (or compile) before a browser waits on them
-        render(scene.model, Camera(8.0, 8.0, 4.0, 4.0, 8, 8, torch.eye(4, dtype=torch.float64),
-                                   time=scene.time if self.dynamic else None, light=self.start_light))
+        render(scene.model, Camera(8.0, 8.0, 4.0, 4.0, 8, 8, torch.eye(4, dtype=torch.float64)).at(
+            time=scene.time if self.dynamic else None, light=self.start_light))
         # a browser probing the port before it connects makes websockets log a handshake traceback
         logging.getLogger("websockets").setLevel(logging.CRITICAL)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -227,8 +224,6 @@ class Viewer:
 
     def default_light(self):
         """A relightable model's first light without --light (module docstring)."""
-        from radfield.delivery.lights import orbit_lights
-
         if self.scene.lights:
             return orbit_lights(self.scene.lights, self.centre, self.up, 1)[0]
         spread = float(self.scene.model.means.detach().std(0).norm().cpu())
@@ -315,7 +310,7 @@ class Viewer:
         moment = self.time if moment is None else moment
         light = self.light if light is None else light
         with torch.no_grad():
-            out = render_model(self.scene.model, replace(camera, time=moment, light=light),
+            out = render_model(self.scene.model, camera.at(time=moment, light=light),
                                background=self.scene.background)
         return (out.color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
 

@@ -6,7 +6,8 @@ operations it may name.
       - boolean: {op: difference, shape: {sphere: {center: [0, 0, 0], radius: 0.3}}}
 
 Each entry is a mapping with exactly one key, the operation's name; its value holds the
-operation's arguments. An operation module registers itself with `@operation("name")`; the function
+operation's arguments. An operation module registers itself with `@operation("name")` (sugar for
+`OPERATIONS.register(name, fn)`, the registry every extension point uses); the function
 takes (field, args, ctx) and returns the edited field. Every mistake in a spec is a RadfieldError
 whose message starts with the entry's place, e.g. `operations[1].transform.scale: ...`.
 """
@@ -23,6 +24,7 @@ import yaml
 
 from radfield.errors import RadfieldError
 from radfield.edit.field import Field
+from radfield.util.registry import Registry
 from radfield.util.yamlfile import parse_yaml, yaml_problem
 
 # modules whose import registers operations (one per operation family)
@@ -59,25 +61,23 @@ class EditContext:
 
 
 Operation = Callable[[Field, Mapping[str, Any], EditContext], Field]
-_REGISTRY: dict[str, Operation] = {}
+OPERATIONS: Registry[Operation] = Registry("edit operation")   # filled by OPERATION_MODULES' imports
 
 
 def operation(name: str) -> Callable[[Operation], Operation]:
-    """Decorator: register `fn` as the spec operation `name`."""
+    """Decorator: register `fn` as the spec operation `name` (OPERATIONS.register(name, fn))."""
 
     def register(fn: Operation) -> Operation:
-        if name in _REGISTRY:
-            raise ValueError(f"edit operation {name!r} registered twice")
-        _REGISTRY[name] = fn
-        return fn
+        return OPERATIONS.register(name, fn)
 
     return register
 
 
 def registry() -> dict[str, Operation]:
+    """Every operation a spec may name, {name: function}, once OPERATION_MODULES are imported."""
     for module in OPERATION_MODULES:
         importlib.import_module(module)
-    return dict(_REGISTRY)
+    return dict(OPERATIONS.items())
 
 
 def read_spec(path: str | Path) -> list[tuple[str, dict]]:

@@ -10,11 +10,11 @@ only ever added)::
      "fps": f,                              # renders per second (rendering only, after one warm-up)
      "views": N, "width": W, "height": H,
      "per_view": [{"name", "psnr", "ssim", "seconds", "lpips"(, "time")(, "light")}, ...],
-     "per_time": [{"time", "views", "psnr", "ssim", "lpips"}, ...],   # dynamic scenes only: each
-                                            # moment ξ_t's views averaged (evaluation/metrics.per_time)
+     "per_<condition>": [...],              # for each view condition the views carry (radfield/conditions),
+                                            # each value's views averaged (evaluation/metrics.per_condition):
+     "per_time": [{"time", "views", "psnr", "ssim", "lpips"}, ...],   # a dynamic scene, each moment ξ_t
      "per_light": [{"position" | "direction", "intensity", "views", "psnr", "ssim", "lpips"}, ...],
-                                            # one-light-at-a-time captures only: each light's views
-                                            # averaged (evaluation/metrics.per_light), world frame
+                                            # a one-light-at-a-time capture, each light (world frame)
      "lpips": l | null,                     # AlexNet LPIPS v0.1 (radfield.evaluation.lpips), mean over the views;
      "lpips_note": "why lpips is null"}     # null when the weights are not installed or the images are
                                             # smaller than 31×31 (then lpips_note says which)
@@ -28,14 +28,13 @@ Besides metrics.json and renders/, it writes (radfield.evaluation.report) `repor
 train/curves.png and train/log.jsonl, when the run has them) and `figures/` (for a dynamic scene,
 psnr_over_time.png; for a one-light-at-a-time capture, psnr_per_light.png; empty otherwise).
 
-A dynamic scene's views each show one moment (Camera.time): the model is drawn at the view's time
-(the kind's at_view), each per-view entry records it, and per_time and the report's "Over time"
-section (table and plot) average the views of each moment. Likewise a one-light-at-a-time
-capture's views are each lit by one light (Camera.light): a relightable model is drawn under the
-view's light, each per-view entry records it (scene.json's form, world frame), and per_light and
-the report's "Per light" section (plot and table) average the views of each light. A static model is drawn as it is
-under every light: the light-blind baseline's run (data.light ignore) has no lights in its views,
-but its model file measured on the dataset (`radfield eval MODEL --dataset`) gets the same table.
+A view's conditions (Camera.conditions: a dynamic scene's moment, a capture's light) go with it: a
+conditioned model is drawn under the view's own (the kind's at_view), each per-view entry records
+them (scene.json's form, world frame), and per_<condition> and the report's section of each (the
+"Over time" plot and table, the "Per light" plot and table) average the views of each value. A
+static model is drawn as it is under every light: the light-blind baseline's run (data.light
+ignore) has no lights in its views, but its model file measured on the dataset (`radfield eval
+MODEL --dataset`) gets the same table.
 """
 
 from __future__ import annotations
@@ -51,13 +50,13 @@ import torch
 from radfield import run as layout
 from radfield.core.geometry.camera_path import orbit_from_cameras
 from radfield.core.render.antialias import render_model
-from radfield.datasets.conditions import CONDITIONS, view_conditions, without_ignored
+from radfield import conditions
 from radfield.datasets.images import write_image
-from radfield.datasets.scene import Scene, light_json, read_dataset, scene_from_json
+from radfield.datasets.scene import Scene, read_dataset, scene_from_json
 from radfield.errors import RadfieldError
 from radfield.evaluation import lpips as lpips_metric
 from radfield.evaluation import report
-from radfield.evaluation.metrics import per_light, per_time, psnr, ssim
+from radfield.evaluation.metrics import per_condition, psnr, ssim
 from radfield.model_file import load_model, read_metadata
 from radfield.pipeline.config import load_config
 from radfield.run import MODEL_STAGE, Run, is_run_dir
@@ -123,8 +122,7 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
             write_image(renders / f"{camera.name}.png", color.numpy())
             per_view.append({"name": camera.name, "psnr": float(psnr(color, photo, mask)),
                              "ssim": float(ssim(color, photo, mask=mask)), "seconds": seconds,
-                             **({} if camera.time is None else {"time": camera.time}),
-                             **({} if camera.light is None else {"light": light_json(camera.light)})})
+                             **conditions.view_json(camera.conditions)})
             # LPIPS sees the photo in the invalid pixels (a render there is never judged)
             judged = color if mask is None else torch.where(mask[..., None].cpu(), color, photo.cpu())
             per_view[-1]["lpips"] = lpips_metric.lpips(judged, photo, lpips_net) if lpips_net is not None else None
@@ -147,8 +145,8 @@ def evaluate(model_file: Path, scene: Scene, split: str, renders: Path, *, near:
         "per_view": per_view,
         "lpips": None if lpips_net is None else sum(v["lpips"] for v in per_view) / count,
         **({"lpips_note": lpips_note} if lpips_net is None else {}),
-        **({"per_time": per_time(per_view)} if any("time" in v for v in per_view) else {}),
-        **({"per_light": per_light(per_view)} if any("light" in v for v in per_view) else {}),
+        **{f"per_{c.name}": per_condition(per_view, c) for c in conditions.registered()
+           if any(c.name in v for v in per_view)},
     }
 
 
@@ -216,7 +214,7 @@ def resolve_target(target: Path, dataset: Path | None, options: dict[str, Any] |
         if dataset is None:
             raise RadfieldError("--dataset is required to evaluate a model file")
     scene_json = read_dataset(dataset, config["data"])[0]
-    scene_json = without_ignored(scene_json, config["data"])   # as the run's data stage saw the views
+    scene_json = conditions.without_ignored(scene_json, config["data"])   # as the run's data stage saw the views
     scene = scene_from_json(scene_json, dataset)
     check_conditions(model, scene, dataset)
     return model, scene, target if run else None, config
@@ -230,8 +228,8 @@ def check_conditions(model_file: Path, scene: Scene, dataset: Path) -> None:
     from radfield.core import kinds
 
     kind = read_metadata(model_file).get("kind")
-    carried = view_conditions(scene.splits)
+    carried = conditions.view_conditions(scene.splits)
     for condition in kinds.get(kind).conditions if kind in kinds.names() else ():
         if condition not in carried:
-            raise RadfieldError(f"{model_file}: a {CONDITIONS[condition]} model ({kind}) is measured on views that "
-                                f"carry a {condition}, but the views of {dataset} carry no {condition}")
+            raise RadfieldError(f"{model_file}: a {conditions.get(condition).kind_words} model ({kind}) is measured on "
+                                f"views that carry a {condition}, but the views of {dataset} carry no {condition}")

@@ -7,8 +7,8 @@
 
 Images are (..., H, W, C) float tensors; clamp renders to [0, 1] before measuring them.
 
-    per_time(per_view) -> the per-view figures of a dynamic scene's views averaged per moment ξ_t
-    per_light(per_view) -> the per-view figures of a one-light-at-a-time capture's views averaged per light
+    per_condition(per_view, condition) -> the per-view figures averaged per value of a view
+                           condition (a dynamic scene's moments, a capture's lights)
 
 Both take mask= (..., H, W) bool, the valid pixels of an undistorted photo (radfield.core.train.losses
 explains the rule): PSNR averages the squared error over the valid pixels' channels; SSIM
@@ -16,31 +16,29 @@ replaces the render's invalid pixels by the photo's and averages the SSIM map ov
 windows that lie wholly on valid pixels (an all-valid mask gives the unmasked value).
 """
 
-import json
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from radfield.core.train.losses import psnr, ssim
 
-__all__ = ["per_light", "per_time", "psnr", "ssim"]
+__all__ = ["per_condition", "psnr", "ssim"]
 
 PER_GROUP_FIGURES = ("psnr", "ssim", "lpips")
 
 
-def per_time(per_view: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """[{"time", "views", "psnr", "ssim", "lpips"}, ...] ascending in time: the means over the views
-    (each with a "time") of each moment. Every view counts once, so the overall mean is the
-    views-weighted mean of these (a figure a view lacks, e.g. lpips None, is None for its moment)."""
-    return [{"time": views[0]["time"], **means(views)}
-            for _, views in sorted(grouped(per_view, lambda v: v["time"]).items())]
+def per_condition(per_view: Sequence[dict[str, Any]], condition) -> list[dict[str, Any]]:
+    """The means over the views (each with its `condition` entry, scene.json's form) of each value of
+    a view condition (radfield/conditions), a row each: the value's entries (Condition.row: a
+    dynamic scene's {"time"}, a capture's {"position" | "direction", "intensity"}), then "views",
+    "psnr", "ssim", "lpips"; ascending by value where the condition is ordered (moments), else in
+    the order values first appear. Every view counts once, so the overall mean is the
+    views-weighted mean of these (a figure a view lacks, e.g. lpips None, is None for its value)."""
+    def value(view):
+        return condition.from_json(view[condition.name])
 
-
-def per_light(per_view: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """[{"position" | "direction": [x, y, z], "intensity", "views", "psnr", "ssim", "lpips"}, ...]:
-    the means over the views lit by each light (each view with a "light", scene.json's form), in
-    the order the lights first appear; the overall mean is their views-weighted mean, as per_time's."""
-    return [{**views[0]["light"], **means(views)}
-            for views in grouped(per_view, lambda v: json.dumps(v["light"], sort_keys=True)).values()]
+    groups = grouped(per_view, lambda view: condition.key(value(view)))
+    keys = sorted(groups) if condition.ordered() else list(groups)
+    return [{**condition.row(value(groups[k][0])), **means(groups[k])} for k in keys]
 
 
 def grouped(per_view: Sequence[dict[str, Any]], key: Callable[[dict], Any]) -> dict[Any, list[dict[str, Any]]]:

@@ -25,6 +25,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from radfield import conditions
+
 ERROR_SCALE = 0.25  # |render − photo| (mean over RGB) shown at full brightness
 GAP = 2             # white pixels between the panels of a grid
 LABEL_HEIGHT = 14   # pixels of the caption row of a grid's panels
@@ -141,10 +143,11 @@ def report_markdown(metrics: dict[str, Any], *, model: str, grids_dir: str | Non
         lines += [f"LPIPS not computed: {m['lpips_note']}.", ""]
     lines += ["PSNR over all pixels and channels (data range 1); SSIM with the 11×11 Gaussian window (σ = 1.5); "
               "LPIPS AlexNet v0.1 (lower is better).", ""]
-    if m.get("per_time"):
-        lines += time_section(m["per_time"])
-    if m.get("per_light"):
-        lines += light_section(m["per_light"])
+    for condition in conditions.registered():   # a section per view condition the views carry
+        rows = m.get(f"per_{condition.name}")
+        if rows:
+            section = SECTIONS.get(condition.name)
+            lines += section(rows) if section is not None else condition_section(condition, rows)
     if grids_dir is not None:
         lines += ["## Views", "", f"ground truth | render | error |render − photo| (mean over RGB; black 0, "
                   f"yellow ≥ {ERROR_SCALE}) | the error's colour bar", ""]
@@ -179,6 +182,19 @@ def light_section(per_light: Sequence[dict[str, Any]]) -> list[str]:
     return lines + [""]
 
 
+def condition_section(condition, rows: Sequence[dict[str, Any]]) -> list[str]:
+    """The report's section of a view condition without one of its own (SECTIONS): the per-value table."""
+    lines = [f"## Per {condition.name}", "", f"| {condition.name} | views | PSNR (dB) | SSIM | LPIPS |",
+             "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {condition.label(condition.from_row(row))} | {row['views']} | {row['psnr']:.2f} | {row['ssim']:.4f} | "
+              f"{_fmt(row.get('lpips'), 4)} |" for row in rows]
+    return lines + [""]
+
+
+# the sections with a plot of their own (evaluation/evaluate.write_report draws it), by condition
+SECTIONS = {"time": time_section, "light": light_section}
+
+
 def time_plot(per_time: Sequence[dict[str, Any]], title: str = "held-out views over time") -> bytes:
     """PNG bytes (matplotlib, Agg backend) of `time_figure`."""
     import io
@@ -211,9 +227,9 @@ def time_figure(per_time: Sequence[dict[str, Any]], title: str = "held-out views
 def light_angles(per_light: Sequence[dict[str, Any]], centre, up) -> list[tuple[float, float]]:
     """(azimuth, elevation) in degrees of each light about `centre` (its direction from there, a
     directional light's the reverse of its "direction"), elevation above the plane normal to `up`:
-    delivery/lights.light_angles, the angles of `--light-orbit` and the viewer's sliders."""
+    conditions/light.light_angles, the angles of `--light-orbit` and the viewer's sliders."""
     from radfield.core.geometry.cameras import Light
-    from radfield.delivery.lights import light_angles as angles
+    from radfield.conditions.light import light_angles as angles
 
     return [angles(centre, up, Light(light.get("position"), light.get("direction")))[:2] for light in per_light]
 

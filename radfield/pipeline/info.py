@@ -168,15 +168,14 @@ def format_info(info: dict[str, Any]) -> str:
     return buffer.getvalue()
 
 
-# The data stage's figures of the conditions a scene's views carry (stages/data.py), in words
-CONDITION_FIGURES = (("times", "dynamic scene", "moments"), ("lights", "relightable scene", "lights"))
-
-
 def conditioned_scene(info: dict[str, Any]) -> list[str]:
-    """What the views carry, e.g. ["dynamic scene: 3 moments"] or ["relightable scene: 240 lights"]
-    ([] for a static scene under fixed lighting, or one whose conditions the run ignored)."""
+    """What the views carry, from the data stage's figure per condition (stages/data.py), e.g.
+    ["dynamic scene: 3 moments"] or ["relightable scene: 240 lights"] ([] for a static scene under
+    fixed lighting, or one whose conditions the run ignored)."""
+    from radfield import conditions
+
     data = info["stages"].get("data", {})
-    return [f"{what}: {data[figure]} {unit}" for figure, what, unit in CONDITION_FIGURES if data.get(figure)]
+    return [f"{c.model_words} scene: {data[c.plural]} {c.unit}" for c in conditions.registered() if data.get(c.plural)]
 
 
 def _operation(op: Any) -> str:

@@ -34,6 +34,7 @@ from typing import Any
 from radfield.util.atomic import atomic_write_text
 from radfield.errors import RadfieldError
 from radfield.pipeline.config import save_resolved, section
+from radfield.pipeline.schema import Config, plain
 from radfield.run import MANIFEST, Run, read_manifest
 
 INPUT = "input"  # artifact name of the user's input (the dataset path); no stage produces it
@@ -99,7 +100,7 @@ class Stage:
 def run_pipeline(
     stages: Sequence[Stage],
     run_dir: Path,
-    config: Mapping[str, Any],
+    config: Config | Mapping[str, Any],
     *,
     input_path: Path | None = None,
     force: Collection[str] = frozenset(),
@@ -108,9 +109,12 @@ def run_pipeline(
     quiet: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> dict[str, str]:
-    """Bring the run directory up to date: run the stages named by `config["stages"]`, in that
+    """Bring the run directory up to date: run the stages named by `config.stages`, in that
     order, skipping those whose manifest matches.
 
+    `config` is the resolved config, typed (pipeline/schema.py's `Config`) or a nested mapping
+    (load_config's result, or a toy pipeline's); each stage's cache key hashes the part of it that
+    its `config_keys` name, `section(config, stage.config_keys)`, and RUN/config.yaml records it all.
     `stages` declares every stage that may run. `force` names stages to re-run regardless;
     `from_stage` forces it and every later stage; `until_stage` stops after it. `input_path` is
     the INPUT artifact. Everything a user can get wrong (stage names, a run directory that is not
@@ -120,7 +124,8 @@ def run_pipeline(
     say = (lambda _line: None) if quiet else (log or _print_stderr)
     layout = Run(run_dir)
     input_path = Path(input_path).resolve() if input_path is not None else None
-    plan, forced = _plan(stages, config["stages"], set(force), from_stage, until_stage)
+    resolved = plain(config)   # RUN/config.yaml
+    plan, forced = _plan(stages, resolved["stages"], set(force), from_stage, until_stage)
     sections = {stage.name: section(config, stage.config_keys) for stage in plan}
     _check_input(plan, input_path)
     _check_run_dir(layout, plan, input_path, forced)
@@ -128,9 +133,9 @@ def run_pipeline(
     layout.path.mkdir(parents=True, exist_ok=True)
     with _locked(layout):
         _write_marker(layout, input_path)
-        save_resolved(config, layout.config_file)
+        save_resolved(resolved, layout.config_file)
         _remove_scratch(layout)
-        run = _Invocation(layout, HashCache(layout.hash_file), str(config.get("device", "cpu")), quiet, say)
+        run = _Invocation(layout, HashCache(layout.hash_file), str(resolved.get("device", "cpu")), quiet, say)
         run.available[INPUT] = input_path
         try:
             return {stage.name: _bring_up_to_date(run, stage, sections[stage.name], stage.name in forced)

@@ -30,15 +30,16 @@ from radfield.model_file import load_model, save_model
 from radfield.core.trainer.loop import mean_psnr
 from radfield.datasets.scene import SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
+from radfield.pipeline.schema import BakeConfig
 from radfield.stages.train import MODEL_FILE
 
 BAKED = "baked.safetensors"
 
 
 def run(ctx: Context) -> dict[str, Any]:
-    cfg = ctx.config["bake"]
+    bake = BakeConfig.from_dict(ctx.config["bake"])
     return bake_model(ctx.inputs[MODEL_FILE], load_scene(ctx.inputs[SCENE]), ctx.outputs[BAKED],
-                      min_weight=cfg["min_weight"], fp16=cfg["fp16"], split=ctx.config["eval"]["split"],
+                      min_weight=bake.min_weight, fp16=bake.fp16, split=ctx.config["eval"]["split"],
                       near=ctx.config["render"]["near"], device=ctx.device, quiet=ctx.quiet)
 
 

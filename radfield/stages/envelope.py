@@ -79,8 +79,8 @@ def hull_of_every_moment(train, cfg: dict[str, Any], quiet: bool = True):
     a minute or two."""
     moments: dict[float, list[int]] = {}
     for k, camera in enumerate(train.cameras):
-        if camera.time is not None:
-            moments.setdefault(camera.time, []).append(k)
+        if "time" in camera.conditions:   # the object moves: a hull per moment (the one time-aware stage)
+            moments.setdefault(camera.conditions["time"], []).append(k)
     fewest = min((len(group) for group in moments.values()), default=0)
     if moments and fewest < MIN_VIEWS_PER_TIME:
         v, f, figures = focus_box(train.cameras, f"a dynamic scene with {fewest} training view(s) at some moment, "

@@ -58,7 +58,7 @@ from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
 from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
-from radfield.datasets.conditions import CONDITIONS, view_conditions
+from radfield import conditions
 from radfield.stages.envelope import ENVELOPE
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
@@ -82,7 +82,7 @@ def run(ctx: Context) -> dict[str, Any]:
     else:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
-    kind = primitive_kind(cfg, view_conditions(scene.splits))
+    kind = primitive_kind(cfg, conditions.view_conditions(scene.splits))
     prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
                             kinds.get(kind).init_settings(cfg))
     save_model(ctx.outputs[INIT_MODEL], prims)
@@ -115,21 +115,22 @@ def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: b
         choose_source(config["init"]["source"], points)
 
 
-def primitive_kind(config: dict[str, Any], conditions: tuple[str, ...] | list[str]) -> str:
+def primitive_kind(config: dict[str, Any], carried: tuple[str, ...] | list[str]) -> str:
     """The kind the run trains (the one place train.primitive is read): train.primitive, or, when
-    the views carry conditions (`conditions`: stages/data.view_conditions, after data.time and
+    the views carry conditions (`carried`: conditions.view_conditions, after data.time and
     data.light drop the ignored ones), the registered kind that extends it with exactly those
     (time: neural -> neural-dynamic, gaussian -> gaussian-dynamic; light: neural -> neural-relight,
     gaussian -> gaussian-relight). A conditioned kind asked for on views that lack its condition is
     an error: it could not be drawn at any of them."""
     name = config["train"]["primitive"]
     kind = kinds.get(name)
-    wanted = set(conditions)
+    wanted = set(carried)
     missing = [c for c in kind.conditions if c not in wanted]
     if missing:
         ignored = config.get("data", {}).get(missing[0]) == "ignore"   # the init stage sees scene.json only
         why = f"data.{missing[0]} is ignore" if ignored else f"the dataset's views carry no {missing[0]}"
-        raise RadfieldError(f"config key train.primitive is {name}, a {CONDITIONS[missing[0]]} kind, but {why}: "
+        words = conditions.get(missing[0]).kind_words
+        raise RadfieldError(f"config key train.primitive is {name}, a {words} kind, but {why}: "
                             f"train a static kind (e.g. {static_kind(kind)})")
     return name if set(kind.conditions) == wanted else conditioned(kind, wanted).name
 

@@ -11,25 +11,22 @@ from pathlib import Path
 from typing import Any
 
 from radfield.errors import RadfieldError
-from radfield.datasets.conditions import view_conditions, without_ignored
+from radfield.conditions import view_conditions, without_ignored
 from radfield.datasets.scene import read_dataset
 from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra, train
 from radfield.pipeline.runner import Stage
+from radfield.util.registry import Registry
+
+# every stage, registered in pipeline order (pipeline.yaml's `stages:` picks and orders them by name)
+STAGES: Registry[Stage] = Registry("stage")
+for _module in (sfm, data, envelope, tetra, init, train, bind, bake, evaluate):
+    STAGES.register(_module.STAGE.name, _module.STAGE)
+del _module
 
 
 def stages() -> list[Stage]:
     """The Stage declarations, in pipeline order."""
-    return [
-        sfm.STAGE,
-        data.STAGE,
-        envelope.STAGE,
-        tetra.STAGE,
-        init.STAGE,
-        train.STAGE,
-        bind.STAGE,
-        bake.STAGE,
-        evaluate.STAGE,
-    ]
+    return list(STAGES.values())
 
 
 def check(config: dict[str, Any], input_path: Path) -> None:

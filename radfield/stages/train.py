@@ -49,6 +49,7 @@ from radfield.util.progress import progress_bar
 from radfield.stages.data import SCENE, Normalization, load_scene
 from radfield.stages.init import INIT_MODEL
 from radfield.pipeline.runner import Context, Stage
+from radfield.pipeline.schema import RenderConfig
 from radfield import run as layout
 
 MODEL_FILE = layout.MODEL_FILE  # the trained model, the run's final one (radfield.run.Run.model)
@@ -59,7 +60,8 @@ CHECKPOINT = layout.CHECKPOINT_FILE  # in RUN/train.work/ (radfield.run.Run.chec
 
 
 def run(ctx: Context) -> dict[str, Any]:
-    supersample = ctx.config["render"]["supersample"]  # rays per pixel side, in training and its measurements
+    render = RenderConfig.from_dict(ctx.config["render"])
+    supersample = render.supersample  # rays per pixel side, in training and its measurements
     scene = load_scene(ctx.inputs[SCENE])
     norm = scene.normalization
     cameras = [norm.camera(camera) for camera in scene.train_cameras]  # a RadfieldError for unposed photos
@@ -67,7 +69,7 @@ def run(ctx: Context) -> dict[str, Any]:
     prims = to_normalized(load_model(ctx.inputs[INIT_MODEL]), norm)
     # the SH degree the init stage gave the model: train.sh_degree, or the kind's own (kinds/relight.py)
     cfg = {**ctx.config["train"], "supersample": supersample, "sh_degree": prims.sh_degree}
-    near = ctx.config["render"]["near"] * norm.scale
+    near = render.near * norm.scale
     held_out = None
     if cfg["eval_every"] > 0 and scene.splits.get("test"):
         test_cameras, test_images = [norm.camera(c) for c in scene.test_cameras], scene.test_images()

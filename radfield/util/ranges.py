@@ -1,4 +1,4 @@
-"""Ranges of numbers: what a config key (pipeline/config.py: RANGES) or a command's option
+"""Ranges of numbers: what a config key (pipeline/schema.py: `setting(range)`) or a command's option
 (cli/common.py: check_options) accepts, and how an error line words it."""
 
 from __future__ import annotations

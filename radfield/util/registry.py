@@ -1,12 +1,17 @@
-"""A registry of named things (the primitive kinds, the dataset formats): the shape every such seam
-shares, so that each module keeps only what is its own (what it checks before registering, the
-order it lists them in).
+"""A registry of named things: the shape every extension point shares, so that each module keeps
+only what is its own (what it checks before registering, the order it lists them in).
 
     KINDS = Registry("primitive kind")
     KINDS.register(name, thing)   ValueError "primitive kind 'x' is registered already"
     KINDS.unregister(name)        forget it (nothing when it is not there)
     KINDS.get(name)               RadfieldError "unknown primitive kind 'x' (known: a, b)"
-    KINDS.names(), KINDS.values() in registration order, or sorted by `order` (stable)
+    KINDS.names(), KINDS.values(), KINDS.items()
+                                  in registration order, or sorted by `order` (stable)
+
+Every extension point keeps its things in one: the primitive kinds (core/kinds), the dataset
+formats (datasets/formats), the kernel backends (core/backends, ordered by rank), the edit
+operations (edit/spec.py), the stages (stages/registry.py), the commands (cli/main.py), the view
+conditions (conditions) and the demo scenes (demo).
 
 Standard library only: the registries are built at import time of modules that must stay light
 (`radfield --help` imports the dataset formats; docs/design.md "Light start-up").
@@ -61,6 +66,9 @@ class Registry(Generic[T]):
 
     def names(self) -> tuple[str, ...]:
         """Every registered name, in the order of values()."""
-        if self._order is None:
-            return tuple(self._items)
-        return tuple(name for name, _ in sorted(self._items.items(), key=lambda item: self._order(item[1])))
+        return tuple(name for name, _ in self.items())
+
+    def items(self) -> tuple[tuple[str, T], ...]:
+        """Every (name, thing), in the order of values()."""
+        items = tuple(self._items.items())
+        return items if self._order is None else tuple(sorted(items, key=lambda item: self._order(item[1])))

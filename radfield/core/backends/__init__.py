@@ -17,8 +17,8 @@ Backends, best first:
 - "triton": the Triton kernels of core/backends/gpu/ (issue 27), for CUDA tensors, and for CPU
   tensors only under TRITON_INTERPRET=1 inside using("triton") (tests/test_triton.py);
 - "torch": the twins, on every device and dtype.
-Another backend registers itself where it belongs in that order (`register(Backend(name, runs=...),
-before=...)`) and its ops with `implement(op, name, fn)`; a kind registers its whole-view renderer for a
+Another backend registers itself where it belongs in that order (`register(Backend(name, runs=...,
+rank=...))`: lower ranks are tried first) and its ops with `implement(op, name, fn)`; a kind registers its whole-view renderer for a
 backend as op `view_op(kind)`, "view.<kind>" (kinds/neural.py, kinds/gaussian.py). No call site changes.
 
 The ops are the keys of `Op` (an unknown key is refused) and their signatures those of the
@@ -45,17 +45,17 @@ __all__ = ["FUSED_CPU", "TORCH", "TRITON", "Backend", "Op", "available", "chosen
 
 from radfield.core.backends import fused  # noqa: E402
 
-register(Backend(FUSED_CPU, fused.available, fused.build_error))
+register(Backend(FUSED_CPU, fused.available, fused.build_error, rank=10))
 for _op in Op:   # fused.py implements every op (its functions are named by the ops)
     implement(_op, FUSED_CPU, getattr(fused, _op.value))
 del _op
 
 # --- the Triton GPU kernels (core/backends/gpu/; triton is imported at the first view drawn) ----------
-# after fused-cpu in the list, which changes nothing: fused-cpu never runs CUDA tensors, and triton
+# ranked after fused-cpu, which changes nothing: fused-cpu never runs CUDA tensors, and triton
 # runs CPU tensors only inside using("triton") (its tests), where no other backend is offered
 from radfield.core.backends import gpu  # noqa: E402
 
-register(Backend(TRITON, gpu.runs, gpu.why_not))
+register(Backend(TRITON, gpu.runs, gpu.why_not, rank=20))
 for _op in (Op.SH_COLOR, Op.NEURAL_ACCUMULATE, Op.GAUSSIAN_ACCUMULATE, Op.PHOTOMETRIC, Op.PROJECT_NONNEGATIVE):
     implement(_op, TRITON, getattr(gpu, _op.value))
 del _op

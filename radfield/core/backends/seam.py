@@ -1,6 +1,7 @@
-"""The seam's registry (the package's docstring says what it decides): the backends, best first,
-the ops each implements, the switch that forces the twins, and `using()`. The backends register
-with it in the package (core/backends/__init__.py); fused.py and gpu/ read the switch from here."""
+"""The seam's registry (the package's docstring says what it decides): the backends, best first
+(a `Registry` ordered by each backend's `rank`, the torch twins always last), the ops each
+implements, the switch that forces the twins, and `using()`. The backends register with it in the
+package (core/backends/__init__.py); fused.py and gpu/ read the switch from here."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+
+from radfield.util.registry import Registry
 
 TORCH = "torch"
 FUSED_CPU = "fused-cpu"
@@ -52,14 +55,19 @@ def _checked(op: str) -> str:
 class Backend:
     """A family of kernel implementations. runs(device, dtype): whether it can run tensors of that
     device (None: any) and dtype (None: any) on this machine (it may build itself on the first call);
-    why_not(): the reason it cannot run at all, or None."""
+    why_not(): the reason it cannot run at all, or None; rank: its place in the order backends are
+    tried, lowest first (fused-cpu 10, triton 20; equal ranks keep their registration order; the
+    torch twins come last whatever their rank)."""
 
     name: str
     runs: Callable[[torch.device | str | None, torch.dtype | None], bool]
     why_not: Callable[[], str | None] = lambda: None
+    rank: int = 50
 
 
-_BACKENDS: list[Backend] = [Backend(TORCH, lambda device, dtype: True)]   # best first, the twins last
+# best first, the twins last
+_BACKENDS: Registry[Backend] = Registry("backend", order=lambda backend: (backend.name == TORCH, backend.rank))
+_BACKENDS.register(TORCH, Backend(TORCH, lambda device, dtype: True))
 _OPS: dict[str, dict[str, Callable]] = {}                                 # op -> {backend: implementation}
 _ONLY: list[str] = []                                                     # using(): the innermost restriction
 
@@ -69,19 +77,17 @@ def forced_torch() -> bool:
     return os.environ.get("RADFIELD_KERNELS", "").strip().lower() == TORCH
 
 
-def register(backend: Backend, *, before: str = TORCH) -> None:
-    """Add a backend, preferred to `before` and to every backend after it."""
-    if any(b.name == backend.name for b in _BACKENDS):
-        raise ValueError(f"backend {backend.name!r} is registered already")
-    names = [b.name for b in _BACKENDS]
-    _BACKENDS.insert(names.index(before), backend)
+def register(backend: Backend) -> Backend:
+    """Add a backend at its place in the order (its `rank`) and return it; ValueError when its
+    name is taken."""
+    return _BACKENDS.register(backend.name, backend)
 
 
 def unregister(name: str) -> None:
     """Remove a backend and its ops (never the torch twins)."""
     if name == TORCH:
         raise ValueError("the torch twins cannot be unregistered")
-    _BACKENDS[:] = [b for b in _BACKENDS if b.name != name]
+    _BACKENDS.unregister(name)
     for table in _OPS.values():
         table.pop(name, None)
 
@@ -95,7 +101,7 @@ def implement(op: str, backend: str, fn: Callable) -> None:
 
 def names() -> list[str]:
     """Every registered backend, best first."""
-    return [b.name for b in _BACKENDS]
+    return list(_BACKENDS.names())
 
 
 def why_not(name: str) -> str | None:
@@ -104,8 +110,7 @@ def why_not(name: str) -> str | None:
         return None
     if forced_torch():
         return "RADFIELD_KERNELS=torch"
-    backend = next((b for b in _BACKENDS if b.name == name), None)
-    return f"no backend {name!r}" if backend is None else backend.why_not()
+    return _BACKENDS.get(name).why_not() if name in _BACKENDS else f"no backend {name!r}"
 
 
 def available(device: torch.device | str | None = None, dtype: torch.dtype | None = None,
@@ -115,7 +120,7 @@ def available(device: torch.device | str | None = None, dtype: torch.dtype | Non
     if forced_torch():
         return [TORCH]
     out = []
-    for backend in _BACKENDS:
+    for backend in _BACKENDS.values():
         if backend.name == TORCH:
             break
         if _ONLY and backend.name != _ONLY[-1]:

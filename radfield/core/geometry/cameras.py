@@ -7,7 +7,9 @@ point (cx, cy) is given in the same continuous coordinates, so cx = W/2 is the i
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import torch
 
@@ -59,11 +61,10 @@ class Camera:
     height: int
     c2w: torch.Tensor
     name: str = ""
-    # the moment the view shows, ξ_t in [0, 1] (a dynamic dataset's frames, Splat the Net appendix
-    # C.1); None for a static scene. Time-conditioned kinds read it (kinds: PrimitiveKind.at_view).
-    time: float | None = None
-    # the light the view is lit by (Light above); None for a scene under fixed lighting
-    light: Light | None = None
+    # what the view carries besides its pose, by condition name (radfield/conditions: "time", the
+    # moment ξ_t in [0, 1] it shows; "light", the Light it is lit by); empty for a static scene
+    # under fixed lighting. A kind conditioned on one reads it (kinds: PrimitiveKind.at_view).
+    conditions: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         c2w = torch.as_tensor(self.c2w, dtype=torch.float64).cpu()
@@ -72,6 +73,11 @@ class Camera:
         if self.width <= 0 or self.height <= 0 or self.fx <= 0 or self.fy <= 0:
             raise RadfieldError(f"camera {self.name!r}: width, height and focal lengths must be positive")
         object.__setattr__(self, "c2w", c2w)
+
+    def at(self, **values: Any) -> "Camera":
+        """The same view carrying these condition values (`camera.at(time=0.5)`; None drops one)."""
+        conditions = {**self.conditions, **values}
+        return replace(self, conditions={k: v for k, v in conditions.items() if v is not None})
 
     @property
     def K(self) -> torch.Tensor:
@@ -93,7 +99,7 @@ class Camera:
 
 
 def distinct_poses(cameras: list[Camera]) -> tuple[list[Camera], list[int]]:
-    """Each pose of `cameras` once, in the order first seen, without a time or a light (views that
+    """Each pose of `cameras` once, in the order first seen, without their conditions (views that
     differ only by the moment or the light they show are one pose: a dynamic or relighting
     dataset's camera at each of its moments or lights); and for each camera the index of its pose."""
     poses: dict[tuple, int] = {}
@@ -103,7 +109,7 @@ def distinct_poses(cameras: list[Camera]) -> tuple[list[Camera], list[int]]:
         key = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, camera.c2w.numpy().tobytes())
         if key not in poses:
             poses[key] = len(firsts)
-            firsts.append(replace(camera, time=None, light=None))
+            firsts.append(replace(camera, conditions={}))
         index.append(poses[key])
     return firsts, index
 

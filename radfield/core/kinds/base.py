@@ -123,8 +123,9 @@ class PrimitiveKind:
     retrainable_locally: bool = False          # edit/retrain.py can refit a region: one density σ(x), an SH colour
     exact_gaussians: bool = False              # its primitives are 3D Gaussians (exported as they are)
     bench_variants: tuple[str, ...] = ()       # the rows it adds to bench-render / bench-train
-    # what a view must say for the kind to be drawn ("time": Camera.time, the moment ξ_t in [0, 1]
-    # of a time-conditioned kind, kinds/dynamic.py); commands ask it before rendering or exporting
+    # what a view must carry for the kind to be drawn, by condition name (radfield/conditions; "time":
+    # Camera.conditions["time"], the moment ξ_t in [0, 1] of a time-conditioned kind, kinds/dynamic.py);
+    # commands ask it before rendering or exporting
     conditions: tuple[str, ...] = ()
 
     # --- parameters ----------------------------------------------------------------------------
@@ -201,6 +202,11 @@ class PrimitiveKind:
         and draws what it returns, so a kind conditioned on the view (e.g. on its time, `conditions`)
         hands the renderer primitives of a kind without conditions (differentiably: gradients reach
         its own tensors through the ones returned). Default: `prims` itself, at no cost."""
+        return prims
+
+    def at_conditions(self, prims, values: dict):
+        """The static primitives of one value of each of its `conditions` (`values`: name -> value)
+        for every view: what `radfield export --time T` writes. Default (no conditions): `prims`."""
         return prims
 
     def twin_view(self, prims, frame: ViewFrame) -> tuple[torch.Tensor, torch.Tensor, tuple]:

@@ -1,6 +1,6 @@
 """Time-conditioned primitives (Splat the Net, appendix C.1): the kinds "neural-dynamic" and "gaussian-dynamic".
 
-A dynamic scene's views each show one moment ξ_t ∈ [0, 1] (Camera.time). Both kinds carry, per
+A dynamic scene's views each show one moment ξ_t ∈ [0, 1] (Camera.conditions["time"]). Both kinds carry, per
 primitive, a temporal colour: the zero-order SH coefficient is (paper eq. 10-12, n = l = 4)
 
     S(ξ) = S0 + Σ_{i=1..4} a_i ξ^i + Σ_{i=1..4} (b_i cos(i ω ξ) + c_i sin(i ω ξ))   per channel,
@@ -17,7 +17,7 @@ Fourier terms, or 2π, one full period (issue 29 asks both to be measured).
   opacity, its logit o(ξ) = o + the same polynomial + Fourier form with coefficients `opacity_t` (P, 12).
 
 The one seam the rest of radfield sees is `at_view` (kinds/base.py): render() and the slow
-reference first turn the primitives into the static ones of camera.time, so the closed-form line
+reference first turn the primitives into the static ones of the camera's time, so the closed-form line
 integral, the fused CPU kernels and everything downstream apply unchanged, and autograd reaches
 w_t, sh_t and opacity_t through b1, the SH DC and the opacity logits. Everything else is the
 parent kind's (kinds/neural.py, kinds/gaussian.py), with the hooks the new tensors need.
@@ -92,10 +92,10 @@ def colour_basis(xi: float, frequency: float, dtype: torch.dtype, device: torch.
 
 
 def view_time(camera) -> float:
-    """camera.time, checked: a dynamic model is drawn at one moment ξ_t ∈ [0, 1]."""
-    if camera.time is None:
+    """The camera's time, checked: a dynamic model is drawn at one moment ξ_t ∈ [0, 1]."""
+    if camera.conditions.get("time") is None:
         raise RadfieldError("this model is dynamic: give a time (--time T)")
-    xi = float(camera.time)
+    xi = float(camera.conditions["time"])
     if not 0.0 <= xi <= 1.0:   # also NaN
         raise RadfieldError(f"time {xi:g} of view {camera.name!r} is outside [0, 1] (a dynamic model's times)")
     return xi
@@ -172,12 +172,15 @@ class DynamicNeuralKind(NeuralKind):
     bench_variants = ("neural-dynamic",)
 
     def at_view(self, prims, camera):
-        """The static neural primitives of camera.time ξ: b1 + ξ W_t (eq. 13), S(ξ) as the DC (eq. 10-12)."""
+        """The static neural primitives of the camera's time ξ: b1 + ξ W_t (eq. 13), S(ξ) as the DC (eq. 10-12)."""
         return self.at_time(prims, view_time(camera))
 
     def at_time(self, prims, xi: float) -> NeuralPrimitives:
         return NeuralPrimitives(**{**static_fields(prims, NeuralPrimitives),
                                    "b1": torch.add(prims.b1, prims.w_t, alpha=xi), "sh": sh_at_time(prims, xi)})
+
+    def at_conditions(self, prims, values):
+        return self.at_time(prims, values["time"])
 
     # --- the model file: the parent's metadata plus ω of eq. 11-12
 
@@ -291,6 +294,9 @@ class DynamicGaussianKind(GaussianKind):
         opacities = torch.addmv(prims.opacities, opacity_t,
                                 basis_vector(xi, prims.time_frequency, opacity_t.dtype, opacity_t.device))
         return Gaussians(**{**static_fields(prims, Gaussians), "opacities": opacities, "sh": sh_at_time(prims, xi)})
+
+    def at_conditions(self, prims, values):
+        return self.at_time(prims, values["time"])
 
     def write_metadata(self, prims):
         return {**super().write_metadata(prims), "time_frequency": repr(float(prims.time_frequency))}

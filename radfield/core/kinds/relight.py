@@ -1,6 +1,6 @@
 """Relightable primitives (Splat the Net, appendix C.2): the kinds "neural-relight" and "gaussian-relight".
 
-A one-light-at-a-time capture lights each view by one known light (Camera.light: a point light at
+A one-light-at-a-time capture lights each view by one known light (Camera.conditions["light"]: a point light at
 p_light or a directional one, of known intensity). Both kinds replace the SH colour by a constant
 colour plus a small neural colour field per primitive (eq. 14),
 
@@ -84,10 +84,10 @@ NETWORK = {"color_w1": ("H", NETWORK_INPUTS), "color_b1": ("H",), "color_w2": (3
 # --- the light and the colour field (eq. 14) --------------------------------------------------------
 
 def view_light(camera):
-    """camera.light, checked: a relightable model is drawn under one known light."""
-    if camera.light is None:
+    """The camera's light, checked: a relightable model is drawn under one known light."""
+    if camera.conditions.get("light") is None:
         raise RadfieldError("this model is relightable: give a light (--light X,Y,Z or --light-dir X,Y,Z)")
-    return camera.light
+    return camera.conditions["light"]
 
 
 def light_at_primitives(means: torch.Tensor, light) -> tuple[torch.Tensor, torch.Tensor]:
@@ -224,12 +224,15 @@ class Relightable:
     conditions = ("light",)
 
     def at_view(self, prims, camera):
-        """The static primitives of camera.light seen from camera: SH degree 0, the view's colour."""
+        """The static primitives of the camera's light seen from camera: SH degree 0, the view's colour."""
         return self.static(**{**static_fields(prims, self.static), "sh": view_sh(prims, camera)})
 
     def at_light(self, prims, light):
         """The static primitives of `light` for every view (SH fitted over directions)."""
         return self.static(**{**static_fields(prims, self.static), "sh": light_sh(prims, light)})
+
+    def at_conditions(self, prims, values):
+        return self.at_light(prims, values["light"])
 
     def check_values(self, prims):
         return super().check_values(prims) or check_network(prims)

@@ -4,7 +4,7 @@
 
 Pipeline:
 0. the primitives as this view sees them (their kind's `at_view`: a time-conditioned kind's at
-   camera.time, core/kinds/dynamic.py; every other kind's as they are);
+   the camera's time, core/kinds/dynamic.py; every other kind's as they are);
 1. per primitive, once per view: camera-space depth, frustum culling, a tight projected bound
    (the kind's: the dual conic of the bounding ellipsoid for neural primitives, 3σ of the EWA
    covariance for Gaussians), and everything that depends only on the camera centre (o', c_k,
@@ -97,7 +97,7 @@ def render(prims: kinds.Primitives, camera: Camera, *, background=(1.0, 1.0, 1.0
         max_pairs = 2^10 … 2^20. The fused CPU path keeps nothing per pair: its memory is
         O(pixels + per-tile primitive lists + per-primitive tensors), with or without gradients.
     """
-    # a time-conditioned kind's primitives at camera.time (kinds/base.py: at_view); others as they are
+    # a time-conditioned kind's primitives at the camera's time (kinds/base.py: at_view); others as they are
     prims = kinds.of(prims).at_view(prims, camera)
     device, dtype = prims.means.device, prims.means.dtype
     height, width = camera.height, camera.width

@@ -49,25 +49,29 @@ def train_on_ranks(prims, train_cameras, train_images, cfg, *, background, exten
 
 
 def camera_meta(camera: Camera) -> dict:
-    """A camera's fields but c2w as JSON values (its light, a Light, as a dict)."""
-    meta = {f.name: getattr(camera, f.name) for f in fields(camera) if f.name != "c2w"}
-    if camera.light is not None:
-        meta["light"] = asdict(camera.light)
+    """A camera's fields but c2w as JSON values: its conditions as they are, but a Light (the light
+    condition's value) as ["Light", its fields]. Another condition's value must be a JSON value."""
+    meta = {f.name: getattr(camera, f.name) for f in fields(camera) if f.name not in ("c2w", "conditions")}
+    meta["conditions"] = {name: ["Light", asdict(value)] if isinstance(value, Light) else value
+                          for name, value in camera.conditions.items()}
     return meta
 
 
 def camera_from_meta(meta: dict, c2w: torch.Tensor) -> Camera:
     """The camera `camera_meta` described (JSON turns the light's tuples into lists)."""
-    sent = meta.get("light")
-    light = None
-    if sent is not None:
-        sent = {k: tuple(v) if isinstance(v, list) else v for k, v in sent.items()}
-        light = Light(**sent)
-        # Light normalises a direction again, which can move a unit vector by an ulp: every rank
-        # must draw with rank 0's light bit for bit
-        for name in ("position", "direction"):
-            object.__setattr__(light, name, sent[name])
-    return Camera(**{**meta, "light": light}, c2w=c2w)
+    conditions = {name: _light(value[1]) if isinstance(value, list) and value[:1] == ["Light"] else value
+                  for name, value in meta["conditions"].items()}
+    return Camera(**{**meta, "conditions": conditions}, c2w=c2w)
+
+
+def _light(sent: dict) -> Light:
+    sent = {k: tuple(v) if isinstance(v, list) else v for k, v in sent.items()}
+    light = Light(**sent)
+    # Light normalises a direction again, which can move a unit vector by an ulp: every rank
+    # must draw with rank 0's light bit for bit
+    for name in ("position", "direction"):
+        object.__setattr__(light, name, sent[name])
+    return light
 
 
 def follow() -> bool:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from radfield.datasets.formats.base import DatasetFormat, Reading
-from radfield.datasets.transforms import check_frames, check_light_bounds, placed_views, read_json
+from radfield.datasets.transforms import check_frames, check_views, placed_views, read_json
 from radfield.datasets.views import View
 
 _SPLITS = ("train", "val", "test")
@@ -31,7 +31,7 @@ def read_nerf_synthetic(root: Path, split: str) -> list[View]:
     placed = []
     for path in wanted:
         placed += placed_views(metas[path], list(enumerate(metas[path]["frames"])), path)
-    check_light_bounds(placed, root)
+    check_views(placed, root)
     return [view for *_, view in placed]
 
 

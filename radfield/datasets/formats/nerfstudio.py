@@ -11,7 +11,7 @@ from pathlib import Path
 
 from radfield.errors import RadfieldError
 from radfield.datasets.formats.base import DatasetFormat, Reading, llff_split
-from radfield.datasets.transforms import check_light_bounds, file_path, placed_views, read_json
+from radfield.datasets.transforms import check_views, file_path, placed_views, read_json
 from radfield.datasets.views import View
 
 _SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
@@ -39,9 +39,9 @@ def read_nerfstudio(path: Path, split: str) -> list[View]:
 
 
 def _views(meta: dict, frames: list[tuple[int, dict]], path: Path) -> list[View]:
-    """The frames' views; their point lights checked against the object's bounds."""
+    """The frames' views; their conditions checked together (e.g. point lights against the object's bounds)."""
     placed = placed_views(meta, frames, path)
-    check_light_bounds(placed, path.parent)
+    check_views(placed, path.parent)
     return [view for *_, view in placed]
 
 
