@@ -32,13 +32,14 @@ def test_bench_train_prints_every_part(cli):
     header = next(line for line in out.splitlines() if "forward" in line and "population" in line)
     rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["neural"], ["gaussian"])]
     ratios = [line.split() for line in out.splitlines() if line.split()[:1] == ["x"]]
-    assert len(rows) == 4 and "train()" in header and [r[3] for r in rows] == ["torch", "fused"] * 2
-    for row in rows:   # kind, count, size, path, 5 parts, sum, train(), setup, Mpairs/s
+    assert len(rows) == 4 and "train()" in header and "peak MiB" in header and [r[3] for r in rows] == ["torch", "fused"] * 2
+    for row in rows:   # kind, count, size, path, 5 parts, sum, train(), setup, Mpairs/s, peak MiB
         parts = [float(x) for x in row[4:9]]
         assert row[1] == "300" and row[2] == "32x32" and all(p >= 0 for p in parts)
         # every figure is printed to 0.1 ms: six roundings of up to 0.05 each separate the sum from its parts
         assert float(row[9]) == pytest.approx(sum(parts), abs=0.3 + 1e-9) and float(row[10]) > 0
         assert float(row[11]) > 0 and float(row[12]) >= 0   # loop.train's set-up, pairs per second
+        assert 10 < float(row[13]) < 24 * 1024   # the process's resident memory at the steps' peak
     assert len(ratios) == 2 and all(len(r) == 8 and float(r[6]) > 0 for r in ratios)   # x, 5 parts, sum, train()
     code, _, err = cli("bench-train", "--sizes", "0")
     assert code == 1 and "radfield: error: --sizes" in err

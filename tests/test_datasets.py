@@ -245,6 +245,76 @@ def test_downscale_matches_area_average_and_camera(blobs):
     assert c_full.scaled(0.5).width == 24 and Camera(1, 1, 1, 1, 31, 45, torch.eye(4)).scaled(1 / 2).width == 16
 
 
+
+def test_the_automatic_factor_is_the_smallest_within_the_size_limit():
+    from radfield.datasets.images import downscaled_size, fitting_downscale
+
+    assert fitting_downscale(4032, 3024, 1600) == 3 and fitting_downscale(1700, 1000, 1600) == 2
+    assert fitting_downscale(1600, 900, 1600) == 1 and fitting_downscale(1700, 1000, 0) == 1   # 0: no limit
+    for width, height, limit in [(3201, 40, 1600), (3203, 40, 1600), (999, 1001, 7), (5, 3, 1)]:
+        k = fitting_downscale(width, height, limit)
+        assert max(downscaled_size(width, height, k)) <= limit     # the rounded size, as the camera's
+        assert k == 1 or max(downscaled_size(width, height, k - 1)) > limit
+
+
+def test_large_images_are_downscaled_to_data_max_size_unless_the_user_chose(tmp_path):
+    """data.downscale null (the default) downscales images larger than data.max_size by the smallest
+    factor that fits, with one note; a number, 1 included, is the user's choice and wins."""
+    from radfield.datasets.scene import read_dataset, resolve_downscale
+    from radfield.pipeline.config import load_config
+
+    big = tmp_path / "big"
+    _nerfstudio_scene(big, 3, size=(1700, 1000), fl_x=1500.0, w=1700, h=1000)
+    photos = tmp_path / "photos"
+    shutil.copytree(big / "images", photos)   # no cameras: the sizes come from the headers
+    data, notes = load_config()["data"], []
+    assert data["downscale"] is None and data["max_size"] == 1600
+    assert resolve_downscale(big, data, notes.append) == 2 and resolve_downscale(photos, data, notes.append) == 2
+    assert notes == ["radfield: note: images of 1700x1000 downscaled by 2 to 850x500 (data.max_size 1600; "
+                     "--downscale 1 keeps the full size)"] * 2
+    notes.clear()
+    assert resolve_downscale(big, {**data, "downscale": 1}, notes.append) == 1          # the user's 1 wins
+    assert resolve_downscale(big, {**data, "max_size": 0}, notes.append) == 1           # no limit
+    assert resolve_downscale(big, {**data, "max_size": 1700}, notes.append) == 1        # within it
+    assert notes == []
+    assert resolve_downscale(big, {**data, "max_size": 400}, notes.append) == 5 and "to 340x200" in notes[0]
+    scene, _ = read_dataset(big, data)
+    assert scene["downscale"] == 2 and {(v["width"], v["height"], v["file_width"]) for v in scene["splits"]["train"]} == {(850, 500, 1700)}
+
+
+
+def test_a_run_records_the_automatic_factor_and_the_user_s_choice_wins(tmp_path, cli):
+    """reconstruct on 1700x1000 images: one note, scene.json and RUN/config.yaml hold the factor 2
+    (so later commands and the cache see it: a second run is cached); --downscale 1 keeps the full
+    size and says nothing. run_pipeline resolves the automatic factor too (the data stage's resolve)."""
+    from radfield.pipeline.config import load_config
+    from radfield.pipeline.runner import run_pipeline
+    from radfield.stages import data, sfm
+
+    big = tmp_path / "big"
+    _nerfstudio_scene(big, 3, size=(1700, 1000), fl_x=1500.0, w=1700, h=1000)
+
+    def sizes(run: Path) -> set:
+        scene = json.loads((run / "data" / "scene.json").read_text())
+        return {(scene["downscale"], v["width"], v["height"]) for split in scene["splits"].values() for v in split}
+
+    code, out, err = cli("reconstruct", big, "-o", tmp_path / "auto", "--until", "data", "-q")
+    assert code == 0, err
+    assert [line for line in err.splitlines() if "note" in line] == [
+        "radfield: note: images of 1700x1000 downscaled by 2 to 850x500 (data.max_size 1600; --downscale 1 keeps the full size)"]
+    assert sizes(tmp_path / "auto") == {(2, 850, 500)}
+    assert load_config(tmp_path / "auto" / "config.yaml")["data"]["downscale"] == 2
+    code, out, err = cli("reconstruct", big, "-o", tmp_path / "auto", "--until", "data", "-q")
+    assert code == 0 and "data cached" in out, err
+    for user in (["--downscale", "1"], ["--set", "data.downscale=1"], ["--set", "data.max_size=0"]):
+        code, out, err = cli("reconstruct", big, "-o", tmp_path / "full", "--until", "data", "-q", *user)
+        assert code == 0 and "note" not in err and sizes(tmp_path / "full") == {(1, 1700, 1000)}, (user, err)
+    run_pipeline([sfm.STAGE, data.STAGE], tmp_path / "api", load_config(sets=["stages=[sfm, data]"]), input_path=big,
+                 quiet=True)
+    assert sizes(tmp_path / "api") == {(2, 850, 500)}
+    assert load_config(tmp_path / "api" / "config.yaml")["data"]["downscale"] == 2
+
+
 # ---------------------------------------------------------------- nerfstudio / instant-ngp
 
 

@@ -85,7 +85,7 @@ def test_nproc_equals_single_process(scene, single, tmp_path):
     assert_same_training(run, single)
     # only rank 0 wrote into the run directory: nothing but the stages' folders, marker, config, lock
     assert sorted(p.name for p in run.iterdir()) == [".lock", "config.yaml", "data", "envelope", "hashes.json", "init",
-                                                      "radfield-run.json", "sfm", "tetra", "train"]
+                                                      "radfield-run.json", "sfm", "tetra", "train", "triangulate"]
 
 
 def test_torchrun_continues_like_a_single_process(scene, single, tmp_path, capsys, run_radfield):

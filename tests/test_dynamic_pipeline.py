@@ -73,6 +73,10 @@ def test_time_frequency_reaches_the_model_file(cli, smoke, tmp_path):
     cli("reconstruct", smoke, "-o", tmp_path / "run", "--no-cage", "--until", "init", "-q",
         "--set", "render.time_frequency=6.283185")
     assert load_model(tmp_path / "run" / "init" / "init.safetensors").time_frequency == pytest.approx(6.283185)
+    # what moves does not triangulate: the start is random, each primitive a few pixels
+    triangulate = json.loads((tmp_path / "run" / "triangulate" / "manifest.json").read_text())
+    assert triangulate["applicable"] is False and triangulate["reason"].startswith("a dynamic scene")
+    assert json.loads((tmp_path / "run" / "init" / "manifest.json").read_text())["figures"]["source"] == "random"
 
 
 # --- eval: per-time figures and the plot ---------------------------------------------------------

@@ -373,7 +373,8 @@ def test_info_refuses_other_folders(tmp_path: Path) -> None:
 
 def test_defaults_hold_every_section() -> None:
     config = load_config()
-    assert config["stages"] == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
+    assert config["stages"] == ["sfm", "data", "triangulate", "envelope", "tetra", "init", "train", "bind", "bake",
+                                "eval"]
     assert {"seed", "device", "data", "sfm", "envelope", "tetra", "init", "train", "render", "bake", "eval"} <= set(config)
     assert config["train"]["max_primitives"] is None
     assert config["train"]["densify"]["grad_threshold"] == 5e-4  # exponent notation reads as a float
@@ -423,6 +424,7 @@ def test_overrides_parse_and_merge(tmp_path: Path) -> None:
     assert config["train"]["max_primitives"] == 2000 and config["seed"] == 3
     assert config["stages"] == ["data", "init", "train"]
     assert load_config(sets=["train.max_primitives=null"])["train"]["max_primitives"] is None
+    assert load_config(sets=["data.downscale=null"])["data"]["downscale"] is None   # automatic (data.max_size)
     assert parse_set("data.background=[1, 0.5, 0]") == ("data.background", [1, 0.5, 0])
 
 
@@ -434,7 +436,7 @@ def test_overrides_parse_and_merge(tmp_path: Path) -> None:
         ("train.iterations=abc", r"train.iterations must be an integer, got \"abc\""),
         ("train.iterations=2.5", "train.iterations must be an integer, got 2.5"),
         ("train.iterations=true", "train.iterations must be an integer, got true"),
-        ("data.downscale=null", "data.downscale must be an integer, got null"),
+        ("data.test_every=null", "data.test_every must be an integer, got null"),
         ("train.max_primitives=1.5", "train.max_primitives must be an integer or null, got 1.5"),
         ("train.lambda_dssim=yes", "train.lambda_dssim must be a number, got true"),
         ("data.background=[1, 1]", r"data.background must be a list of 3 numbers, got \[1, 1\]"),

@@ -71,3 +71,20 @@ def test_a_dynamic_scenes_hull_shows_its_carving(cli, tmp_path):
     code, _, err = cli("reconstruct", tmp_path / "smoke", "-o", tmp_path / "run", "--until", "envelope")
     assert code == 0, err
     assert "loading 6 training masks: 100% (6/6)" in err and "carving 2 moments' hulls: 100% (6/6)" in err, err
+
+
+def test_the_terminal_bar_says_which_time_is_elapsed_and_which_left():
+    """On a terminal (rich): "0:00:01 elapsed, 0:00:04 left" as the plain lines word it, the time
+    left only where the task has a total (rich's bare columns read "0:00:01 left 0:00:04")."""
+    from rich.console import Console
+
+    from radfield.util.progress import _rich_bar
+
+    bar = _rich_bar(stats=False)
+    bar.update(bar.add_task("training", total=100), completed=5)
+    bar.add_task("refining", total=None)
+    console = Console(force_terminal=False, width=120, record=True)
+    console.print(bar.make_tasks_table(bar.tasks))
+    training, refining = console.export_text().splitlines()
+    assert re.search(r"\d+:\d\d:\d\d elapsed, (-:--:--|\d+:\d\d:\d\d) left$", training.rstrip()), training
+    assert refining.rstrip().endswith(" elapsed"), refining

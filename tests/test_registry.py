@@ -47,7 +47,7 @@ def test_every_extension_point_is_a_registry_in_its_order():
     assert isinstance(seam._BACKENDS, Registry) and seam.names()[-1] == seam.TORCH
     assert seam.names()[:2] == [seam.FUSED_CPU, seam.TRITON]
     assert isinstance(STAGES, Registry) and [stage.name for stage in stages()] == list(STAGES.names())
-    assert STAGES.names() == ("sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval")
+    assert STAGES.names() == ("sfm", "data", "triangulate", "envelope", "tetra", "init", "train", "bind", "bake", "eval")
     assert isinstance(COMMANDS, Registry) and command_names(app) == list(COMMANDS.names())
     assert isinstance(spec.OPERATIONS, Registry) and set(spec.registry()) == set(spec.OPERATIONS.names())
     with pytest.raises(ValueError, match=r"^edit operation 'transform' is registered already$"):

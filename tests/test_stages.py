@@ -370,12 +370,13 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
                                        "edited_from", "edit", "artifacts"}
     assert info["edited_from"] is None and info["edit"] is None
     # what each stage wrote, in pipeline order, and the table says it too (it promised "artifacts")
-    assert list(info["artifacts"]) == [s for s in info["stages"] if info["stages"][s]["done"] and s != "sfm"]
+    assert list(info["artifacts"]) == [s for s in info["stages"] if info["stages"][s]["applicable"]]
     assert info["artifacts"]["train"][0] == info["model"] and str(run_dir / "eval" / "report.md") in info["artifacts"]["eval"]
     code, out, _ = cli("info", run_dir)
     assert code == 0 and f"artifacts (in {run_dir}):" in out and "  eval/: metrics.json, renders, report.md" in out
     assert info["pending_checkpoint"] is None
-    assert list(info["stages"]) == ["sfm", "data", "envelope", "tetra", "init", "train", "bind", "bake", "eval"]
+    assert list(info["stages"]) == ["sfm", "data", "triangulate", "envelope", "tetra", "init", "train", "bind", "bake",
+                                   "eval"]
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve())
     assert info["stages"]["data"]["images"] == 8 and info["stages"]["sfm"]["applicable"] is False
     assert {"done", "seconds", "psnr", "ssim", "fps"} <= set(info["stages"]["eval"])

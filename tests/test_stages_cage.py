@@ -12,6 +12,7 @@ import meshio
 import numpy as np
 import pytest
 
+from radfield.errors import RadfieldError
 from radfield.model_file import load_model
 from radfield.datasets.images import read_image, write_image
 from radfield.demo.static import generate_scene
@@ -86,7 +87,8 @@ def photo_run(tmp_path_factory, fox) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("fox")
     photos = fox_photos(fox, root / "photos")
     status = run_until("init", photos, root / "run")
-    assert status == dict.fromkeys(FRONT, "ran")
+    assert status == dict.fromkeys(FRONT, "ran") | {"triangulate": "not applicable"}
+    assert read_manifest(root / "run" / "triangulate")["reason"] == "the dataset has its own SfM points"
     return photos, root / "run"
 
 
@@ -143,9 +145,14 @@ def test_posed_photos_without_points_are_triangulated(tmp_path, fox):
     (tmp_path / "posed" / "transforms.json").write_text(json.dumps(meta | {"frames": frames}))
     run_dir = tmp_path / "run"
     status = run_until("tetra", tmp_path / "posed", run_dir)
-    assert status == {"sfm": "not applicable", "data": "ran", "envelope": "ran", "tetra": "ran"}
+    assert status == {"sfm": "not applicable", "data": "ran", "triangulate": "ran", "envelope": "ran", "tetra": "ran"}
     figures = read_manifest(run_dir / "envelope")["figures"]
     assert figures["source"] == "triangulate" and figures["inliers"] > 200 and figures["points_outside"] == 0
+    # the triangulate stage's points, read by the envelope (triangulated once)
+    with np.load(run_dir / "triangulate" / "triangulated.npz") as triangulated:
+        count = len(triangulated["xyz"])
+    assert figures["inliers"] + figures["outliers"] == count
+    assert read_manifest(run_dir / "triangulate")["figures"] == {"points": count, "views": 7}   # 1 of 8 held out
     # the envelope is in the dataset's frame: in front of every camera, around what they look at
     vertices, _ = read_envelope(run_dir / "envelope" / "envelope.ply")
     for camera in data.load_scene(run_dir / "data" / "scene.json").train_cameras:
@@ -191,9 +198,11 @@ def blobs(tmp_path_factory) -> Path:
 def test_envelope_from_the_dataset_mesh_and_its_cage(blobs, tmp_path):
     run_dir = tmp_path / "run"
     status = run_until("init", blobs, run_dir)
-    assert status == {"sfm": "not applicable", "data": "ran", "envelope": "ran", "tetra": "ran", "init": "ran"}
+    assert status == {"sfm": "not applicable", "data": "ran", "triangulate": "not applicable", "envelope": "ran",
+                      "tetra": "ran", "init": "ran"}
     manifest = read_manifest(run_dir / "sfm")
     assert manifest["reason"] == f"posed dataset: poses come from {blobs.resolve() / 'transforms_train.json'}"
+    assert read_manifest(run_dir / "triangulate")["reason"] == "the dataset has its own mesh.ply"
     envelope = read_manifest(run_dir / "envelope")["figures"]
     assert envelope["source"] == "mesh" and envelope["faces"] <= 300 and envelope["self_intersections"] == 0
     with np.load(run_dir / "data" / "points.npz") as points:
@@ -232,13 +241,19 @@ def test_too_few_triangulated_points_means_no_cage(blobs, tmp_path):
     source = rgb_copy(blobs, tmp_path / "rgb")  # 6 views of 32x32 pixels: too small for features
     run_dir = tmp_path / "run"
     status = run_until("init", source, run_dir)
-    assert status["envelope"] == status["tetra"] == "not applicable" and status["init"] == "ran"
+    assert status["triangulate"] == status["envelope"] == status["tetra"] == "not applicable"
+    assert status["init"] == "ran"
     info = run_info(run_dir)
-    assert "points triangulated from the 6 posed training views" in info["stages"]["envelope"]["reason"]
+    assert "points triangulated from the 6 posed training views" in info["stages"]["triangulate"]["reason"]
+    assert info["stages"]["envelope"]["reason"] == "no triangulated points (see the triangulate stage)"
     assert info["stages"]["tetra"]["reason"] == "no envelope to fill (see the envelope stage)"
     assert info["stages"]["init"]["source"] == "random" and info["stages"]["init"]["bound"] is False
     with np.load(run_dir / "init" / "binding.npz") as binding:
         assert (binding["tet"] == -1).all() and len(binding["tet"]) == 300
+    # asked for by name, the missing points are an error of the stage that needs them
+    for key, stage in (("envelope.source", "envelope"), ("init.source", "init")):
+        with pytest.raises(RadfieldError, match=f"{stage}: config key {key} is triangulate but .*triangulate stage"):
+            run_until("init", source, run_dir, f"{key}=triangulate")
 
 
 @pytest.mark.parametrize("args, key", [
@@ -249,6 +264,7 @@ def test_too_few_triangulated_points_means_no_cage(blobs, tmp_path):
     (["--set", "sfm.min_registered_fraction=1.5"], "sfm.min_registered_fraction"),
     (["--set", "sfm.camera_model=THIN_PRISM"], "sfm.camera_model"),
     (["--set", "init.cage_fraction=2"], "init.cage_fraction"),
+    (["--set", "init.source=triangulate"], "init.source"),   # the scene has a mesh.ply
     (["--set", "train.frequency_cap=-1"], "train.frequency_cap"),
     (["--set", "train.frequency_bound=-1"], "train.frequency_bound"),
     (["--set", "train.nonnegative_density=200"], "train.nonnegative_density"),

@@ -19,6 +19,12 @@ with the SH degree schedule at its last stage from step 3 on (as the parts, whic
 full degree); the `setup` column is the rest of the call in ms: its set-up (copies of the
 parameters and images, the optimiser, the strategy) and the warm-up steps, paid once per call.
 
+The `peak MiB` column is the most memory held while the timed steps ran (the parameters, the
+images, Adam's moments and a step's intermediates): on the CPU the process's peak resident set size
+(its high-water mark, reset before the timed steps through /proc/self/clear_refs; where that cannot
+be reset, the process's peak so far), on CUDA torch's peak allocated memory (reset likewise). It is
+what a training run of that size needs, e.g. against a machine's memory.
+
 The scene is bench-render's (primitives over a sphere's surface, orbit cameras); the targets are
 renders of the same scene with its colours shifted, so the loss and its gradients are not zero.
 Absolute times depend on the machine and its load: compare ratios within one run.
@@ -27,8 +33,10 @@ Absolute times depend on the machine and its load: compare ratios within one run
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -47,6 +55,7 @@ class StepTiming:
     train_ms: float        # marginal ms per step of loop.train, end to end
     setup_ms: float        # loop.train's cost once per call
     pairs: float           # evaluated pixel-primitive pairs per step
+    peak_mib: float        # the most memory held during the timed steps (module docstring)
 
     @property
     def total_ms(self) -> float:
@@ -68,6 +77,31 @@ def bench_config(steps: int) -> dict:
     every = cfg["densify"]["every"]
     cfg["checkpoint_every"] = every * math.ceil((steps + 1) / every)
     return cfg
+
+
+def reset_peak_memory(device: torch.device) -> None:
+    """Start measuring the peak from now: CUDA's peak allocated memory, or on Linux the process's
+    high-water mark of resident memory (clear_refs "5", Linux >= 4.0; elsewhere it cannot be reset)."""
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+        return
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_memory_mib(device: torch.device) -> float:
+    """The peak since reset_peak_memory, in MiB: CUDA's allocated memory, else the resident set
+    (getrusage's ru_maxrss, which follows the reset high-water mark on Linux; NaN without `resource`)."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    try:
+        import resource
+    except ImportError:   # not a Unix
+        return float("nan")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 2**10   # bytes on macOS, KiB on Linux
 
 
 def _targets(prims, cams, device):
@@ -95,6 +129,9 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
     degree = cfg["sh_degree"]   # the last stage of the SH schedule: the most expensive colour
 
     for step in range(warmup + steps):
+        if step == warmup:
+            sync()
+            reset_peak_memory(dev)
         spent = dict.fromkeys(PARTS, 0.0)
         view = step % len(cams)
 
@@ -131,8 +168,10 @@ def time_steps(prims, cams, images, cfg: dict, steps: int, warmup: int, device: 
                 totals[part] += spent[part]
             pairs += out.meta["pairs"]
 
+    sync()
+    peak = peak_memory_mib(dev)
     train_ms, setup_ms = time_train(prims, cams, images, steps, warmup, dev, sync)
-    return StepTiming({p: 1e3 * v / steps for p, v in totals.items()}, train_ms, setup_ms, pairs / steps)
+    return StepTiming({p: 1e3 * v / steps for p, v in totals.items()}, train_ms, setup_ms, pairs / steps, peak)
 
 
 def time_train(prims, cams, images, steps: int, warmup: int, device, sync) -> tuple[float, float]:
@@ -166,7 +205,8 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
                     warmup: int = 2, views: int = 4, device: str = "cpu", echo=print, advance=lambda: None,
                     baseline: bool = False) -> dict:
     """Print one row per (kind, count, size): ms per step of each part, their sum, loop.train's
-    marginal ms per step and its set-up ms, and evaluated pairs per second of the render forward.
+    marginal ms per step and its set-up ms, evaluated pairs per second of the render forward, and the
+    peak memory of the steps (module docstring).
     With `baseline`, each row is preceded by the same row on the reference twins
     (RADFIELD_KERNELS=torch, "torch") and followed by the speed-up of the sum and of train().
     Returns the figures."""
@@ -175,7 +215,7 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
          f"threads={torch.get_num_threads()}; ms per step")
     w = max(11, *map(len, kinds))   # the kind column fits the longest name
     echo(f"  {'kind':{w}s} {'count':>6s} {'size':>7s} {'path':>6s} " + " ".join(f"{p:>10s}" for p in PARTS)
-         + f" {'sum':>8s} {'train()':>8s} {'setup':>7s} {'Mpairs/s':>9s}")
+         + f" {'sum':>8s} {'train()':>8s} {'setup':>7s} {'Mpairs/s':>9s} {'peak MiB':>9s}")
     results = {}
     for kind in kinds:
         for count in counts:
@@ -190,8 +230,9 @@ def run_bench_train(counts=(2_000, 10_000, 20_000), sizes=(64, 256), kinds=("neu
                     rate = t.pairs / (t.ms["forward"] * 1e3) if t.ms["forward"] > 0 else float("nan")
                     echo(f"  {kind:{w}s} {count:6d} {size:3d}x{size:<3d} {path:>6s} "
                          + " ".join(f"{t.ms[p]:10.1f}" for p in PARTS)
-                         + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {t.setup_ms:7.1f} {rate:9.1f}")
-                    rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "setup": t.setup_ms, "pairs": t.pairs}
+                         + f" {t.total_ms:8.1f} {t.train_ms:8.1f} {t.setup_ms:7.1f} {rate:9.1f} {t.peak_mib:9.0f}")
+                    rows[path] = {**t.ms, "sum": t.total_ms, "train": t.train_ms, "setup": t.setup_ms, "pairs": t.pairs,
+                                  "peak_mib": t.peak_mib}
                 if baseline:
                     before, after = rows["torch"], rows["fused"]
                     echo(f"  {'':{w}s} {'':6s} {'':7s} {'x':>6s} " + " ".join(f"{before[p] / after[p]:10.1f}" for p in PARTS)

@@ -58,7 +58,8 @@ def bench_train(
 
     A benchmark, not a test: ms per training step of the default recipe, split into render
     forward, loss, render backward, optimiser and population control, for each primitive kind,
-    count and view size; also loop.train's own ms per step and the forward's pairs/s."""
+    count and view size; also loop.train's own ms per step, the forward's pairs/s and the peak memory
+    of the steps (CPU: resident set size; CUDA: allocated)."""
     from radfield.bench.render import ALL_BENCH_KINDS
     from radfield.bench.train import run_bench_train
 

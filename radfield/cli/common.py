@@ -23,7 +23,7 @@ __all__ = ["Background", "Dataset", "Device", "Downscale", "Force", "KINDS", "Qu
 
 # options shared by eval and bake
 Dataset = Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset with the ground truth and the cameras (default: the run's input; its SfM output for photos).")]
-Downscale = Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else 1).")]
+Downscale = Annotated[Optional[int], typer.Option(help="Image downscale factor (default: the run's, else automatic: 1, or what data.max_size needs).")]
 Background = Annotated[Optional[str], typer.Option(help="Background R,G,B (default: the run's, else 1,1,1).")]
 Device = Annotated[str, typer.Option(help="cpu or cuda.")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")]

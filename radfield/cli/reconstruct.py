@@ -18,7 +18,7 @@ def reconstruct(
     primitive: Annotated[Optional[str], typer.Option(metavar=KINDS, help="The kind of primitive: neural (splattable neural primitives, the default) or gaussian (3DGS, the baseline); a dynamic or relighting dataset trains their time- or light-conditioned variant. (config key train.primitive)")] = None,
     max_primitives: Annotated[Optional[int], typer.Option(help="Hard primitive budget, initialised exactly (the paper's memory-budget protocol). (config key train.max_primitives)")] = None,
     iterations: Annotated[Optional[int], typer.Option(help="Optimisation steps; raising it on a finished run continues from its final state (see docs/usage.md, 'Training: log, curves, continuing'). (config key train.iterations)")] = None,
-    downscale: Annotated[Optional[int], typer.Option(help="Integer image downscale factor. (config key data.downscale)")] = None,
+    downscale: Annotated[Optional[int], typer.Option(help="Integer image downscale factor; 1 keeps the full size (default: automatic, images larger than data.max_size are downscaled to fit it). (config key data.downscale)")] = None,
     background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] for RGBA images and renders. (config key data.background)")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Random seed. (config key seed)")] = None,
     device: Annotated[Optional[str], typer.Option(help="cpu or cuda[:N]; not part of the cache key. (config key device)")] = None,
@@ -33,11 +33,11 @@ def reconstruct(
 ):
     """Reconstruct a radiance field from a dataset and print its held-out PSNR.
 
-    Runs the cached stages sfm → data → envelope → tetra → init → train → bind → bake → eval in the
-    run directory (sfm only for a folder of photos); a stage re-runs only when its inputs or its
-    config keys changed."""
+    Runs the cached stages sfm → data → triangulate → envelope → tetra → init → train → bind → bake →
+    eval in the run directory (sfm only for a folder of photos, triangulate only for a posed dataset
+    without points); a stage re-runs only when its inputs or its config keys changed."""
     from radfield.core.trainer import distributed, launch
-    from radfield.stages import registry
+    from radfield.stages import data, registry
     from radfield.pipeline.config import load_config
     from radfield.pipeline.schema import typed
     from radfield.pipeline.info import conditioned_scene, run_info
@@ -50,10 +50,13 @@ def reconstruct(
              "data.background": list(parse_background(background)) if background is not None else None,
              "envelope.source": "none" if no_cage else None}
     cfg = load_config(config, sets or [], {key: value for key, value in flags.items() if value is not None})
+    resolve_device(cfg["device"])
+    launching = nproc > 1 and not distributed.launched()
+    # an automatic downscale: the factor, and its note once (by rank 0 when launching), before anything reads the images
+    data.resolve(cfg, input_path, note=(lambda _line: None) if launching else None)
     settings = typed(cfg)
-    resolve_device(settings.device)
     registry.check(cfg, input_path)
-    if nproc > 1 and not distributed.launched():
+    if launching:
         return launch.launch(nproc, cfg, output, sys.argv[1:])
     with launch.leading(cfg):  # rank 0 of torchrun's ranks (nothing for a single process)
         status = run_pipeline(registry.stages(), output, settings, input_path=input_path, force=force or [],

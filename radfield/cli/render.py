@@ -20,7 +20,7 @@ def render(
     dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP). Default for a run: the dataset it trained on.")] = None,
     split: Annotated[str, typer.Option(help="Which cameras: train, val, test or all (without split files: every data.test_every-th view is test).")] = "test",
     background: Annotated[Optional[str], typer.Option(help="Background colour R,G,B in [0, 1] (default: the run's data.background, else 1,1,1).")] = None,
-    downscale: Annotated[Optional[int], typer.Option(help="Render at 1/K of the dataset's resolution (default: the run's data.downscale, else 1).")] = None,
+    downscale: Annotated[Optional[int], typer.Option(help="Render at 1/K of the dataset's resolution (default: the run's data.downscale, else automatic: 1, or what data.max_size needs).")] = None,
     near: Annotated[Optional[float], typer.Option(help="Near plane distance (default: the run's render.near, else 0.01).")] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,

@@ -125,6 +125,20 @@ def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
     return max(1, round(width * (1 / factor))), max(1, round(height * (1 / factor)))
 
 
+def fitting_downscale(width: int, height: int, max_size: int) -> int:
+    """The smallest integer factor whose `downscaled_size` has no side longer than `max_size` pixels
+    (1 when the image fits; max_size 0: no limit). Tested on the rounded size itself, so the image
+    and its camera, which round alike, are within the limit, not just its quotient."""
+    if max_size <= 0:
+        return 1
+    # a side rounds to at most max_size only when its quotient is at most max_size + 1/2: every factor
+    # below this one leaves the longest side too long, so the search starts here
+    factor = max(1, max(width, height) // (max_size + 1))
+    while max(downscaled_size(width, height, factor)) > max_size:
+        factor += 1
+    return factor
+
+
 def resize_area(img: np.ndarray, factor: int) -> np.ndarray:
     """Downscale (H, W[, C]) float32 pixels by an integer factor with area averaging (cv2
     INTER_AREA); sizes not divisible by `factor` round like `Camera.scaled`, so image and camera

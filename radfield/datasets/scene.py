@@ -18,7 +18,8 @@ writes (RUN/data/), read back as a Scene (cameras, splits, normalisation; images
 Cameras are OpenCV (x right, y down, z forward) camera-to-world in the dataset's own world frame
 (for photos: the sfm stage's output, a COLMAP dataset in its normalised frame, is the dataset);
 intrinsics and width/height are at the downscaled resolution (file_width/file_height and
-distortion describe the file, so images reload exactly as the readers load them). Unposed photos
+distortion describe the file, so images reload exactly as the readers load them); "downscale" is
+the factor applied, data.downscale or the automatic one (resolve_downscale). Unposed photos
 (format "images") have "posed": false and views with only name, image, width, height,
 file_width, file_height: the sfm stage poses them.
 
@@ -45,6 +46,7 @@ mesh has no colours, `mesh_faces` when it is a point cloud).
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -57,7 +59,7 @@ from radfield.core.geometry.cameras import Camera
 from radfield.errors import RadfieldError
 from radfield.datasets import formats
 from radfield.datasets.bounds import MESH, focus_point, read_mesh
-from radfield.datasets.images import downscaled_size, image_size
+from radfield.datasets.images import downscaled_size, fitting_downscale, image_size
 from radfield.datasets.readers import SPLITS, Dataset, View, check_visible, load_dataset, validate
 from radfield import run as layout
 
@@ -74,7 +76,7 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
     config section. Reads every image header: any problem is a RadfieldError naming the file."""
     path = Path(path).resolve()
     background = tuple(data["background"])
-    splits = _splits(path, data["downscale"], background, data["test_every"], data["val_every"])
+    splits = _splits(path, resolve_downscale(path, data), background, data["test_every"], data["val_every"])
     for dataset in splits.values():
         validate(dataset)
     check_visible(splits.values(), path)
@@ -96,6 +98,36 @@ def read_dataset(path: Path, data: dict[str, Any]) -> tuple[dict[str, Any], dict
         scene["normalization"] = {"center": center.tolist(), "scale": 1.0 / radius}
         scene["extent"] = 1.1 * radius
     return scene, points
+
+
+def resolve_downscale(path: Path, data: dict[str, Any], note=None) -> int:
+    """The downscale factor of the dataset at `path` under the `data` config section: data.downscale
+    when it is a number (the user's choice, even 1), else (null: automatic) the smallest factor that
+    brings the dataset's largest image within data.max_size pixels, 1 when it fits (max_size 0: no
+    limit). Photos larger than training needs would otherwise cost their full size in memory and
+    time at every step (nerfstudio caps them at 1600 px too); the factor is announced in one note
+    line, given to `note` (default: stderr), so that the smaller images surprise no one."""
+    if data["downscale"] is not None:
+        return data["downscale"]
+    if not data["max_size"]:
+        return 1
+    width, height = max(_image_sizes(Path(path)), key=max)
+    factor = fitting_downscale(width, height, data["max_size"])
+    if factor > 1:
+        small = downscaled_size(width, height, factor)
+        (note or _stderr)(f"radfield: note: images of {width}x{height} downscaled by {factor} to {small[0]}x{small[1]} "
+                          f"(data.max_size {data['max_size']}; --downscale 1 keeps the full size)")
+    return factor
+
+
+def _image_sizes(path: Path) -> list[tuple[int, int]]:
+    """(width, height) of every image of the dataset: its cameras', or the headers' of photos without one."""
+    return [(view.camera.width, view.camera.height) if view.camera is not None else image_size(view.image_path)
+            for view in load_dataset(path, "all").views]
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _splits(path: Path, downscale: int, background: tuple, test_every: int, val_every: int = 0) -> dict[str, Dataset]:
@@ -131,11 +163,11 @@ def load_split(path: Path, split: str, data: dict[str, Any]) -> Dataset:
     itself (a transforms_SPLIT.json, nerfstudio's SPLIT_filenames) is read as it is; otherwise
     every `data.test_every`-th view by file name is the test split and the rest train, as the data
     stage splits it; with data.val_every > 0, val is carved out of train likewise. Images are
-    downscaled by data.downscale and composited on data.background."""
+    downscaled by data.downscale (resolve_downscale: null is automatic) and composited on data.background."""
     path = Path(path).resolve()
     if split not in SPLITS:
         raise RadfieldError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
-    downscale, background = data["downscale"], tuple(data["background"])
+    downscale, background = resolve_downscale(path, data), tuple(data["background"])
     present = formats.detect(path).splits(path)
     carved = data["val_every"] > 0 and "val" not in present and split in ("train", "val")  # val cut from train
     if split == "all" or (split in present and not carved):

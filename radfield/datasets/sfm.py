@@ -18,8 +18,9 @@ run never leaves a half-written folder):
                          frame, so this file maps them back to COLMAP's own frame
     sfm.json             what happened: registered / unregistered images, matcher, timings
 
-`triangulate` serves posed datasets without points (the envelope stage uses it): the same features
-and matching, triangulated with the dataset's own cameras held fixed.
+`triangulate` serves posed datasets without points (the triangulate stage, whose points init and
+the envelope start from): the same features and matching, triangulated with the dataset's own
+cameras held fixed.
 
 Matching is exhaustive up to `exhaustive_max_images` images and sequential (neighbours in file-name
 order) above. COLMAP's vocabulary-tree matching and sequential loop detection need a vocabulary
@@ -38,7 +39,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -197,12 +198,13 @@ def _match(database: Path, count: int, cfg: dict, log: Callable[[str], None]) ->
     return matcher
 
 
-def triangulate(cameras: list[Camera], images: np.ndarray, cfg: dict, seed: int = 0,
+def triangulate(cameras: list[Camera], images: Iterable[np.ndarray], cfg: dict, seed: int = 0,
                 log: Callable[[str], None] = lambda _line: None) -> tuple[np.ndarray, np.ndarray]:
     """Sparse points (P, 3) and their colours (P, 3) in [0, 1] for a posed dataset without any:
-    features matched across `images` (N, H, W, 3), float in [0, 1], undistorted, one per pinhole
-    camera, are triangulated with the cameras held fixed (COLMAP's point triangulator), so the
-    points are in the cameras' world frame. Settings: the `sfm` section `cfg`."""
+    features matched across `images` (N, H, W, 3), or N images (H, W, 3) one at a time, float in
+    [0, 1], undistorted, one per pinhole camera, are triangulated with the cameras held fixed
+    (COLMAP's point triangulator), so the points are in the cameras' world frame. Settings: the
+    `sfm` section `cfg`."""
     import pycolmap
 
     pycolmap.set_random_seed(seed)

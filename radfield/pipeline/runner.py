@@ -87,6 +87,10 @@ class Stage:
     "seed"); `inputs` are artifact names produced by earlier stages (or INPUT); `outputs` are the
     file or directory names it writes into its stage directory, unique across the pipeline.
     Bump `version` when the format of the outputs or the meaning of the stage changes.
+    `resolve(config, input_path)`, when given, fills in (in place, on the plain config) the values
+    that an automatic setting takes from the input, before anything is hashed or saved: the cache
+    keys and RUN/config.yaml then hold the number the stage uses, and so does every later command
+    (the data stage: data.downscale null).
     """
 
     name: str
@@ -95,6 +99,7 @@ class Stage:
     inputs: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
     version: int = 1
+    resolve: Callable[[dict[str, Any], Path | None], None] | None = None
 
 
 def run_pipeline(
@@ -113,8 +118,9 @@ def run_pipeline(
     order, skipping those whose manifest matches.
 
     `config` is the resolved config, typed (pipeline/schema.py's `Config`) or a nested mapping
-    (load_config's result, or a toy pipeline's); each stage's cache key hashes the part of it that
-    its `config_keys` name, `section(config, stage.config_keys)`, and RUN/config.yaml records it all.
+    (load_config's result, or a toy pipeline's); once the planned stages' `resolve` have filled in
+    its automatic values, each stage's cache key hashes the part of it that its `config_keys` name,
+    `section(config, stage.config_keys)`, and RUN/config.yaml records it all.
     `stages` declares every stage that may run. `force` names stages to re-run regardless;
     `from_stage` forces it and every later stage; `until_stage` stops after it. `input_path` is
     the INPUT artifact. Everything a user can get wrong (stage names, a run directory that is not
@@ -126,9 +132,12 @@ def run_pipeline(
     input_path = Path(input_path).resolve() if input_path is not None else None
     resolved = plain(config)   # RUN/config.yaml
     plan, forced = _plan(stages, resolved["stages"], set(force), from_stage, until_stage)
-    sections = {stage.name: section(config, stage.config_keys) for stage in plan}
     _check_input(plan, input_path)
     _check_run_dir(layout, plan, input_path, forced)
+    for stage in plan:
+        if stage.resolve is not None:
+            stage.resolve(resolved, input_path)
+    sections = {stage.name: section(resolved, stage.config_keys) for stage in plan}
 
     layout.path.mkdir(parents=True, exist_ok=True)
     with _locked(layout):

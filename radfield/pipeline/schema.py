@@ -80,8 +80,13 @@ class Section:
 class DataConfig(Section):
     """`data`: how the dataset's images are read and split."""
 
-    downscale: int = setting(AT_LEAST_1, flag="--downscale")
-    """Integer factor every image is downscaled by on load."""
+    downscale: int | None = setting(AT_LEAST_1, flag="--downscale")
+    """Integer factor every image is downscaled by on load (1: full size). null: automatic, 1 or the
+    smallest factor that brings the largest image within data.max_size (one note line says so); a run
+    records the factor it resolved (RUN/config.yaml, scene.json), and every later command uses it."""
+    max_size: int = setting(Range(0, note="pixels, 0 = no limit"))
+    """With an automatic data.downscale (null): the longest image side, in pixels, that training
+    takes without downscaling (nerfstudio's 1600); an explicit data.downscale (--downscale) wins."""
     background: tuple[float, float, float] = setting(FRACTION, flag="--background")
     """RGB in [0, 1] that RGBA images are composited on, and that every render is drawn over."""
     test_every: int = setting(Range(2))
@@ -101,8 +106,8 @@ class DataConfig(Section):
 
 @dataclass(frozen=True)
 class SfmConfig(Section):
-    """`sfm`: posing a folder of photos with COLMAP (pycolmap); also the triangulation of the envelope's
-    `triangulate` source."""
+    """`sfm`: posing a folder of photos with COLMAP (pycolmap); also the triangulate stage's features and
+    matching (points for a posed dataset without any)."""
 
     num_threads: int = setting(Range(1, also=-1, note="-1 = all cores"))
     """CPU threads for COLMAP (-1: all cores). 1 keeps SfM deterministic: the same command gives the same model."""
@@ -130,9 +135,9 @@ class EnvelopeConfig(Section):
 
     source: Literal["auto", "points", "mesh", "hull", "triangulate", "none"]
     """What the envelope is built from: points (SfM), mesh (the dataset's mesh.ply), hull (visual hull of
-    the alpha masks), triangulate (features of the posed images, with the sfm settings), auto (the first
-    of these the dataset has), none (no envelope, no cage: envelope and tetra are not applicable, as with
-    `reconstruct --no-cage`)."""
+    the alpha masks), triangulate (the triangulate stage's points: features of the posed images), auto
+    (the first of these the dataset has), none (no envelope, no cage: envelope and tetra are not
+    applicable, as with `reconstruct --no-cage`)."""
     method: Literal["auto", "poisson", "ball_pivoting", "alpha", "convex"]
     """Surface through the points (auto = poisson). The alpha shape, then the convex hull, are the
     fallbacks when it is open or misses points; every branch ends in the convex hull, then the box, of
@@ -177,9 +182,11 @@ class InitConfig(Section):
 
     num_points: int = setting(AT_LEAST_1)
     """Primitives to start with."""
-    source: Literal["auto", "mesh", "points", "random"]
+    source: Literal["auto", "mesh", "points", "triangulate", "random"]
     """Where the initial centres come from: mesh (surface of the dataset's mesh.ply), points (SfM
-    points), random (in the scene bounds, or in the envelope), auto (mesh, else points, else random)."""
+    points), triangulate (the triangulate stage's points: a posed dataset without any), random (in the
+    scene bounds, or in the envelope; each sized to cover a few pixels of the training views), auto
+    (mesh, else points, else triangulate, else random)."""
     w1_scale: float = setting(Range(0, 10))
     """Neural: W1 ~ U(−w1_scale, w1_scale) at the start (the paper's SIREN init: 1/3), the initial
     frequency scale of the density MLP (frequencies ω0 · W1 per unit of u = (x − μ)/max(s))."""
@@ -304,6 +311,12 @@ class TrainConfig(Section):
     random_background: bool
     """RGBA views: composite each training view on a random colour every step (and render over it), so
     that transparent pixels constrain density, not colour; no effect on photos without alpha."""
+    coarse_levels: int = setting(Range(0, 4, note="0 = full size throughout"))
+    """Coarse to fine: the early steps train on views downscaled 2^L times (area averages), the size
+    doubling L times at equal intervals up to full size at coarse_until × iterations
+    (core/train/coarse_to_fine.py, after DashGaussian's resolution schedule)."""
+    coarse_until: float = setting(Range(0, 1, open_low=True))
+    """The fraction of the iterations by which coarse to fine reaches full size."""
     lr: LearningRates
     means_lr_final_ratio: float = setting(Range(0, 1, open_low=True))
     """The means' rate decays exponentially to this fraction by the last step."""
@@ -383,7 +396,7 @@ class Config(Section):
 
     stages: tuple[str, ...] = setting(selection=True)
     """The stages to run, in order: any of pipeline.yaml's, each once (sfm poses a folder of photos;
-    envelope and tetra build the editing cage; bind binds the trained model to it; bake writes the
+    triangulate finds points for a posed dataset without any; envelope and tetra build the editing cage; bind binds the trained model to it; bake writes the
     pruned delivery model; eval measures the trained model)."""
     seed: int = setting(AT_LEAST_0, flag="--seed")
     """Random seed of every stage that draws random numbers."""

@@ -9,18 +9,39 @@ is ignore; they choose the kind the run trains (stages/init.primitive_kind).
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 # Normalization, Scene and load_scene are re-exported for the stages that import them from here
 from radfield import conditions
-from radfield.datasets.scene import FORMAT_VERSION, POINTS, SCENE, Normalization, Scene, load_scene, read_dataset
+from radfield.datasets.scene import (FORMAT_VERSION, POINTS, SCENE, Normalization, Scene, load_scene, read_dataset,
+                                     resolve_downscale)
 from radfield.pipeline.runner import INPUT, Context, Stage
+from radfield.pipeline.schema import DataConfig
 from radfield.stages.sfm import SFM_DATASET
 
-__all__ = ["POINTS", "SCENE", "STAGE", "Normalization", "Scene", "load_scene", "run"]
+__all__ = ["DATA_KEYS", "POINTS", "SCENE", "STAGE", "Normalization", "Scene", "load_scene", "resolve", "run"]
+
+# The data keys a stage that reads the images depends on: all but data.max_size, which acts only
+# through data.downscale, and `resolve` writes the factor it chose there before anything is hashed.
+# Hashing max_size as well would re-run data and train when it changes nothing they do (and every
+# run made before it existed).
+DATA_KEYS = tuple(f"data.{key.name}" for key in dataclasses.fields(DataConfig) if key.name != "max_size")
+
+
+def resolve(config: dict[str, Any], input_path: Path | None, note=None) -> None:
+    """An automatic data.downscale (null) becomes the factor the dataset at `input_path` needs
+    (datasets.scene.resolve_downscale: 1, or what data.max_size asks, with one note line given to
+    `note`, default stderr), so that RUN/config.yaml, the cache keys and scene.json hold the number.
+    For photos it is the photos' own size that counts (the sfm stage's undistorted images are about
+    as large)."""
+    data = config["data"]
+    if data["downscale"] is None and input_path is not None:
+        data["downscale"] = resolve_downscale(input_path, data, note)
 
 
 def run(ctx: Context) -> dict[str, Any]:
@@ -50,5 +71,5 @@ def run(ctx: Context) -> dict[str, Any]:
     }
 
 
-STAGE = Stage("data", run, config_keys=("data",), inputs=(INPUT, SFM_DATASET), outputs=(SCENE, POINTS),
-              version=FORMAT_VERSION)
+STAGE = Stage("data", run, config_keys=DATA_KEYS, inputs=(INPUT, SFM_DATASET), outputs=(SCENE, POINTS),
+              version=FORMAT_VERSION, resolve=resolve)

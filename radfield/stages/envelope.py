@@ -3,10 +3,11 @@ and the initial primitives are sampled in (radfield.core.geometry.envelope build
 the envelope over the first training view, for a user to check.
 
 Built from, by `envelope.source`: `points` (the SfM points of points.npz), `mesh` (the dataset's
-mesh.ply), `hull` (the alpha masks of the training images), `triangulate` (features matched across
-the posed training images: posed photos without points), `auto` (the first of these the dataset
-has) or `none` (no envelope and no cage, on purpose: this stage and tetra are not applicable).
-When `auto` ends at `triangulate` and too few points come out, the run has no envelope either.
+mesh.ply), `hull` (the alpha masks of the training images), `triangulate` (the triangulate stage's
+points: features matched across the posed training images of a dataset without points), `auto`
+(the first of these the dataset has) or `none` (no envelope and no cage, on purpose: this stage and
+tetra are not applicable). When `auto` ends at `triangulate` and the triangulate stage made no
+points (its reason says why), the run has no envelope either.
 
 A dynamic scene (views that carry a time) must be enclosed at every moment, so that the cage
 edits every moment alike: its visual hull is the union of the per-moment hulls (each carved by
@@ -23,11 +24,12 @@ from typing import Any
 
 import numpy as np
 
-from radfield.core.geometry.envelope import (CARVING_PASSES, MIN_POINTS, build_envelope, choose_source, focus_box,
-                                             overlay_picture, visual_hull, write_envelope)
+from radfield.core.geometry.envelope import (CARVING_PASSES, build_envelope, choose_source, focus_box, overlay_picture,
+                                             visual_hull, write_envelope)
 from radfield.errors import RadfieldError
 from radfield.datasets.scene import POINTS, SCENE, load_scene
 from radfield.pipeline.runner import Context, NotApplicable, Stage
+from radfield.stages.triangulate import TRIANGULATED
 from radfield.util.progress import progress_bar
 from radfield import run as layout
 
@@ -49,13 +51,12 @@ def run(ctx: Context) -> dict[str, Any]:
     masked = train.load_image(0)[1] is not None  # the first image tells: datasets are RGB or RGBA throughout
     source = choose_source(cfg["source"], len(points["xyz"]) > 0, len(points["mesh_vertices"]) > 0, masked)
     if source == "triangulate":
-        from radfield.datasets.sfm import triangulate  # pycolmap: only for posed photos without points
-
-        points["xyz"], _ = triangulate(train.cameras, train.load_images()[0].numpy(), ctx.config["sfm"],
-                                       seed=ctx.seed, log=ctx.log)
-        if len(points["xyz"]) < MIN_POINTS:
-            why = f"only {len(points['xyz'])} points triangulated from the {len(train)} posed training views"
-            raise NotApplicable(why) if cfg["source"] == "auto" else RadfieldError(why)
+        if ctx.inputs[TRIANGULATED] is None:
+            why = "no triangulated points (see the triangulate stage)"
+            raise NotApplicable(why) if cfg["source"] == "auto" else RadfieldError(
+                f"config key envelope.source is triangulate but there are {why}")
+        with np.load(ctx.inputs[TRIANGULATED]) as triangulated:
+            points["xyz"] = triangulated["xyz"]
     if source in ("points", "triangulate"):
         v, f, figures = build_envelope(points["xyz"], cfg)
     elif source == "mesh":  # a mesh.ply without faces is a point cloud
@@ -100,5 +101,5 @@ def hull_of_every_moment(train, cfg: dict[str, Any], quiet: bool = True):
     return v, f, {**figures, **({"moments": len(moments)} if moments else {})}
 
 
-STAGE = Stage("envelope", run, config_keys=("envelope", "sfm", "seed"), inputs=(SCENE, POINTS),
+STAGE = Stage("envelope", run, config_keys=("envelope",), inputs=(SCENE, POINTS, TRIANGULATED),
               outputs=(ENVELOPE, OVERLAY), version=2)

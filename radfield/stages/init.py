@@ -2,8 +2,11 @@
 
 Centres come from `init.source`: `mesh` (uniform samples over the area of the dataset's mesh.ply,
 as the paper resamples its meshes; the vertices for a point cloud), `points` (SfM points),
+`triangulate` (the triangulate stage's points: features of a posed dataset without points, such as
+fern's transforms.json or NeRF-synthetic, triangulated with its poses; used as SfM points are),
 `random` (uniform in a ball of radius 0.5 in normalised units around the scene centre, i.e. half
-the camera distance), or `auto` (mesh, else points, else random). There are exactly
+the camera distance), or `auto` (mesh, else points, else triangulate, else random: the figure
+`source` and the log line say which, as does `radfield info`). There are exactly
 `train.max_primitives` of them when a budget is set (the paper's budget protocol starts from the
 budget), else `init.num_points`: a point set is subsampled, or repeated with jitter.
 
@@ -15,6 +18,11 @@ its density has the Gaussian's variance d² along every axis: k = √7 for the w
 1/√7 as far as the Gaussian's (5 % of the volume), leaving gaps between neighbours that
 densification must fill (docs/studies/seeds-radius-sh-viewsize.md:
 k = 1 costs 0.1 to 0.7 dB val); `init.neural_radius` sets k by hand (0 = this automatic factor).
+Random centres know nothing of the surfaces, and 2,000 of them spread over a scene lie far apart:
+each is capped to cover RANDOM_FOOTPRINT_PX pixels in the training view where it looks largest
+(`footprint_radius`; figure `footprint_px`), so that a random start is many small primitives too,
+not a few that each cover most of a view (the volume samples beside a point source, below, keep
+their spacing: they fill what lies between the points).
 The kind is `train.primitive`'s, or for a dynamic scene (views that carry a time) its
 time-conditioned kind (`primitive_kind`: neural -> neural-dynamic, gaussian -> gaussian-dynamic;
 kinds/dynamic.py), which starts as the static kind with zero temporal tensors, and for a
@@ -23,7 +31,8 @@ neural-relight, gaussian -> gaussian-relight; kinds/relight.py), which starts as
 with a colour network of zero output and SH degree 0 (the kind's init settings). D-NeRF datasets and
 the dynamic demo scenes have no points: their centres are all sampled uniformly in the envelope,
 the union of the moments' hulls (stages/envelope.py), or in the `random` ball without one.
-SH DC from the point colour when known (else 0.5 grey), higher bands zero. Neural primitives:
+SH DC from the point colour when known (the mesh's vertex colours, SfM or triangulated points' colours;
+else 0.5 grey), higher bands zero. Neural primitives:
 SIREN-style MLP weights (`siren_mlp_init`, paper §3.3) and b2 = −ln(1 − 0.1)/2 ≈ 0.0527: a ray
 through the centre crosses τ-length 2 (the diameter in units of max(s)) and the cos terms average
 out, so it sees opacity 1 − exp(−2 b2) = 0.1, the initial opacity of a 3DGS Gaussian. Gaussians:
@@ -34,6 +43,8 @@ With an envelope (the envelope stage's envelope.ply), every centre starts inside
 inside: this covers what the points miss, such as textureless parts without SfM points), the rest
 from the source, keeping only the points inside the envelope; anything the source cannot fill is
 sampled in the volume too, as are all centres of the `random` source. Volume samples start grey.
+An object dataset with alpha and no points (NeRF-synthetic) so starts from its triangulated points
+inside its visual hull plus samples in the hull's volume.
 The centres depend on the envelope and the seed only, never on the cage: fTetWild's cage differs
 from run to run, and the same command must give the same model. `binding.npz` (radfield.core.geometry.cage)
 then records every primitive's tet in the cage (the tetra stage's cage.npz) and the barycentric
@@ -60,11 +71,25 @@ from radfield.core.geometry.cage import CAGE_NPZ, write_binding
 from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
 from radfield import conditions
 from radfield.stages.envelope import ENVELOPE
+from radfield.stages.triangulate import TRIANGULATED
 
 INIT_MODEL = "init.safetensors"  # the train stage's starting point (train writes model.safetensors)
 BINDING = "binding.npz"  # the initial primitives' tets and barycentric coordinates in the cage
-SOURCES = ("auto", "mesh", "points", "random")
+SOURCES = ("auto", "mesh", "points", "triangulate", "random")
+# the arrays (centres, colours) each point source reads, in `auto`'s order: the data stage's points.npz,
+# then the triangulate stage's points (run() adds them under these names)
+POINT_SETS = {"mesh": ("mesh_vertices", "mesh_rgb"), "points": ("xyz", "rgb"),
+              "triangulate": ("triangulated_xyz", "triangulated_rgb")}
+SOURCE_WORDS = {"mesh": "the dataset's mesh.ply", "points": "SfM points", "triangulate": "triangulated points",
+                "random": "random centres"}
 RANDOM_RADIUS = 0.5  # normalised units: the cameras lie within radius 1
+# A random start knows nothing of the surfaces: its primitives start this small, in pixels of the
+# training view where each looks largest (their scale: a Gaussian's σ, a neural primitive's radius),
+# and densification grows them where the images ask. Neighbour distances would size 2,000 centres
+# spread over fern's scene to half its 504x378 view each (median radius 235 px: 137 M
+# pixel-primitive pairs a view, 75 s a CPU step); fern's 1,872 triangulated points, which know
+# where the surfaces are, start at a median 24 px.
+RANDOM_FOOTPRINT_PX = 4
 
 
 def run(ctx: Context) -> dict[str, Any]:
@@ -72,6 +97,9 @@ def run(ctx: Context) -> dict[str, Any]:
     scene = load_scene(ctx.inputs[SCENE])
     with np.load(ctx.inputs[POINTS]) as points:
         point_sets = {name: points[name] for name in points.files}
+    if ctx.inputs[TRIANGULATED] is not None:
+        with np.load(ctx.inputs[TRIANGULATED]) as triangulated:
+            point_sets |= dict(zip(POINT_SETS["triangulate"], (triangulated["xyz"], triangulated["rgb"])))
     budget = cfg["train"]["max_primitives"]
     count = cfg["init"]["num_points"] if budget is None else budget
     rng = np.random.default_rng(ctx.seed)
@@ -83,14 +111,18 @@ def run(ctx: Context) -> dict[str, Any]:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     kind = primitive_kind(cfg, conditions.view_conditions(scene.splits))
+    # a random start covers a few pixels a primitive (RANDOM_FOOTPRINT_PX); the others, their spacing
+    cap = footprint_radius(means, scene.cameras("train"), RANDOM_FOOTPRINT_PX) if source == "random" else None
     prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
-                            kinds.get(kind).init_settings(cfg))
+                            kinds.get(kind).init_settings(cfg), max_radius=cap)
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
-    ctx.log(f"{len(prims)} {prims.kind} primitives from {source}"
+    ctx.log(f"{len(prims)} {prims.kind} primitives from {SOURCE_WORDS[source]}"
+            + (f" of at most {RANDOM_FOOTPRINT_PX} px" if cap is not None else "")
             + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
             "cage_samples": in_volume, "bound": cage_file is not None,
+            **({"footprint_px": RANDOM_FOOTPRINT_PX} if cap is not None else {}),
             # a conditioned kind, chosen for views that carry a time or a light, is recorded (`radfield info`)
             **({"kind": prims.kind} if kinds.get(kind).conditions else {})}
 
@@ -101,18 +133,26 @@ STAGE = Stage(
     # with the config keys every kind's init_settings reads (neural: render.omega0, hidden, window)
     config_keys=("init", "train.primitive", "train.sh_degree", "train.max_primitives",
                  *dict.fromkeys(key for kind in kinds.registered() for key in kind.init_config_keys), "seed"),
-    inputs=(SCENE, POINTS, ENVELOPE, CAGE_NPZ),
+    inputs=(SCENE, POINTS, TRIANGULATED, ENVELOPE, CAGE_NPZ),
     outputs=(INIT_MODEL, BINDING),
-    version=4,
+    version=5,
 )
 
 
 def check_config(config: dict[str, Any], points: dict[str, np.ndarray], posed: bool = True) -> None:
     """The init settings a user can get wrong, checked before anything runs (`points`: the data
     stage's points.npz arrays; for unposed photos, whose points the sfm stage makes, only a
-    mesh source can be missing). The kind against the views' conditions: `primitive_kind`."""
-    if posed or config["init"]["source"] == "mesh":
-        choose_source(config["init"]["source"], points)
+    mesh source can be missing; triangulated points are only known once the triangulate stage ran,
+    but it serves posed datasets without points only). The kind against the views' conditions:
+    `primitive_kind`."""
+    source = config["init"]["source"]
+    if source == "triangulate":
+        if not posed or len(points["xyz"]) or len(points["mesh_vertices"]):
+            own = "SfM points (from the sfm stage)" if not posed else "points or a mesh.ply"
+            raise RadfieldError(f"config key init.source is triangulate but the dataset has its own {own}: "
+                                f"triangulation is for posed datasets without any")
+    elif posed or source == "mesh":
+        choose_source(source, points)
 
 
 def primitive_kind(config: dict[str, Any], carried: tuple[str, ...] | list[str]) -> str:
@@ -156,8 +196,11 @@ def choose_source(source: str, points: dict[str, np.ndarray]) -> str:
     if source not in SOURCES:
         raise RadfieldError(f"config key init.source must be one of {', '.join(SOURCES)}, got {source!r}")
     if source == "auto":
-        return "mesh" if len(points["mesh_vertices"]) else "points" if len(points["xyz"]) else "random"
-    if source != "random" and not len(points["mesh_vertices" if source == "mesh" else "xyz"]):
+        return next((name for name, (xyz, _) in POINT_SETS.items() if len(points.get(xyz, ()))), "random")
+    if source == "triangulate" and not len(points.get(POINT_SETS[source][0], ())):
+        raise RadfieldError("config key init.source is triangulate but no points were triangulated "
+                            "(see the triangulate stage)")
+    if source != "random" and not len(points[POINT_SETS[source][0]]):
         what = "mesh.ply" if source == "mesh" else "SfM points"
         raise RadfieldError(f"config key init.source is {source} but the dataset has no {what}")
     return source
@@ -173,7 +216,7 @@ def initial_centres(scene: Scene, points: dict[str, np.ndarray], source: str, co
         direction /= np.linalg.norm(direction, axis=1, keepdims=True)
         r = radius * rng.random(count) ** (1 / 3)  # uniform in the ball's volume
         return source, scene.normalization.center.numpy() + direction * r[:, None], None
-    xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
+    xyz, rgb = (points[name] for name in POINT_SETS[source])
     xyz, rgb = xyz.astype(np.float64), rgb if len(rgb) == len(xyz) else None
     if source == "mesh" and len(points["mesh_faces"]):
         return source, *surface_samples(xyz, points["mesh_faces"], rgb, count, rng)
@@ -189,7 +232,7 @@ def centres_in_envelope(envelope: tuple[np.ndarray, np.ndarray], points: dict[st
     wanted = 0 if source == "random" else count - round(volume_fraction * count)
     means, rgb = np.zeros((0, 3)), None
     if wanted:
-        xyz, rgb = (points["mesh_vertices"], points["mesh_rgb"]) if source == "mesh" else (points["xyz"], points["rgb"])
+        xyz, rgb = (points[name] for name in POINT_SETS[source])
         xyz, rgb = xyz.astype(np.float64), rgb if len(rgb) == len(xyz) else None
         if source == "mesh" and len(points["mesh_faces"]):
             xyz, rgb = surface_samples(xyz, points["mesh_faces"], rgb, wanted, rng)
@@ -250,16 +293,37 @@ def neighbour_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
     return distances[:, 1:].mean(axis=1)
 
 
+def footprint_radius(means: np.ndarray, cameras: list, pixels: float, chunk: int = 1 << 16) -> np.ndarray:
+    """The radius (world units) at each centre that spans `pixels` pixels in the training view where
+    it looks largest: `pixels` · z / f, z its depth and f the larger focal length of the camera that
+    minimises z / f among those it lies in front of. Behind every camera (seen by no training view,
+    but by a new one), z is the distance to the nearest camera's centre."""
+    rows = np.stack([camera.w2c.double().numpy()[2] for camera in cameras])  # each camera's depth: row 3 of w2c
+    centres = np.stack([camera.center.double().numpy() for camera in cameras])
+    focal = np.array([max(camera.fx, camera.fy) for camera in cameras])
+    out = np.empty(len(means))
+    for start in range(0, len(means), chunk):   # (chunk, cameras) depths at a time: a budget of 1M centres
+        part = means[start:start + chunk]
+        depth = part @ rows[:, :3].T + rows[:, 3]
+        seen = np.where(depth > 0, depth / focal, np.inf).min(axis=1)
+        nearest = (np.linalg.norm(part[:, None] - centres[None], axis=-1) / focal).min(axis=1)
+        out[start:start + chunk] = np.where(np.isfinite(seen), seen, nearest)
+    return pixels * out
+
+
 def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, extent: float,
-                    seed: int, settings: dict | None = None) -> kinds.Primitives:
+                    seed: int, settings: dict | None = None, max_radius: np.ndarray | None = None) -> kinds.Primitives:
     """Isotropic primitives of `kind` at `means` (see the module docstring for every initial value);
     `settings`: the kind's init settings (kinds.get(kind).init_settings(config); None: its defaults,
     neural: ω0 30, 8 hidden units, hard-edged, W1 bound 1/3, the automatic radius factor); their
-    "sh_degree", when the kind sets one, wins over `sh_degree` (the relightable kinds: 0, eq. 14)."""
+    "sh_degree", when the kind sets one, wins over `sh_degree` (the relightable kinds: 0, eq. 14).
+    `max_radius` (per primitive, world units): a cap on the initial radius (`footprint_radius`)."""
     spec, settings = kinds.get(kind), settings or {}
     num = len(means)
     radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
     radius = spec.initial_radius(np.maximum(radius, 1e-6 * extent), settings)
+    if max_radius is not None:
+        radius = np.maximum(np.minimum(radius, max_radius), 1e-6 * extent)
     colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
     sh = torch.zeros(num, num_sh_coeffs(settings.get("sh_degree", sh_degree)), 3)
     sh[:, 0] = rgb_to_sh_dc(colour)

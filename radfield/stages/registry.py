@@ -1,8 +1,9 @@
 """The reconstruction pipeline: every stage, in order, and the checks made before any of them runs.
 
 Importing a stage module is light: the stages that need pycolmap, pymeshlab, pyvista, pytetwild or
-fast_simplification (sfm, envelope, tetra) import them when they run, so a posed dataset
-reconstructed with --no-cage needs none of them (tests/test_imports.py).
+fast_simplification (sfm, triangulate, envelope, tetra) import them when they run, so a posed dataset
+reconstructed with --no-cage needs none of them (tests/test_imports.py; without pycolmap the
+triangulate stage is not applicable and init starts from random centres).
 """
 
 from __future__ import annotations
@@ -13,13 +14,13 @@ from typing import Any
 from radfield.errors import RadfieldError
 from radfield.conditions import view_conditions, without_ignored
 from radfield.datasets.scene import read_dataset
-from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra, train
+from radfield.stages import bake, bind, data, envelope, evaluate, init, sfm, tetra, train, triangulate
 from radfield.pipeline.runner import Stage
 from radfield.util.registry import Registry
 
 # every stage, registered in pipeline order (pipeline.yaml's `stages:` picks and orders them by name)
 STAGES: Registry[Stage] = Registry("stage")
-for _module in (sfm, data, envelope, tetra, init, train, bind, bake, evaluate):
+for _module in (sfm, data, triangulate, envelope, tetra, init, train, bind, bake, evaluate):
     STAGES.register(_module.STAGE.name, _module.STAGE)
 del _module
 

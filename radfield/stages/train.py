@@ -46,7 +46,7 @@ from radfield.core.trainer.dataparallel import train_on_ranks
 from radfield.core.trainer.loop import checkpoint_header, load_checkpoint, mean_psnr, save_checkpoint
 from radfield.core.trainer.log import TrainLog, plot_curves, read_log
 from radfield.util.progress import progress_bar
-from radfield.stages.data import SCENE, Normalization, load_scene
+from radfield.stages.data import DATA_KEYS, SCENE, Normalization, load_scene
 from radfield.stages.init import INIT_MODEL
 from radfield.pipeline.runner import Context, Stage
 from radfield.pipeline.schema import RenderConfig
@@ -117,7 +117,7 @@ def run(ctx: Context) -> dict[str, Any]:
     }
 
 
-STAGE = Stage("train", run, config_keys=("train", "render", "data", "seed"), inputs=(SCENE, INIT_MODEL),
+STAGE = Stage("train", run, config_keys=("train", "render", *DATA_KEYS, "seed"), inputs=(SCENE, INIT_MODEL),
               outputs=(MODEL_FILE, LOG, CURVES, FINAL_STATE), version=3)
 
 

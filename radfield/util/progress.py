@@ -33,14 +33,32 @@ def progress_bar(quiet: bool, *, stats: bool = False):
 
 def _rich_bar(stats: bool):
     from rich.console import Console
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn()]
     if stats:
         columns.append(TextColumn("{task.fields[stats]}"))
-    return Progress(*columns, TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
-                    console=Console(stderr=True), transient=True)
+    return Progress(*columns, _times_column(), console=Console(stderr=True), transient=True)
+
+
+def _times_column():
+    """rich's column "0:00:03 elapsed, 0:00:05 left", worded as the plain lines are (rich's bare
+    columns with a "left" between them read "0:00:03 left 0:00:05": the elapsed time looked like the
+    time left); the time left, rich's estimate from the recent rate, only where the task has a total
+    and is not done."""
+    from rich.progress import ProgressColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.text import Text
+
+    class Times(ProgressColumn):
+        elapsed, left = TimeElapsedColumn(), TimeRemainingColumn()
+
+        def render(self, task) -> Text:
+            text = Text.assemble(self.elapsed.render(task), " elapsed")
+            if task.total is not None and not task.finished:
+                text.append_text(Text.assemble(", ", self.left.render(task), " left"))
+            return text
+
+    return Times()
 
 
 class _Silent:

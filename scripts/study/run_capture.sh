@@ -2,7 +2,7 @@
 # The capture study (issue 11, session capture): run the queue file QUEUE one `radfield reconstruct`
 # at a time, each line "NAME FROM DATASET [reconstruct options...]", into $STUDY/runs/NAME (default
 # STUDY=/work/runs/capture), OMP_NUM_THREADS=1. FROM is a finished run directory whose upstream
-# stages (sfm data envelope tetra init) are copied into the new run first: the pipeline's cache is
+# stages (sfm data triangulate envelope tetra init) are copied into the new run first: the pipeline's cache is
 # by content, so they are reused when the new run's keys for them are the same (SfM once per
 # capture), and re-run otherwise; "-" copies nothing. The queue is re-read after every run, so lines
 # may be appended while it runs; names listed in $STUDY/started.txt are not run again.
@@ -25,7 +25,7 @@ while true; do
   if [ "$from" != "-" ] && [ ! -e "runs/$name" ]; then
     mkdir -p "runs/$name"
     cp "$from/radfield-run.json" "runs/$name/"
-    for stage in sfm data envelope tetra init; do
+    for stage in sfm data triangulate envelope tetra init; do
       [ -d "$from/$stage" ] && cp -a "$from/$stage" "runs/$name/"
     done
   fi

@@ -58,6 +58,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
 from radfield.core import kinds
+from radfield.core.train.coarse_to_fine import ViewPyramid, factor_at
 from radfield.core.train.footprint import FootprintFloor
 from radfield.core.render.antialias import jitter_offsets, render_supersampled, shifted
 from radfield.util.atomic import atomic_write
@@ -176,8 +177,12 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
              FootprintFloor.for_training(train_cameras, cfg, near=near)]
     for rule in rules:
         rule.apply(params, state.step)
+    # coarse to fine (train.coarse_levels): the views at the step's downscale factor
+    pyramid = ViewPyramid(train_cameras, images, masks, alphas)
 
     for step in range(state.step, iterations):
+        factor = factor_at(step, iterations, cfg["coarse_levels"], cfg["coarse_until"])
+        cameras, targets, valid, coverage = pyramid.at(factor)
         optimizer.param_groups[0]["lr"] = decayed(means_lr, cfg["means_lr_final_ratio"], step, iterations)
         degree = min(cfg["sh_degree"], step // cfg["sh_increase_every"])
         regulariser = regularisers(params, cfg, state.kind) if sync.rank == 0 else None  # counted once over the ranks
@@ -194,18 +199,21 @@ def train(prims: kinds.Primitives, train_cameras: Sequence[Camera], train_images
         # k: the view's place in the whole batch (its random background), the same on every rank
         for k, view in sync.share(list(enumerate(views_for_step(seed, step, batch, len(train_cameras))))):
             before = {n: None if params[n].grad is None else params[n].grad.clone() for n in tracked}
-            view_bg, target = bg, images[view]
+            view_bg, target = bg, targets[view]
             if backgrounds is not None:  # the same RGBA pixels "over" another colour
                 view_bg = backgrounds[k]
-                target = target + (1.0 - alphas[view])[..., None] * (view_bg - bg)
-            camera = shifted(train_cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
+                target = target + (1.0 - coverage[view])[..., None] * (view_bg - bg)
+            camera = shifted(cameras[view], offsets[k])  # sub-pixel ray jitter (train.ray_jitter)
             out = render_supersampled(assemble(params, state.kind, state.attrs), camera, supersample,
                                       background=view_bg, near=near, sh_degree=degree, max_pairs=max_pairs)
-            mask = None if masks is None else masks[view]
+            mask = None if valid is None else valid[view]
             loss = photometric(out.color, target, cfg["lambda_dssim"], mask)
             (loss / batch).backward()
-            # this view's own gradients (unscaled), what the densification statistics measure
+            # this view's own gradients (unscaled), what the densification statistics measure (of a
+            # full-size view: a view at 1/f of the side carries f times the signal, coarse_to_fine.py)
             grads = {n: own_gradient(params[n].grad, before[n], batch) for n in tracked}
+            if factor > 1:
+                grads = {n: g / factor for n, g in grads.items()}
             strategy.accumulate(gathered, params, grads, camera, step + 1)
             # float64 sums on the device, added in the order Python added the floats: the same bits
             loss_sum = loss_sum + loss.detach().double()
