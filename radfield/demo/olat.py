@@ -54,7 +54,8 @@ import numpy as np
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.datasets.images import write_image
 from radfield.demo.shapes import Cylinder, Material
-from radfield.demo.scenes import CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, get_scene, orbit_cameras
+from radfield.demo.scenes import (CAMERA_ANGLE_X, CAMERA_RADIUS, Lighting, PointLight, Scene, check_counts, get_scene,
+                                  orbit_cameras)
 from radfield.demo.raytrace import render_view
 from radfield.demo.static import write_mesh
 from radfield.errors import RadfieldError
@@ -144,9 +145,7 @@ def generate_olat(out_dir: str | os.PathLike, n_train: int | None = None, n_test
     n_train = TRAIN_VIEWS if n_train is None else n_train
     n_test = TEST_VIEWS if n_test is None else n_test
     lights = LIGHTS if lights is None else lights
-    if n_train < 1 or n_test < 1 or lights < 1 or size < 8:
-        raise RadfieldError(f"demo-scene {name}: need at least 1 train and 1 test camera, 1 light per camera and "
-                            f"size >= 8 (got {n_train}, {n_test}, {lights}, {size})")
+    check_counts(name, n_train, n_test, lights, "1 light per camera", size)
     scene = olat_scene(name)
     out_dir = Path(out_dir)
     with new_folder(out_dir) as tmp:   # complete or absent (util/atomic.py)

@@ -189,6 +189,15 @@ def get_scene(name: str) -> Scene:
     return SCENES[name]
 
 
+def check_counts(name: str, n_train: int, n_test: int, each: int, each_words: str, size: int) -> None:
+    """One error line for a dynamic or relighting scene asked with fewer than 1 train and 1 test
+    camera, fewer than 1 of what each camera repeats over (`each`: times, lights; `each_words`: "1
+    time") or images under 8 pixels."""
+    if n_train < 1 or n_test < 1 or each < 1 or size < 8:
+        raise RadfieldError(f"demo-scene {name}: need at least 1 train and 1 test camera, {each_words} and "
+                            f"size >= 8 (got {n_train}, {n_test}, {each}, {size})")
+
+
 def orbit_cameras(n_train: int, n_test: int, size: int, seed: int = 0) -> tuple[list[Camera], list[Camera]]:
     """Train and test cameras (size x size pixels) on one golden-angle spiral over the upper
     hemisphere (radius CAMERA_RADIUS, looking at the origin, +z up); the seed turns the spiral."""

@@ -50,7 +50,7 @@ def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None 
     docstring); `progress(1)` after each image; `held_out_times`: test frames at the midpoints.
     Written to a temporary sibling folder and renamed, so `out_dir` is complete or absent; an
     existing non-empty `out_dir` is refused."""
-    from radfield.demo.scenes import CAMERA_ANGLE_X, CAMERA_RADIUS, orbit_cameras
+    from radfield.demo.scenes import CAMERA_ANGLE_X, CAMERA_RADIUS, check_counts, orbit_cameras
 
     if name not in SCENES:
         raise RadfieldError(f"unknown dynamic scene {name!r} (available: {', '.join(SCENES)})")
@@ -58,9 +58,7 @@ def generate_dynamic(name: str, out_dir: str | os.PathLike, n_train: int | None 
     n_train = TRAIN_VIEWS if n_train is None else n_train
     n_test = TEST_VIEWS if n_test is None else n_test
     times = TIMES if times is None else times
-    if n_train < 1 or n_test < 1 or times < 1 or size < 8:
-        raise RadfieldError(f"demo-scene {name}: need at least 1 train and 1 test camera, 1 time and size >= 8 "
-                            f"(got {n_train}, {n_test}, {times}, {size})")
+    check_counts(name, n_train, n_test, times, "1 time", size)
     if held_out_times and times < 2:
         raise RadfieldError(f"demo-scene {name}: --held-out-times needs at least 2 times (got {times})")
     out_dir = Path(out_dir)
