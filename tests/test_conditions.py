@@ -35,7 +35,7 @@ from radfield.core.render.rasterize import render
 from radfield.core.splat.sh import C0
 from radfield.datasets.readers import load_dataset
 from radfield.datasets.scene import load_scene, read_dataset, scene_from_json
-from radfield.delivery.export import read_gaussian_ply
+from radfield.model_formats.ply_3dgs import read_gaussian_ply
 from radfield.demo.olat import generate_olat
 from radfield.demo.static import generate_scene
 from radfield.demo.timelapse import generate_dynamic

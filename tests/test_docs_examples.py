@@ -183,7 +183,7 @@ SKIPPED = {   # the start of a command -> why it does not run here
     "radfield reconstruct demo/blobs -o demo/gauss": "a second reconstruction (test_pipeline covers --primitive gaussian)",
     "radfield eval demo/run demo/gauss --compare": "needs demo/gauss (test_report covers --compare)",
     "radfield reconstruct ../shared/datasets/fox_small": "the full-size fox capture (9 min; test_sfm covers photos)",
-    "radfield view": "a server that runs until stopped (test_viewer opens it in a browser)",
+    "radfield view": "a server that runs until stopped (test_web and test_viewer open it in a browser)",
     "radfield bench-": "benchmarks take minutes (test_bench runs them at tiny sizes)",
     "radfield demo-scene studio": "another demo scene (test_datasets generates every scene)",
     "radfield demo-scene glossy": "another demo scene (test_datasets generates every scene)",

@@ -27,7 +27,8 @@ from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
 from radfield.conditions import Asked
 from radfield.delivery.content import gaussians_for, under_conditions
-from radfield.delivery.export import Content, as_gaussians, nerfstudio_transforms, read_gaussian_ply, view_cameras
+from radfield.delivery.export import Content, as_gaussians, nerfstudio_transforms, view_cameras
+from radfield.model_formats.ply_3dgs import read_gaussian_ply
 from radfield.model_file import load_model, save_model
 from radfield.conditions.time import parse_times
 from radfield.errors import RadfieldError
@@ -214,7 +215,8 @@ def test_viewer_time_slider(smoke, tmp_path):
     """The viewer of a dynamic model has a Time slider; its frames are the model at the slider's
     moment (no browser needed: the server renders what it streams)."""
     from radfield.core.geometry.cameras import Camera, look_at
-    from radfield.delivery.viewer import Viewer, viewer_cameras, viewer_scene
+    from radfield.delivery.view_scene import viewer_cameras, viewer_scene
+    from radfield.delivery.viewer import Viewer
 
     model = load_model(smoke / "dynamic.safetensors")
     scene = viewer_scene(smoke / "dynamic.safetensors", asked={"time": Asked("--time", value=0.25)})
@@ -276,8 +278,8 @@ def test_time_slider_in_headless_chromium(tmp_path):
         pytest.skip("chromium is not installed (apt-get install -y chromium)")
     red_to_blue(tmp_path / "model.safetensors")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "RADFIELD_KERNELS": "torch"}
-    server = subprocess.Popen([sys.executable, "-m", "radfield", "view", str(tmp_path / "model.safetensors"), "--host",
-                               "127.0.0.1", "--port", "0", "--resolution", "256", "--time", "0"],
+    server = subprocess.Popen([sys.executable, "-m", "radfield", "view", str(tmp_path / "model.safetensors"), "--server",
+                               "--host", "127.0.0.1", "--port", "0", "--resolution", "256", "--time", "0"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     lines: list[str] = []
     threading.Thread(target=lambda: [lines.append(line) for line in server.stderr], daemon=True).start()

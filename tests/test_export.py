@@ -15,7 +15,8 @@ import torch
 from plyfile import PlyData
 
 from radfield.core.geometry.cameras import Camera, look_at
-from radfield.delivery.export import Content, export, read_gaussian_ply
+from radfield.delivery.export import Content, export
+from radfield.model_formats.ply_3dgs import read_gaussian_ply
 from radfield.model_file import save_model
 from radfield.core.kinds.moment_matching import gaussians_from_neural
 from radfield.core.kinds import quat_to_rotmat, random_gaussians, random_neural

@@ -24,7 +24,8 @@ from radfield.core.splat.kernels import alpha_from_optical_depth, ellipsoid_fram
 from radfield.core.render.rasterize import render
 from radfield.core.splat.sh import rgb_to_sh_dc
 from radfield.core.trainer.loop import load_checkpoint, mean_psnr, save_checkpoint, train
-from radfield.delivery.export import Content, export, read_gaussian_ply
+from radfield.delivery.export import Content, export
+from radfield.model_formats.ply_3dgs import read_gaussian_ply
 from radfield.model_file import load_model, save_model
 from radfield.edit.affine import deform_field
 from radfield.edit.field import Field, box_cage
@@ -203,7 +204,7 @@ def test_a_new_kind_is_edited_with_a_cage_and_exported(ellipsoid, tmp_path):
     assert render(moved, cameras(1)[0], background=BG).meta["visible"] == 6
 
     figures = export(Content(model=moved), "ply-3dgs", tmp_path / "moved.ply")
-    assert figures == {"gaussians": 6, "from": "ellipsoid"}
+    assert figures == {"gaussians": 6, "bytes": (tmp_path / "moved.ply").stat().st_size, "from": "ellipsoid"}
     gaussians = read_gaussian_ply(tmp_path / "moved.ply")
     torch.testing.assert_close(gaussians.means, moved.means)
     torch.testing.assert_close(gaussians.log_scales, moved.log_scales - 0.5 * math.log(5.0))

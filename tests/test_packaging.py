@@ -1,6 +1,6 @@
 """What a non-editable install carries: a wheel built from the project holds every file the fused
 kernels are compiled from at first use (core/backends/csrc: a missing header makes their build fail and
-training fall back to the slow torch path) and the pipeline's defaults."""
+training fall back to the slow torch path), the pipeline's defaults and the browser renderer's page."""
 
 from __future__ import annotations
 
@@ -32,3 +32,6 @@ def test_wheel_holds_every_kernel_source_and_the_defaults(tmp_path):
     assert any(name.endswith(".h") for name in kernel_files)   # the header the .cpp files include
     assert kernel_files - names == set()
     assert "radfield/pipeline.yaml" in names
+    assets = ROOT / "radfield" / "delivery" / "web" / "assets"   # the browser renderer's page
+    assert {f"radfield/delivery/web/assets/{p.name}" for p in assets.iterdir() if p.is_file()} - names == set()
+    assert "radfield/delivery/web/assets/index.html" in names

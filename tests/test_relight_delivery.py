@@ -25,7 +25,8 @@ from radfield.core.kinds import random_gaussians, random_neural
 from radfield.datasets.images import read_image
 from radfield.datasets.scene import load_split
 from radfield.evaluation import report
-from radfield.delivery.export import as_gaussians, read_gaussian_ply
+from radfield.delivery.export import as_gaussians
+from radfield.model_formats.ply_3dgs import read_gaussian_ply
 from radfield.model_file import load_model, save_model
 from radfield.conditions import Asked
 from radfield.conditions.light import light_angles, light_at, orbit_lights
@@ -170,7 +171,8 @@ def test_a_run_takes_its_dataset_lights_intensity(cli, olat, relight_run, tmp_pa
     code, _, err = cli("export", relight_run, "-f", "ply-3dgs", "-o", tmp_path / "in.ply", "--light", "0,0,0")
     assert code == 1 and "is inside the object's bounds" in err and err.count("\n") == 1, err
     assert not (tmp_path / "in.ply").exists()
-    from radfield.delivery.viewer import Viewer, viewer_scene
+    from radfield.delivery.view_scene import viewer_scene
+    from radfield.delivery.viewer import Viewer
 
     viewer = Viewer(viewer_scene(relight_run), port=0, log=lambda line: None)
     try:   # no --light: the dataset lights' mean distance (about the model's centre) and intensity
@@ -260,7 +262,8 @@ def test_export_light_writes_that_lighting(cli, olat, tmp_path):
 def test_viewer_light_sliders(olat, tmp_path):
     """The viewer of a relightable model has light sliders; its frames are the model under the
     sliders' light (no browser needed: the server renders what it streams)."""
-    from radfield.delivery.viewer import Viewer, viewer_scene
+    from radfield.delivery.view_scene import viewer_scene
+    from radfield.delivery.viewer import Viewer
 
     model = load_model(olat / "relight.safetensors")
     start = Light(position=LIGHT_A, intensity=9.0)

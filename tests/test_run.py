@@ -99,7 +99,7 @@ def test_info_and_the_viewer_of_an_edited_run(made, cli, tmp_path):
     run"; the viewer shows the source run's dataset cameras (an edited run has no data stage)."""
     import torch
 
-    from radfield.delivery.viewer import viewer_scene
+    from radfield.delivery.view_scene import viewer_scene
 
     scene, run_dir = made
     edited, again = tmp_path / "edited", tmp_path / "again"

@@ -1,4 +1,4 @@
-"""`radfield view`: the viser viewer in a real browser (headless Chromium, software WebGL), and the
+"""`radfield view --server`: the viser viewer in a real browser (headless Chromium, software WebGL), and the
 camera conversion it relies on."""
 
 from __future__ import annotations
@@ -137,13 +137,13 @@ def _need_chromium() -> None:
 
 @contextlib.contextmanager
 def _viewer_in_chromium(model: Path, tmp_path: Path, *options: str):
-    """`radfield view MODEL --resolution 256 OPTIONS` and headless Chromium (software WebGL) on its
+    """`radfield view MODEL --server --resolution 256 OPTIONS` and headless Chromium (software WebGL) on its
     page: yields (the viewer's log, Chromium's DevTools port) once the browser has connected; both
     processes are killed on exit."""
     _need_chromium()
     # the torch kernels: no wait for the C++ extension, and 150 Gaussians render fast either way
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "RADFIELD_KERNELS": "torch"}
-    server = subprocess.Popen([sys.executable, "-m", "radfield", "view", str(model), "--host", "127.0.0.1",
+    server = subprocess.Popen([sys.executable, "-m", "radfield", "view", str(model), "--server", "--host", "127.0.0.1",
                                "--port", "0", "--resolution", "256", *options],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     browser = None
@@ -267,7 +267,8 @@ def test_play_advances_the_time_by_the_wall_time_and_loops(red_to_blue, lit_from
     """Play moves the Time slider by (wall time since its last advance) / PLAY_SECONDS, rounded to
     the slider's step, from 1 back to 0; a slider the user moved plays on from there; Pause stops
     it. Only a dynamic model has it."""
-    from radfield.delivery.viewer import PLAY_SECONDS, Viewer, viewer_scene
+    from radfield.delivery.view_scene import viewer_scene
+    from radfield.delivery.viewer import PLAY_SECONDS, Viewer
 
     monkeypatch.setenv("RADFIELD_KERNELS", "torch")
     viewer = Viewer(viewer_scene(red_to_blue, asked={"time": Asked("--time", value=0.1)}), port=0, log=lambda line: None)

@@ -102,6 +102,37 @@ def bench_dist(
     run_bench_dist(primitives, size, views, steps, batch, ranks, threads, warmup, echo=typer.echo)
 
 
+def bench_web(
+    primitives: Annotated[str, typer.Option(help="Primitive counts, comma-separated.")] = "10000,100000",
+    sizes: Annotated[str, typer.Option(help="View sizes WIDTHxHEIGHT, comma-separated.")] = "256x256,800x800,1280x720",
+    kinds: Annotated[str, typer.Option(help="Comma-separated: neural, gaussian.")] = "neural,gaussian",
+    frames: Annotated[int, typer.Option(help="Frames the page draws at each view (each waited for).")] = 5,
+    python: Annotated[bool, typer.Option("--python/--no-python", help="Also time radfield's renderer on the same cameras.")] = True,
+    gpu: Annotated[bool, typer.Option("--gpu", help="Let Chromium use this machine's GPU instead of its software GL.")] = False,
+):
+    """The browser renderer's speed: frames per second in headless Chromium.
+
+    A benchmark, not a test: for each kind, count and view size, the page's start-up (navigation
+    to its first frame) and frames per second of `radfield export -f web` in headless Chromium
+    (its software GL unless --gpu), beside radfield's own renderer's frames per second on this
+    machine in the same run."""
+    from radfield.bench.web import run_bench_web
+
+    counts = _ints(primitives, "--primitives")
+    try:
+        views = tuple(tuple(int(v) for v in size.lower().split("x")) for size in sizes.split(","))
+    except ValueError:
+        views = ()
+    if not views or any(len(v) != 2 or min(v) < 1 for v in views):
+        raise RadfieldError(f"--sizes must be WIDTHxHEIGHT pairs separated by commas, got {sizes!r}")
+    kind_list = tuple(k.strip() for k in kinds.split(","))
+    if not kind_list or any(k not in ("neural", "gaussian") for k in kind_list):
+        raise RadfieldError(f"--kinds takes neural and gaussian, comma-separated, got {kinds!r}")
+    if frames < 1:
+        raise RadfieldError("--frames must be positive")
+    run_bench_web(counts, kind_list, views, frames, python, gpu, echo=typer.echo)
+
+
 def static_kinds() -> list[str]:
     """The registered kinds that need no view condition (time, light), from the kind registry."""
     from radfield.core import kinds

@@ -119,7 +119,7 @@ for _name, _function in (("reconstruct", reconstruct.reconstruct), ("info", info
                          ("eval", eval_.eval_command), ("bake", bake.bake), ("edit", edit.edit),
                          ("animate", animate.animate), ("export", export.export), ("view", view.view),
                          ("demo-scene", demo_scene.demo_scene), ("bench-quality", bench.bench_quality),
-                         ("bench-render", bench.bench_render), ("bench-train", bench.bench_train),
+                         ("bench-render", bench.bench_render), ("bench-train", bench.bench_train), ("bench-web", bench.bench_web),
                          ("bench-dist", bench.bench_dist), ("bench-startup", bench.bench_startup)):
     COMMANDS.register(_name, _function)
 for _name, _function in COMMANDS.items():

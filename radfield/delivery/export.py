@@ -12,9 +12,17 @@ Formats (all in the dataset's world frame):
 - ``splat``     antimatter15's .splat: 32 bytes a splat, position 3×f32, linear σ 3×f32, RGBA 4×u8
   (0.5 + C0·f_dc and sigmoid(opacity), ×255 truncated), rotation 4×u8 ((q/|q|)·128 + 128, w x y z),
   in decreasing order of exp(Σ log σ)·sigmoid(opacity), as that viewer's convert.py writes it.
-  Other tools draw these with one ray per pixel: a model trained with `render.supersample` = n > 1
-  (its pixels the mean of n × n rays, docs/usage.md) cannot be drawn so, and `radfield export` warns
-  (`supersample_warning`; a run's refinement fits the Gaussians to the model's n × n renders).
+- ``spz``       Niantic's SPZ version 3: gzip of a 16-byte header and packed arrays (24-bit fixed-point
+  positions, 8-bit log scales, alpha and colour, 32-bit smallest-three rotations, 8-bit SH
+  quantised to 5 bits in band 1 and 4 bits beyond), in SPZ's RUB axes.
+- ``glb``       glTF 2.0 binary with KHR_gaussian_splatting: float32 POSITION, ROTATION (x y z w),
+  linear SCALE, OPACITY (sigmoid) and SH_DEGREE_l_COEF_n attributes of a POINTS primitive, in
+  glTF's LUF axes.
+  These four are written by radfield.model_formats (each module's docstring gives the byte layout
+  and what it loses), the same Gaussians in each. Other tools draw them with one ray per pixel: a
+  model trained with `render.supersample` = n > 1 (its pixels the mean of n × n rays,
+  docs/usage.md) cannot be drawn so, and `radfield export` warns (`supersample_warning`; a run's
+  refinement fits the Gaussians to the model's n × n renders).
 - ``points``    a PLY point cloud of the primitive centres with uchar ``red green blue`` from SH DC.
 - ``cage``      the cage as a tetrahedral mesh, ``.vtk`` (legacy VTK) or ``.msh`` (Gmsh 2.2), meshio.
 - ``envelope``  the envelope triangle mesh as a binary PLY.
@@ -30,7 +38,6 @@ A conditioned model (a dynamic or relightable kind) is exported under one value 
 
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,21 +45,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radfield import conditions
+from radfield import conditions, model_formats
 from radfield.util.atomic import atomic_write, atomic_write_bytes, atomic_write_text
 from radfield.core.geometry.cameras import Camera, opencv_to_opengl
 from radfield.errors import RadfieldError
 from radfield.core import kinds
 from radfield.core.kinds.gaussian import Gaussians
-from radfield.core.splat.sh import C0, num_sh_coeffs
+from radfield.core.splat.sh import C0
+from radfield.model_formats.ply_3dgs import ply_bytes, vertex_element
 
-MODEL_FORMATS = ("ply-3dgs", "splat", "points")      # need only a model
-RUN_FORMATS = ("cage", "envelope", "cameras")         # need a run's artifacts
+GAUSSIAN_FORMATS = ("ply-3dgs", "splat", "spz", "glb")   # 3D Gaussians, written by radfield.model_formats
+MODEL_FORMATS = GAUSSIAN_FORMATS + ("points",)           # need only a model
+RUN_FORMATS = ("cage", "envelope", "cameras")            # need a run's artifacts
 FORMATS = MODEL_FORMATS + RUN_FORMATS
-SUFFIXES = {"ply-3dgs": (".ply",), "splat": (".splat",), "points": (".ply",), "cage": (".vtk", ".msh"),
-            "envelope": (".ply",), "cameras": (".json",)}
-REST_COEFFS = num_sh_coeffs(3) - 1  # 15 per channel: the 45 f_rest of a degree-3 3DGS PLY
-ONE_RAY_FORMATS = ("ply-3dgs", "splat")  # drawn by other tools with one ray per pixel
+SUFFIXES = {**{name: model_formats.get(name).suffixes for name in GAUSSIAN_FORMATS},
+            "points": (".ply",), "cage": (".vtk", ".msh"), "envelope": (".ply",), "cameras": (".json",)}
+ONE_RAY_FORMATS = GAUSSIAN_FORMATS  # drawn by other tools with one ray per pixel
 
 
 def supersample_warning(model: kinds.Primitives, format: str) -> str | None:
@@ -83,16 +91,12 @@ class Content:
 
 def export(content: Content, format: str, path: str | Path, *, components: int = 1) -> dict:
     """Write `content` as `format` to `path` (atomically). Returns figures for the report
-    (e.g. the number of Gaussians written)."""
+    (e.g. the number of Gaussians written and, for the Gaussian formats, the file's bytes)."""
     path = check_target(format, path)
-    if format == "ply-3dgs":
+    if format in GAUSSIAN_FORMATS:
         gaussians = as_gaussians(content.model, components)
-        atomic_write_bytes(path, gaussian_ply_bytes(gaussians))
-        return {"gaussians": len(gaussians), "from": content.model.kind}
-    if format == "splat":
-        gaussians = as_gaussians(content.model, components)
-        atomic_write_bytes(path, splat_bytes(gaussians))
-        return {"gaussians": len(gaussians), "from": content.model.kind}
+        figures = model_formats.write(format, gaussians, path)
+        return {**figures, "from": content.model.kind}
     if format == "points":
         atomic_write_bytes(path, points_ply_bytes(content.model))
         return {"points": len(content.model)}
@@ -137,89 +141,13 @@ def _cpu(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float32).numpy()
 
 
-def gaussian_ply_arrays(g: Gaussians) -> dict[str, np.ndarray]:
-    """The 3DGS PLY's vertex properties, name -> (P,) float32, in the file's order."""
-    n = len(g)
-    sh = _cpu(g.sh)                                             # (P, K, 3)
-    rest = np.zeros((n, 3, REST_COEFFS), np.float32)
-    rest[:, :, : sh.shape[1] - 1] = sh[:, 1:, :].transpose(0, 2, 1)   # channel-major as the 3DGS code
-    quats = torch.nn.functional.normalize(g.quats.detach().to("cpu", torch.float64), dim=-1).float().numpy()
-    columns = {"x": _cpu(g.means)[:, 0], "y": _cpu(g.means)[:, 1], "z": _cpu(g.means)[:, 2]}
-    columns.update({name: np.zeros(n, np.float32) for name in ("nx", "ny", "nz")})
-    columns.update({f"f_dc_{c}": sh[:, 0, c] for c in range(3)})
-    columns.update({f"f_rest_{i}": col for i, col in enumerate(rest.reshape(n, -1).T)})
-    columns["opacity"] = _cpu(g.opacities)
-    columns.update({f"scale_{i}": _cpu(g.log_scales)[:, i] for i in range(3)})
-    columns.update({f"rot_{i}": quats[:, i] for i in range(4)})
-    return columns
-
-
-def read_gaussian_ply(path: str | Path) -> Gaussians:
-    """A 3DGS PLY (this layout, any SH degree 0-3 by its f_rest count) as Gaussians, e.g. to
-    measure an export with radfield's renderer."""
-    from plyfile import PlyData
-
-    try:
-        v = PlyData.read(str(path))["vertex"]
-        names = {p.name for p in v.properties}
-        n_rest = sum(name.startswith("f_rest_") for name in names)
-        col = lambda *keys: torch.from_numpy(np.stack([np.asarray(v[k], np.float32) for k in keys], 1))
-        rest = col(*(f"f_rest_{i}" for i in range(n_rest))).reshape(len(v.data), 3, n_rest // 3).transpose(1, 2)
-        sh = torch.cat([col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :], rest], 1)
-        g = Gaussians(means=col("x", "y", "z"), log_scales=col("scale_0", "scale_1", "scale_2"),
-                      quats=col("rot_0", "rot_1", "rot_2", "rot_3"), sh=sh, opacities=col("opacity")[:, 0])
-        g.sh_degree  # (K must be (degree + 1)², degree ≤ 3)
-    except (OSError, ValueError, KeyError) as error:
-        raise RadfieldError(f"{path}: not a readable 3DGS PLY ({error})") from None
-    return g
-
-
-def _ply_bytes(elements) -> bytes:
-    from plyfile import PlyData
-
-    buffer = io.BytesIO()
-    PlyData(elements, text=False, byte_order="<").write(buffer)
-    return buffer.getvalue()
-
-
-def _vertex_element(columns: dict[str, np.ndarray], name: str = "vertex"):
-    from plyfile import PlyElement
-
-    first = next(iter(columns.values()))
-    table = np.empty(len(first), dtype=[(key, col.dtype.str) for key, col in columns.items()])
-    for key, col in columns.items():
-        table[key] = col
-    return PlyElement.describe(table, name)
-
-
-def gaussian_ply_bytes(g: Gaussians) -> bytes:
-    return _ply_bytes([_vertex_element(gaussian_ply_arrays(g))])
-
-
-def splat_bytes(g: Gaussians) -> bytes:
-    """antimatter15 .splat records (see the module docstring), most important first."""
-    means = _cpu(g.means)
-    log_scales = _cpu(g.log_scales)
-    opacity = 1 / (1 + np.exp(-_cpu(g.opacities).astype(np.float64)))
-    order = np.argsort(-np.exp(log_scales.astype(np.float64).sum(-1)) * opacity, kind="stable")
-    rgba = np.concatenate([0.5 + C0 * _cpu(g.sh[:, 0, :]), opacity[:, None]], -1)
-    quats = _cpu(g.quats).astype(np.float64)
-    quats = quats / np.linalg.norm(quats, axis=-1, keepdims=True)
-    record = np.empty(len(g), dtype=[("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
-    record["position"] = means
-    record["scale"] = np.exp(log_scales)
-    record["rgba"] = (rgba * 255).clip(0, 255).astype(np.uint8)
-    record["rot"] = (quats * 128 + 128).clip(0, 255).astype(np.uint8)
-    return record[order].tobytes()
-
-
 def points_ply_bytes(model: kinds.Primitives) -> bytes:
     """Primitive centres with their SH DC colour (uchar, rounded)."""
     means = _cpu(model.means)
     rgb = np.round(np.clip(0.5 + C0 * _cpu(model.sh[:, 0, :]), 0, 1) * 255).astype(np.uint8)
     columns = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2],
                "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}
-    return _ply_bytes([_vertex_element(columns)])
+    return ply_bytes([vertex_element(columns)])
 
 
 def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
@@ -228,7 +156,7 @@ def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
     v = np.asarray(vertices, np.float32)
     face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
     face["vertex_indices"] = np.asarray(faces, np.int32)
-    return _ply_bytes([_vertex_element({"x": v[:, 0], "y": v[:, 1], "z": v[:, 2]}),
+    return ply_bytes([vertex_element({"x": v[:, 0], "y": v[:, 1], "z": v[:, 2]}),
                        PlyElement.describe(face, "face")])
 
 

@@ -35,18 +35,18 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from radfield.core.render.antialias import render_model
 from radfield.core.geometry.cameras import Camera
-from radfield.delivery.export import view_cameras
 from radfield.core.geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from radfield.core.render.rasterize import render
 from radfield import conditions
-from radfield.conditions.light import light_angles, light_at, orbit_lights
+from radfield.conditions.light import light_angles, light_at
+from radfield.delivery.view_scene import ViewerScene
 
 SETTLE_SECONDS = 0.3    # camera still this long -> render at full resolution
 POLL_SECONDS = 0.02
@@ -66,80 +66,10 @@ class _ClientState:
     light: object = None         # the light a relightable model's last frame was drawn under
 
 
-@dataclass
-class ViewerScene:
-    """What the viewer shows: primitives (on `device`), and optionally the cage (V, 3) + (T, 4) and
-    the dataset cameras (radfield Cameras). `time`: the moment a dynamic model is first shown;
-    `light`: the light a relightable model is first drawn under (None for other models); `lights`:
-    the dataset views' lights (a relighting dataset's; where the default light comes from)."""
-
-    model: object
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    cage: tuple[np.ndarray, np.ndarray] | None = None
-    cameras: list[Camera] = field(default_factory=list)
-    time: float = 0.0
-    light: object = None
-    lights: list = field(default_factory=list)
-
-
 def tet_edges(tets: np.ndarray) -> np.ndarray:
     """Unique edges (E, 2) of tetrahedra (T, 4)."""
     pairs = np.asarray(tets)[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2)
     return np.unique(np.sort(pairs, axis=1), axis=0)
-
-
-def viewer_scene(target, device: str = "cpu", background: tuple[float, float, float] | None = None,
-                 asked: dict[str, conditions.Asked] | None = None) -> ViewerScene:
-    """What `radfield view TARGET` shows: the model of a model file or a run, and for a run its cage
-    and its dataset's cameras. An edited run has no data stage of its own: its cameras (and
-    background) are its source run's (radfield.run.Run.dataset_scene), since an edit keeps the
-    world frame. `background` overrides the run's (default white). `asked` (condition name ->
-    conditions.Asked): a dynamic model's first moment (default 0), a relightable model's first
-    light (default: module docstring), each resolved against the dataset's views (a light as bright
-    as the dataset's lights unless its intensity was given); a value for a model whose kind does not
-    read that condition, or a point light inside the run's object bounds, is one error."""
-    import functools
-    from pathlib import Path
-
-    from radfield.datasets.scene import load_scene
-    from radfield.delivery.content import load_content, run_bounds
-    from radfield.run import Run, is_run_dir
-
-    asked = asked or {}
-    content = load_content(Path(target), device, parts=("cage", "cameras"))
-    for name, request in asked.items():
-        conditions.check_takes(content.model, target, name, request.option)
-    views, run_background = content.views, content.background
-    if views is None and is_run_dir(target):
-        scene_file = Run(target).dataset_scene()
-        if scene_file is not None:
-            scene = load_scene(scene_file)
-            run_background = run_background or scene.background
-            views = scene.splits if scene.posed else None
-    recorded = view_cameras([v for split in (views or {}).values() for v in split])
-    bounds = functools.cache(lambda: run_bounds(content))
-    values = {name: conditions.get(name).resolved(request, recorded, bounds).value for name, request in asked.items()}
-    lights = [camera.conditions["light"] for camera in recorded if "light" in camera.conditions]
-    return ViewerScene(content.model, background or run_background or (1.0, 1.0, 1.0), content.cage,
-                       viewer_cameras(views), values.get("time") or 0.0, values.get("light"), lights)
-
-
-def viewer_cameras(splits: dict[str, list[dict]] | None) -> list[Camera]:
-    """radfield Cameras of scene.json views (every split; the train views first), one a pose: a
-    dynamic dataset's camera photographs many moments from the same place."""
-    cameras = view_cameras([v for split in sorted(splits or {}, key=lambda s: s != "train") for v in splits[split]])
-    poses = {}
-    for camera in cameras:
-        poses.setdefault(camera.c2w.numpy().tobytes(), camera)
-    return list(poses.values())
-
-
-def dataset_up(cameras: list[Camera]) -> np.ndarray:
-    """The dataset's mean "up" (−y of each camera, OpenCV axes), unit; +z without cameras."""
-    if not cameras:
-        return np.array([0.0, 0.0, 1.0])
-    up = -np.mean([c.c2w[:3, 1].numpy() for c in cameras], axis=0)
-    return up / max(np.linalg.norm(up), 1e-12)
 
 
 def viser_camera(wxyz, position, fov: float, aspect: float, height: int) -> Camera:
@@ -167,9 +97,8 @@ class Viewer:
         self.play_phase = 0.0        # Play's position in [0, 1), finer than the slider's step
         self.play_clock = 0.0        # time.monotonic() of Play's last advance
         self.play_shown = 0.0        # the slider value Play last set (another one: the user moved it)
-        self.centre = scene.model.means.detach().median(0).values.cpu().double().numpy()
-        self.up = dataset_up(scene.cameras)
-        self.start_light = (scene.light or self.default_light()) if self.relightable else None
+        self.centre, self.up = scene.centre, scene.up
+        self.start_light = scene.start_light() if self.relightable else None
         # one tiny render first: the fused kernels load (or compile) before a browser waits on them
         render(scene.model, Camera(8.0, 8.0, 4.0, 4.0, 8, 8, torch.eye(4, dtype=torch.float64)).at(
             time=scene.time if self.dynamic else None, light=self.start_light))
@@ -221,14 +150,6 @@ class Viewer:
         if self.relightable:
             self._add_light_control(gui)
         gui.add_markdown(f"{len(self.scene.model)} {self.scene.model.kind} primitives")
-
-    def default_light(self):
-        """A relightable model's first light without --light (module docstring)."""
-        if self.scene.lights:
-            return orbit_lights(self.scene.lights, self.centre, self.up, 1)[0]
-        spread = float(self.scene.model.means.detach().std(0).norm().cpu())
-        distance = 3.0 * max(spread, 1e-3)
-        return light_at(self.centre, self.up, 0.0, 45.0, distance, distance**2)
 
     def _add_light_control(self, gui) -> None:
         """Azimuth, elevation (and a point light's distance) sliders; no redraw callback: step()
