@@ -14,8 +14,9 @@ in the tuple at the end (or a `register` call from anywhere: a plugin, a test).
 
 Formats: `radfield` (the model file, every kind), `ply-3dgs` (the Inria 3DGS PLY), `compressed-ply`
 (PlayCanvas's, read only), `splat` (antimatter15), `spz` (Niantic, versions 2-3), `glb` (glTF 2.0 with
-KHR_gaussian_splatting). Each module's docstring gives its byte layout and what it loses
-(docs/formats.md, "Exports" and "Model formats read").
+KHR_gaussian_splatting), `stn-ply` (the official Splat the Net PLY, read only, as neural
+primitives). Each module's docstring gives its byte layout and what it loses (docs/formats.md,
+"Exports" and "Model formats read").
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from radfield.errors import RadfieldError
-from radfield.model_formats import compressed_ply, glb, ply_3dgs, radfield_model, splat, spz
+from radfield.model_formats import compressed_ply, glb, ply_3dgs, radfield_model, splat, spz, stn_ply
 from radfield.model_formats.base import ModelFormat
 from radfield.util.registry import Registry
 
@@ -82,5 +83,5 @@ def write(name: str, gaussians, path: str | Path) -> dict:
     return fmt.write(gaussians, Path(path))
 
 
-for _module in (radfield_model, compressed_ply, ply_3dgs, splat, spz, glb):
+for _module in (radfield_model, compressed_ply, stn_ply, ply_3dgs, splat, spz, glb):
     register(_module.FORMAT)

@@ -64,6 +64,40 @@ def is_compressed_ply(path: Path) -> bool:
     return head.startswith(b"ply") and b"\nelement chunk " in header
 
 
+STN_PREFIXES = ("frequencies_", "phases_", "amplitudes_")   # the official Splat the Net PLY's MLP (stn_ply.py)
+
+
+def ply_vertex_properties(path: Path, limit: int = 1 << 16) -> list[str]:
+    """The property names the header of the PLY at `path` declares for its ``vertex`` element (from
+    its first `limit` bytes); [] for a file that is not a PLY or cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(limit)
+    except OSError:
+        return []
+    if not head.startswith(b"ply"):
+        return []
+    names, in_vertex = [], False
+    for line in head.split(b"end_header", 1)[0].splitlines():
+        words = line.split()
+        if words[:1] == [b"element"]:
+            in_vertex = words[1:2] == [b"vertex"]
+        elif words[:1] == [b"property"] and in_vertex and len(words) >= 3:
+            names.append(words[-1].decode("latin-1"))
+    return names
+
+
+def is_stn_names(names) -> bool:
+    """Whether vertex properties `names` are those of an official Splat the Net PLY: any of its MLP's
+    (``frequencies_*``, ``phases_*``, ``amplitudes_*``, ``offsets``), which no 3DGS PLY has."""
+    return any(name == "offsets" or name.startswith(STN_PREFIXES) for name in names)
+
+
+def is_stn_ply(path: Path) -> bool:
+    """A ``.ply`` whose vertex element declares the official Splat the Net MLP (is_stn_names)."""
+    return path.name.lower().endswith(".ply") and not is_compressed_ply(path) and is_stn_names(ply_vertex_properties(path))
+
+
 def cpu(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float32).numpy()
 

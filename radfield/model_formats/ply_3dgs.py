@@ -8,7 +8,9 @@ Read: any SH degree 0-3 by the ``f_rest`` count (0, 9, 24 or 45), with or withou
 other extra property ignored (gsplat, nerfstudio's ``ns-export gaussian-splat``, OpenSplat and
 SuperSplat write such variants), any numeric property type (converted to float32). A file that
 plyfile cannot parse, lacks a property, has another ``f_rest`` count, or holds a non-finite or
-out-of-range number is refused in one line.
+out-of-range number is refused in one line. A PLY with the official Splat the Net MLP
+(``frequencies_*``, ``phases_*``, ``amplitudes_*``, ``offsets``) is format ``stn-ply`` (stn_ply.py),
+neither recognised nor read here.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 from radfield.core.kinds.gaussian import Gaussians
 from radfield.core.splat.sh import num_sh_coeffs
 from radfield.errors import RadfieldError
-from radfield.model_formats.base import ModelFormat, checked, cpu, gaussians, is_compressed_ply
+from radfield.model_formats.base import ModelFormat, checked, cpu, gaussians, is_compressed_ply, is_stn_names, is_stn_ply
 from radfield.util.atomic import atomic_write_bytes
 
 REST_COEFFS = num_sh_coeffs(3) - 1  # 15 per channel: the 45 f_rest of a degree-3 3DGS PLY
@@ -95,6 +97,9 @@ def read_gaussian_ply(path: str | Path) -> Gaussians:
         raise RadfieldError(f"{path}: not a 3DGS PLY (no 'vertex' element; elements: {', '.join(names) or 'none'})")
     v = ply["vertex"]
     have = {p.name for p in v.properties}
+    if is_stn_names(have):   # its own format: drawn as Gaussians it would be another model
+        raise RadfieldError(f"{path}: a Splat the Net PLY (frequencies_*, phases_*, amplitudes_*, offsets), "
+                            "not a 3DGS PLY: read it as format stn-ply")
     missing = [name for name in REQUIRED if name not in have]
     if missing:
         raise RadfieldError(f"{path}: not a 3DGS PLY (the vertex element lacks {', '.join(missing)})")
@@ -121,7 +126,7 @@ def write_gaussian_ply(g: Gaussians, path: Path) -> dict:
 
 
 def _is_plain_ply(path: Path) -> bool:
-    return path.name.lower().endswith(".ply") and not is_compressed_ply(path)
+    return path.name.lower().endswith(".ply") and not is_compressed_ply(path) and not is_stn_ply(path)
 
 
 FORMAT = ModelFormat(
