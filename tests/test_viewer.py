@@ -370,7 +370,7 @@ def test_sigterm_stops_the_viewer_with_one_line(colourful_model):
     preload = "import pycolmap; " if importlib.util.find_spec("pycolmap") is not None else ""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "RADFIELD_KERNELS": "torch"}
     server = subprocess.Popen([sys.executable, "-c", f"{preload}from radfield.cli.main import main; main()", "view",
-                               str(colourful_model), "--host", "127.0.0.1", "--port", "0"],
+                               str(colourful_model), "--server", "--host", "127.0.0.1", "--port", "0"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     try:
         log = _Lines(server.stderr)
