@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from radfield.core import backends, kinds
@@ -18,6 +19,7 @@ from radfield.core.kinds.dynamic import TEMPORAL_TERMS
 from radfield.core.kinds.relight import init_network
 from radfield.core.render.antialias import render_model
 from radfield.core.render.rasterize import render
+from radfield.errors import RadfieldError
 from radfield.core.trainer.loop import make_strategy
 from radfield.core.trainer.loop import initial_state, make_optimizer
 from radfield.pipeline.config import load_config
@@ -182,3 +184,12 @@ def projection_rows(width: int, dtype, generator) -> tuple[torch.Tensor, torch.T
     b2[40:60] = -w2[40:60].abs().amax(-1) - 0.1   # the polar cone
     w2[60:70], b2[60:70] = 0.0, 0.0
     return w2, b2, torch.rand(300, generator=generator) < 0.8
+
+
+def one_line_error(call) -> str:
+    """The message of the RadfieldError that `call()` raises, checked to be one line."""
+    with pytest.raises(RadfieldError) as info:
+        call()
+    message = str(info.value)
+    assert message and "\n" not in message, message
+    return message

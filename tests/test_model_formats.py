@@ -29,7 +29,7 @@ from radfield.core.kinds import random_gaussians, random_neural
 from radfield.core.render.rasterize import render
 from radfield.core.splat.sh import C0, eval_sh
 from radfield.delivery.content import probe_cameras
-from radfield.errors import RadfieldError
+from shared_helpers import one_line_error
 from radfield.model_file import save_model
 from radfield.model_formats.compressed_ply import CHUNK_PROPERTIES
 from radfield.model_formats.glb import glb_bytes
@@ -70,14 +70,6 @@ def same_rotations(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """max over Gaussians of the distance between two quaternion sets, up to sign."""
     a, b = (torch.nn.functional.normalize(q.double(), dim=-1) for q in (a, b))
     return torch.minimum((a - b).abs().amax(-1), (a + b).abs().amax(-1)).max()
-
-
-def one_line_error(call) -> str:
-    with pytest.raises(RadfieldError) as info:
-        call()
-    message = str(info.value)
-    assert message and "\n" not in message, message
-    return message
 
 
 # --- every format through radfield ------------------------------------------------------------

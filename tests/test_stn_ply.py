@@ -16,7 +16,7 @@ from radfield import model_formats
 from radfield.core.geometry.cameras import Camera, look_at
 from radfield.core.kinds import random_gaussians
 from radfield.core.render.rasterize import render
-from radfield.errors import RadfieldError
+from shared_helpers import one_line_error
 from radfield.model_formats.ply_3dgs import gaussian_ply_bytes
 
 N = 8          # the official kernel's hidden units
@@ -151,14 +151,6 @@ def stn_file(tmp_path):
     path = tmp_path / "point_cloud.ply"
     official_ply(path, p)
     return path, p
-
-
-def one_line_error(call) -> str:
-    with pytest.raises(RadfieldError) as info:
-        call()
-    message = str(info.value)
-    assert message and "\n" not in message, message
-    return message
 
 
 def test_the_official_layout_is_detected_and_read_as_the_neural_kind(stn_file, tmp_path):

@@ -122,6 +122,19 @@ vec3 relitColour(int base, vec3 mean, vec3 dir, vec4 quat) {
 }
 `;
 
+// A primitive's colour in this view, every kind (rasterize.py: sh_to_color at d = normalize(mu -
+// campos), max(SH + 0.5, 0); relightable kinds: relit_colour, drawn as max(c, 0)).
+const VIEW_COLOUR = `
+vec3 viewColour(int base, int g, vec3 mean) {
+  vec3 dir = normalize(mean - uCampos);
+#ifdef RELIGHT
+  return max(relitColour(base, mean, dir, texel(uGeo, g + GEO_QUAT)), 0.0);
+#else
+  return max(shValue(base, dir) + 0.5, 0.0);
+#endif
+}
+`;
+
 const COMMON_UNIFORMS = `
 uniform vec2 uSize;          // render target (pixels)
 uniform vec4 uIntr;          // fx, fy, cx, cy of the render target
@@ -291,14 +304,7 @@ void main() {
   vMlp = mlp;
 #endif
 
-  // colour (rasterize.py: sh_to_color at d = normalize(mu - campos); relight: relit_colour)
-  int c = id * COL_STRIDE;
-  vec3 dir = normalize(mean - uCampos);
-#ifdef RELIGHT
-  vColour = max(relitColour(c, mean, dir, texel(uGeo, g + GEO_QUAT)), 0.0);
-#else
-  vColour = max(shValue(c, dir) + 0.5, 0.0);
-#endif
+  vColour = viewColour(id * COL_STRIDE, g, mean);
 }
 `;
 
@@ -432,12 +438,7 @@ void main() {
   for (int i = 0; i < 12; i++) logit += uPhi[i] * flat1(uCol, col, COL_OPACITY_T + i);   // o + phi(xi) . opacity_t
 #endif
   vOpacity = 1.0 / (1.0 + exp(-logit));
-  vec3 dir = normalize(mean - uCampos);
-#ifdef RELIGHT
-  vColour = max(relitColour(col, mean, dir, texel(uGeo, g + GEO_QUAT)), 0.0);
-#else
-  vColour = max(shValue(col, dir) + 0.5, 0.0);
-#endif
+  vColour = viewColour(col, g, mean);
 }
 `;
 
@@ -485,7 +486,7 @@ export function splatShaders(model, layout, unitsInVaryings) {
   if (model.tensors.rest_metric) defines.push("#define HAS_METRIC");
   if (unitsInVaryings) defines.push("#define UNITS_IN_VARYINGS");
   const head = HEADER + defines.join("\n") + "\n" + COMMON_UNIFORMS + FETCH + TRIG;
-  const colour = SH_DC + SH + QUAT + (model.relight ? RELIGHT : "");
+  const colour = SH_DC + SH + QUAT + (model.relight ? RELIGHT : "") + VIEW_COLOUR;
   return model.neural
     ? { vertex: head + colour + QUAD + BOX + NEURAL_VS, fragment: head + BOX_FS + NEURAL_FS }
     : { vertex: head + colour + QUAD + BOX + GAUSSIAN_VS, fragment: head + BOX_FS + GAUSSIAN_FS };
