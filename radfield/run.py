@@ -22,6 +22,10 @@ handful of products, and where each lives is known here only:
                                  the checkpoint of an interrupted training
     bind/model_binding.npz       the trained primitives' tets and barycentric coordinates in the cage
     eval/metrics.json            the held-out metrics (stage eval; a stable interface)
+    import/                      an imported run's INPUT (`radfield import`): the model converted
+                                 (model.safetensors), its renders from an orbit as a NeRF-synthetic
+                                 dataset, the model's centres (mesh.ply), and import.json: where
+                                 it came from (stages/imported.py writes it)
     edit/                        an edited run (`radfield edit`): model.safetensors, cage.npz (+ .vtk),
                                  model_binding.npz, spec.yaml and manifest.json, instead of the stages
 
@@ -58,6 +62,7 @@ CHECKPOINT_FILE = "checkpoint.safetensors"                # stages/train.py, ins
 BIND_STAGE, BINDING_FILE = "bind", "model_binding.npz"    # stages/bind.py; edit/field.py (EDIT_BINDING)
 EVAL_STAGE, METRICS_FILE = "eval", "metrics.json"         # evaluation/evaluate.py
 EDIT_STAGE = "edit"                                       # `radfield edit` writes an edited run's field here
+IMPORT_DIR, IMPORT_RECORD = "import", "import.json"       # stages/imported.py: an imported run's input
 EDIT_SPEC = "spec.yaml"                                   # the spec an edited run was made with, in edit/
 
 
@@ -208,6 +213,21 @@ class Run:
     def edit_dir(self) -> Path:
         """An edited run's field (model, cage, binding, spec, manifest)."""
         return self.path / EDIT_STAGE
+
+    @property
+    def import_dir(self) -> Path:
+        """An imported run's input: the model's renders, the model converted, import.json."""
+        return self.path / IMPORT_DIR
+
+    def imported_from(self) -> dict[str, Any] | None:
+        """An imported run's import.json ({"source", "format", "kind", "primitives", ...}), or None:
+        not an imported run (an edited run answers for the run it descends from)."""
+        run = self.source_run() if self.is_edited else self
+        try:
+            record = json.loads((run.import_dir / IMPORT_RECORD).read_text(encoding="utf-8")) if run else None
+        except (OSError, ValueError):
+            return None
+        return record if isinstance(record, dict) else None
 
     @property
     def edit_spec(self) -> Path:

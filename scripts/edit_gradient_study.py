@@ -3,9 +3,10 @@
 For a run's model and cage, the cage vertices are moved by an analytic map φ (twist, bend); each
 primitive's affine map x ↦ μ' + A (x − μ) is compared with φ itself on points of its bounding
 ellipsoid (centre ± 0.75 of each radius, and 8 diagonal points): error |φ(y) − μ' − A(y − μ)|
-in units of the primitive's max radius. Prints mean / 95th percentile / max for `tet` and
-`centre` without splitting, and both with and without splitting, also against the cage's own
-piecewise-linear map (what a primitive can follow at best).
+in units of the primitive's max radius. Prints mean / 95th percentile / max for the cage gradients
+`smooth`, `centre` and `tet` (`map` is the built-in operations' own) without splitting, and each with
+and without splitting, also against the cage's own piecewise-linear map (what a primitive can
+follow at best).
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/edit_gradient_study.py RUN
 """
@@ -71,7 +72,7 @@ def main(run):
     fld = load_source(run)
     print(f"{run}: {len(fld.prims)} primitives, {len(fld.cage_tets)} tets")
     for name, phi in (("twist 45°/unit about z", twist), ("bend 45°/unit about y along z", bend)):
-        for gradient in affine.GRADIENTS:
+        for gradient in affine.CAGE_GRADIENTS:
             e = probe_errors(fld, phi, gradient)
             print(f"  {name:30s} {gradient:7s} probe error / max radius: mean {e.mean():.4f}  "
                   f"p95 {np.percentile(e, 95):.4f}  max {e.max():.4f}")
@@ -84,7 +85,7 @@ def main(run):
                 if flagged.size == 0:
                     break
                 split = split.with_prims(affine.split_primitives(split.prims, flagged))
-            for gradient in affine.GRADIENTS:
+            for gradient in affine.CAGE_GRADIENTS:
                 e = probe_errors(split, phi, gradient)
                 c = probe_errors(split, phi, gradient, cage_map(fld, new))
                 print(f"  {name:30s} {gradient:7s} split at {threshold}: {len(split.prims) - len(fld.prims)} splits; "

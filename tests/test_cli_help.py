@@ -50,7 +50,7 @@ def test_every_help_text_comes_out_whole(cli, monkeypatch, name, width):
 def test_the_root_help_lists_the_commands_then_the_benchmarks(cli, monkeypatch):
     out = help_of(cli, monkeypatch, 80)
     listed = [line.split()[0] for line in out.splitlines() if re.match(r"^  [a-z][a-z-]+  ", line)]
-    assert listed == ["reconstruct", "info", "render", "eval", "bake", "edit", "animate", "export", "view", "demo-scene",
+    assert listed == ["reconstruct", "import", "info", "render", "eval", "bake", "edit", "animate", "export", "view", "demo-scene",
                       "bench-quality", "bench-render", "bench-train", "bench-web", "bench-dist", "bench-startup"]
     assert out.index("Commands:") < out.index("reconstruct") < out.index("Benchmarks:") < out.index("bench-quality")
     assert "..." not in out.split("Commands:")[1] and all(len(line) <= 80 for line in out.splitlines())

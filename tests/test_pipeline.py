@@ -346,8 +346,8 @@ def test_info_json_shape(toy: Toy, tmp_path: Path, dataset: Path) -> None:
     run(toy, run_dir, dataset, until_stage="train")
     info = run_info(run_dir)
     json.dumps(info)  # plain JSON
-    assert set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages", "edited_from", "edit",
-                         "artifacts"}
+    assert set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages", "imported_from",
+                         "edited_from", "edit", "artifacts"}
     assert info["pending_checkpoint"] is None
     assert info["model"] == str((run_dir / "train" / MODEL_FILE).resolve()) and info["normalization"] is None
     assert list(info["stages"]) == ORDER

@@ -25,7 +25,7 @@ def _vector(text: str | None, name: str) -> list[float] | None:
 
 
 def edit(
-    source: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (reconstructed or edited) or a .safetensors model file.")],
+    source: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (reconstructed or edited) or a model file: radfield's .safetensors, or any format `radfield import` reads (a 3DGS PLY, .spz, .splat, .glb, a Splat the Net PLY).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="New run directory to create (an existing non-empty folder needs --force; never an existing run).")],
     spec: Annotated[Optional[Path], typer.Option("--spec", "-s", help="YAML edit spec with a list 'operations:' (docs/usage.md, 'Editing').")] = None,
     rotate: Annotated[Optional[str], typer.Option(help="Rotate the whole field: rx,ry,rz degrees, R = Rz·Ry·Rx (applied after the spec).")] = None,

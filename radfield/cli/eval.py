@@ -15,7 +15,7 @@ from radfield.errors import RadfieldError
 
 
 def eval_command(
-    targets: Annotated[list[Path], typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (its final model) or a .safetensors model file; several with --compare.")],
+    targets: Annotated[list[Path], typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (its final model) or a model file (radfield's .safetensors, or any format `radfield import` reads); several with --compare.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Report folder (created; an existing non-empty one needs --force, and then its entries of the same names are replaced).")],
     compare: Annotated[bool, typer.Option("--compare", help="Evaluate every RUN_OR_MODEL on the same views: one table and side-by-side grids.")] = False,
     dataset: Dataset = None,

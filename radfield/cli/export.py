@@ -22,7 +22,7 @@ WEB = "web"             # a folder, not a file: the browser renderer (radfield.d
 
 @condition_options("export")
 def export(
-    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory or a .safetensors model file (model files: ply-3dgs, splat, spz, glb, points only).")],
+    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory or a model file: radfield's .safetensors or any format `radfield import` reads (model files: ply-3dgs, splat, spz, glb, points, web only).")],
     format: Annotated[str, typer.Option("--format", "-f", help="ply-3dgs (3D-Gaussian PLY for 3DGS viewers), splat (antimatter15 .splat for web viewers), spz (Niantic SPZ version 3, about a tenth of a PLY, quantised), glb (glTF 2.0 binary with KHR_gaussian_splatting), points (centres as a coloured point cloud PLY), cage (.vtk or .msh), envelope (PLY), cameras (nerfstudio transforms.json), web (a folder with a page that draws the model in the browser, WebGL2).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="File to write (.ply, .splat, .spz, .glb, .vtk, .msh or .json, as the format needs); for web a folder.")],
     components: Annotated[Optional[int], typer.Option(help=f"ply-3dgs/splat/spz/glb from neural primitives: Gaussians fitted to each primitive by moment matching (default {REFINE_COMPONENTS} for a refined run, 1 otherwise).")] = None,

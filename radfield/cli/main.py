@@ -18,7 +18,8 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 import radfield
-from radfield.cli import animate, bake, bench, demo_scene, edit, eval as eval_, export, info, reconstruct, render, view
+from radfield.cli import (animate, bake, bench, demo_scene, edit, eval as eval_, export, import_model, info, reconstruct, render,
+                          view)
 from radfield.cli.common import KINDS, kind_names
 from radfield.errors import RadfieldError
 from radfield.util.registry import Registry
@@ -115,8 +116,8 @@ def _root(version: Annotated[bool, typer.Option("--version", callback=_version, 
 # the verbs, registered in the order `radfield --help` lists them, the README's: the commands, then
 # the benchmarks (a new verb: its module in radfield/cli/ and one line here)
 COMMANDS: Registry[Callable] = Registry("command")
-for _name, _function in (("reconstruct", reconstruct.reconstruct), ("info", info.info), ("render", render.render),
-                         ("eval", eval_.eval_command), ("bake", bake.bake), ("edit", edit.edit),
+for _name, _function in (("reconstruct", reconstruct.reconstruct), ("import", import_model.import_model), ("info", info.info),
+                         ("render", render.render), ("eval", eval_.eval_command), ("bake", bake.bake), ("edit", edit.edit),
                          ("animate", animate.animate), ("export", export.export), ("view", view.view),
                          ("demo-scene", demo_scene.demo_scene), ("bench-quality", bench.bench_quality),
                          ("bench-render", bench.bench_render), ("bench-train", bench.bench_train), ("bench-web", bench.bench_web),

@@ -15,7 +15,7 @@ from radfield.util.ranges import AT_LEAST_0, AT_LEAST_1, ELEVATION, POSITIVE
 
 @condition_options("render")
 def render(
-    model_or_run: Annotated[Path, typer.Argument(metavar="MODEL_OR_RUN", help="A .safetensors model file, or a run directory (its final model).")],
+    model_or_run: Annotated[Path, typer.Argument(metavar="MODEL_OR_RUN", help="A model file (radfield's .safetensors, or any format `radfield import` reads: a 3DGS PLY, .spz, .splat, .glb, a Splat the Net PLY), or a run directory (its final model).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Folder for the PNG frames (created; written under a temporary name and renamed at the end; an existing non-empty one needs --force).")],
     dataset: Annotated[Optional[Path], typer.Option("--dataset", "-d", help="Dataset whose cameras to render (NeRF-synthetic, nerfstudio or COLMAP). Default for a run: the dataset it trained on.")] = None,
     split: Annotated[str, typer.Option(help="Which cameras: train, val, test or all (without split files: every data.test_every-th view is test).")] = "test",

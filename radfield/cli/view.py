@@ -19,7 +19,7 @@ from radfield.errors import RadfieldError
 
 @condition_options("view")
 def view(
-    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (model, cage and cameras) or a .safetensors model file.")],
+    target: Annotated[Path, typer.Argument(metavar="RUN_OR_MODEL", help="A run directory (model, cage and cameras) or a model file (radfield's .safetensors, or any format `radfield import` reads).")],
     port: Annotated[int, typer.Option(help="TCP port of the web viewer (the next free one if it is taken; 0: any free port).")] = 8080,
     host: Annotated[str, typer.Option(help="Address to listen on (127.0.0.1: this machine only; 0.0.0.0: every network).")] = "127.0.0.1",
     server: Annotated[bool, typer.Option("--server", help="Render every frame here with radfield's renderer and stream it (exact pixels, any model size, slower) instead of in the browser.")] = False,

@@ -31,9 +31,9 @@ ORBIT_VIEWS = 100   # at most this many random views besides the training camera
 def load_content(target: Path, device: str = "cpu", parts: Collection[str] = PARTS) -> Content:
     """A model file or a run directory as Content: the model on `device`, and for a run the `parts`
     (of PARTS) it has; background and extent come with the cameras."""
-    from radfield.model_file import load_model
+    from radfield.model_formats import load
 
-    model = load_model(model_file(target), device=device)
+    model = load(model_file(target), device=device)
     content = Content(model=model, source=str(target), missing={})
     if not target.is_dir():
         return content

@@ -32,7 +32,7 @@ from radfield.core.geometry.camera_path import orbit as make_orbit
 from radfield.core.geometry.camera_path import orbit_from_cameras, read_nerfstudio_path, write_video
 from radfield.core.geometry.cameras import distinct_poses
 from radfield.errors import RadfieldError
-from radfield.model_file import load_model
+from radfield.model_formats import load as load_model
 from radfield.core.render.antialias import render_model
 from radfield.util.timing import clock
 from radfield.datasets.images import write_image

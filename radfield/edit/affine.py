@@ -24,18 +24,24 @@ Where a primitive goes and which A it uses (`gradient`; docs/usage.md "How primi
 - "smooth" (a cage moved by a file, an animation or the simulation: the default): the centre
   from the barycentric blend of the corners' half-step Taylor predictions,
   μ' = Σ λ_i (v'_i + ½ F_i (μ − v_i)), the mean of the linear interpolation Σ λ_i v'_i and of
-  the Taylor blend Σ λ_i (v'_i + F_i (μ − v_i)), with F_i the deformation gradient
-  at vertex i fitted to its neighbourhood (`fitted_gradients`), and centre's A. Why the mean: for
-  a smooth map φ with Hessian H, the linear interpolation errs by +½ Σ λ_i (v_i − μ)ᵀH(v_i − μ)
-  and the Taylor blend (exact gradients) by exactly minus that, so the mean is third-order
-  accurate. Exact for affine cage maps (both parts are);
+  the Taylor blend Σ λ_i (v'_i + F_i (μ − v_i)), with F_i the deformation gradient and H_i the
+  Hessian at vertex i of a quadratic fitted to its neighbourhood (`fitted_gradients`). Why the
+  mean: for a smooth map φ with Hessian H, the linear interpolation errs by
+  +½ Σ λ_i (v_i − μ)ᵀH(v_i − μ) and the Taylor blend (exact gradients) by exactly minus that, so
+  the mean is third-order accurate. A comes from the same fits, A = Σ λ_i (F_i + ½ H_i (μ − v_i))
+  (`smooth_jacobians`: the mean of the linear interpolation of the F_i and of the corners'
+  first-order predictions F_i + H_i (μ − v_i), third-order for the same reason), not from the
+  tet-mean gradients G_i, only first-order accurate where the map bends; and a primitive is split
+  where this field varies across it, not where the tets' maps jump (`nonuniformity`). Exact for
+  affine cage maps (every part is);
 - "centre": μ' = Σ λ_i v'_i, A = Σ λ_i G_i, the deformation gradient interpolated at the centre
   from vertex gradients G_i (the volume-weighted mean of the A of the tets around vertex i),
   smooth across tet faces;
 - "tet": μ' = Σ λ_i v'_i and the affine map of the tet holding the centre: exactly the cage's
   piecewise-linear map at μ (discontinuous across tet faces).
-A primitive whose tet and vertex gradients are exactly the identity keeps its parameters
-bit for bit (so an identity cage, or a local edit far away, changes nothing).
+A primitive whose tet and vertex gradients are exactly the identity (and, "smooth", whose corners'
+fit neighbourhoods did not move) keeps its parameters bit for bit (so an identity cage, or a local
+edit far away, changes nothing: the fits are local, never a global interpolant of the cage).
 
 `preserve_opacity` (Neural Impostor's behaviour: optical depth in rest-space distance): the
 renderer's optical depth I of an edited primitive becomes I · max(s')·|A⁻¹d̂|/max(s) = I·√(d̂ᵀ G d̂)
@@ -67,7 +73,7 @@ CAGE_GRADIENTS = ("smooth", "centre", "tet")   # from the moved cage's vertices 
 GRADIENTS = ("map",) + CAGE_GRADIENTS          # "map": an operation's closed-form map (warp.py)
 DEFAULT_GRADIENT = "smooth"   # a cage moved by a file, an animation, the simulation (measured: docs/usage.md)
 DEFAULT_MAP_GRADIENT = "map"  # the built-in operations whose map is known in closed form
-SPLIT_THRESHOLD = 0.5    # relative variation of A across a primitive's tets above which it is split
+SPLIT_THRESHOLD = 0.5    # relative variation of A across a primitive above which it is split (nonuniformity)
 MAX_SPLIT_ROUNDS = 2     # each round halves the flagged primitives along their longest axis
 
 
@@ -150,15 +156,24 @@ def _neighbourhoods(tets: np.ndarray, n: int) -> list[np.ndarray]:
     return [np.asarray(r1 if len(r1) >= RING_MIN else r2, np.int64) for r1, r2 in zip(ring1.rows, ring2.rows)]
 
 
+FIT_DISTANCE_POWER = 2   # each neighbour's equation of the vertex fit is divided by |d|^this (fitted_gradients)
+
+
 def fitted_gradients(rest: np.ndarray, new: np.ndarray, tets: np.ndarray, fallback: np.ndarray,
-                     cache: dict | None = None) -> np.ndarray:
-    """Per vertex i the deformation gradient F_i (V, 3, 3) of a least-squares quadratic fit of the
-    displacements over its neighbourhood (`_neighbourhoods`: its one-ring where that has enough
-    vertices, so an edit stays nearly as local as with the tet-mean gradient): (u_j − u_i) ≈ D_i d + ½ dᵀ H d, d = v_j − v_i, u = v' − v,
-    F_i = I + D_i. The quadratic terms keep the curvature out of the gradient (a one-sided mean of
-    tet maps, as at the cage's boundary, is off by O(h); this is off by O(h²)). A fit of an affine
-    map is exact; a vertex whose neighbourhood did not move gets exactly I; a vertex with too few
-    or too ill-placed neighbours for the 9-term fit keeps `fallback` (the tet-mean gradient)."""
+                     cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex i the deformation gradient F_i (V, 3, 3) and the Hessian H_i (V, 3, 3, 3; H_i[c]
+    that of component c) of a weighted least-squares quadratic fit of the displacements over its
+    neighbourhood (`_neighbourhoods`: its one-ring where that has enough vertices, so an edit stays
+    nearly as local as with the tet-mean gradient): (u_j − u_i) ≈ D_i d + ½ dᵀ H_i d, d = v_j − v_i,
+    u = v' − v, F_i = I + D_i. The quadratic terms keep the curvature out of the gradient (a one-sided
+    mean of tet maps, as at the cage's boundary, is off by O(h); this is off by O(h²)). Each
+    neighbour's equation is divided by |d|² (FIT_DISTANCE_POWER): its cubic remainder O(|d|³) then
+    counts as O(|d|), so the near neighbours, whose remainder is smaller, weigh more: no length to
+    tune, as well conditioned as the plain fit, and half its error of F (45°/unit twist: mean
+    0.0181 -> 0.0096 on the 128 px objects run's cage, 0.055 -> 0.025 on a 4³ box cage of it).
+    A fit of an affine map is exact; a vertex whose neighbourhood did not move gets exactly I and
+    H = 0; a vertex with too few or too ill-placed neighbours for the 9-term fit keeps `fallback`
+    (the tet-mean gradient) and H = 0."""
     n = len(rest)
     key = ("rings", id(tets))
     if cache is not None and key in cache and cache[key][0] is tets:
@@ -168,30 +183,65 @@ def fitted_gradients(rest: np.ndarray, new: np.ndarray, tets: np.ndarray, fallba
         if cache is not None:
             cache[key] = (tets, rings)
     u = new - rest
-    out = np.array(fallback, np.float64, copy=True)
+    grad = np.array(fallback, np.float64, copy=True)
+    hess = np.zeros((n, 3, 3, 3))
     eye = np.eye(3)
+    pairs = np.array([[0, 0], [1, 1], [2, 2], [0, 1], [0, 2], [1, 2]])   # the quadratic terms' (a, b)
     for i, js in enumerate(rings):
         du = u[js] - u[i]
         if not du.any():
-            out[i] = eye
+            grad[i] = eye
             continue
         if len(js) < RING_MIN:
             continue
         d = rest[js] - rest[i]
         scale = np.abs(d).max()
         q = d / scale                                # conditioned: unit-sized offsets
-        m = np.concatenate([q, 0.5 * np.stack([q[:, 0] ** 2, q[:, 1] ** 2, q[:, 2] ** 2,
-                                                q[:, 0] * q[:, 1], q[:, 0] * q[:, 2], q[:, 1] * q[:, 2]], 1)], 1)
-        sv = np.linalg.svd(m, compute_uv=False)
+        m = np.concatenate([q, 0.5 * q[:, pairs[:, 0]] * q[:, pairs[:, 1]]], 1)
+        w = np.linalg.norm(q, axis=1)[:, None] ** -FIT_DISTANCE_POWER
+        sv = np.linalg.svd(w * m, compute_uv=False)
         if sv[-1] < 1e-3 * sv[0]:
             continue
-        coef = np.linalg.lstsq(m, du, rcond=None)[0]
-        out[i] = eye + coef[:3].T / scale
+        coef = np.linalg.lstsq(w * m, w * du, rcond=None)[0]
+        grad[i] = eye + coef[:3].T / scale
+        # ½ Σ_ab c_ab d_a d_b with one term per pair: H_aa = c_aa, H_ab = H_ba = ½ c_ab
+        quad = coef[3:].T / scale**2                 # (3 components, 6 pairs)
+        half = np.where(pairs[:, 0] == pairs[:, 1], 1.0, 0.5)
+        hess[i][:, pairs[:, 0], pairs[:, 1]] = half * quad
+        hess[i][:, pairs[:, 1], pairs[:, 0]] = half * quad
+    return grad, hess
+
+
+SMOOTH_CHUNK = 1 << 16   # points per block of smooth_jacobians (bounds its memory at ~100k primitives x 7 probes)
+
+
+def smooth_jacobians(points: np.ndarray, tet: np.ndarray, bary: np.ndarray, rest: np.ndarray, tets: np.ndarray,
+                     grad: np.ndarray, hess: np.ndarray) -> np.ndarray:
+    """The smooth mode's Jacobian field (N, 3, 3) at points x (N, 3) bound to (tet, bary) of the rest
+    cage: A(x) = Σ λ_i (F_i + ½ H_i (x − v_i)) with the vertex fits (F, H) of `fitted_gradients`
+    and the clipped barycentric weights λ (a point outside its tet would extrapolate the
+    gradients). Continuous across tet faces (the weights of a face's corners agree there, the
+    opposite vertex's is 0). Why ½: the linear interpolation of exact gradients Σ λ_i J(v_i) errs
+    by +½ Σ λ_i T[v_i − x, v_i − x] (T the third derivative of the map), the blend of each corner's
+    first-order prediction Σ λ_i (J(v_i) + H(v_i)(x − v_i)) by minus that, so their mean is
+    third-order accurate, as the centre's (module docstring). Exact for affine cage maps."""
+    out = np.empty((len(points), 3, 3))
+    for lo in range(0, len(points), SMOOTH_CHUNK):
+        sl = slice(lo, lo + SMOOTH_CHUNK)
+        lam = np.clip(bary[sl], 0.0, None)
+        lam /= np.maximum(lam.sum(1, keepdims=True), 1e-300)
+        corners = tets[tet[sl]]                                       # (n, 4)
+        offset = points[sl, None, :] - rest[corners]                  # x − v_i
+        taylor = grad[corners] + 0.5 * np.einsum("nkcab,nkb->nkca", hess[corners], offset)
+        out[sl] = np.einsum("nk,nkij->nij", lam, taylor)
     return out
 
 
-def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT, cache: dict | None = None):
-    """For every primitive: A (P, 3, 3), its new centre μ' (P, 3) and whether it changes (P,)."""
+def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT, cache: dict | None = None,
+                   fitted: tuple[np.ndarray, np.ndarray] | None = None):
+    """For every primitive: A (P, 3, 3), its new centre μ' (P, 3) and whether it changes (P,).
+    `fitted`: the vertex fits (F, H) of `fitted_gradients` for this cage pose, when already made
+    ("smooth")."""
     if gradient not in CAGE_GRADIENTS:
         raise RadfieldError(f"deform: gradient must be one of {', '.join(CAGE_GRADIENTS)} for a moved cage "
                             f"(map: the built-in operations only), got {gradient!r}")
@@ -202,21 +252,23 @@ def primitive_maps(fld: Field, new: np.ndarray, gradient: str = DEFAULT_GRADIENT
     if gradient == "tet":
         return a_tet[fld.tet], means, moved[fld.tet]
     grad, changed = vertex_gradients(a_tet, moved, tets, rest)
-    # a centre outside its tet (negative λ) would extrapolate the gradients: use the clipped weights
-    lam = np.clip(fld.bary, 0.0, None)
-    lam /= np.maximum(lam.sum(1, keepdims=True), 1e-300)
-    a = np.einsum("pk,pkij->pij", lam, grad[corners])
     changed_p = changed[corners].any(1) | moved[fld.tet]
-    if gradient == "smooth":
-        # the mean of the linear interpolation and of the corners' Taylor predictions (module
-        # docstring): their second-order errors cancel. Exact for an affine map x ↦ Fx + b because
-        # Σ λ_i v_i = μ (the binding's own λ, extrapolating outside the cage as "tet" does).
-        fit = fitted_gradients(rest, new, tets, grad, cache)
-        moved_v = (fit != np.eye(3)).any(axis=(1, 2)) | (new != rest).any(1)
-        changed_p = changed_p | moved_v[corners].any(1)
-        mu = fld.prims.means.detach().double().numpy()
-        pred = new[corners] + 0.5 * np.einsum("pkij,pkj->pki", fit[corners], mu[:, None, :] - rest[corners])
-        means = np.where(changed_p[:, None], np.einsum("pk,pkd->pd", fld.bary, pred), means)
+    if gradient == "centre":
+        # a centre outside its tet (negative λ) would extrapolate the gradients: use the clipped weights
+        lam = np.clip(fld.bary, 0.0, None)
+        lam /= np.maximum(lam.sum(1, keepdims=True), 1e-300)
+        return np.einsum("pk,pkij->pij", lam, grad[corners]), means, changed_p
+    # "smooth": the mean of the linear interpolation and of the corners' Taylor predictions (module
+    # docstring): their second-order errors cancel. Exact for an affine map x ↦ Fx + b because
+    # Σ λ_i v_i = μ (the binding's own λ, extrapolating outside the cage as "tet" does). A from the
+    # same fits (smooth_jacobians), not from the tet-mean gradients (O(h) off where the map bends).
+    fit, hess = fitted if fitted is not None else fitted_gradients(rest, new, tets, grad, cache)
+    moved_v = (fit != np.eye(3)).any(axis=(1, 2)) | hess.any(axis=(1, 2, 3)) | (new != rest).any(1)
+    changed_p = changed_p | moved_v[corners].any(1)
+    mu = fld.prims.means.detach().double().numpy()
+    pred = new[corners] + 0.5 * np.einsum("pkij,pkj->pki", fit[corners], mu[:, None, :] - rest[corners])
+    means = np.where(changed_p[:, None], np.einsum("pk,pkd->pd", fld.bary, pred), means)
+    a = smooth_jacobians(mu, fld.tet, fld.bary, rest, tets, fit, hess)
     return a, means, changed_p
 
 
@@ -294,23 +346,35 @@ def _probe_points(prims) -> np.ndarray:
     return mu[:, None, :] + offsets
 
 
-def nonuniformity(fld: Field, a_tet: np.ndarray, cache: dict | None = None) -> np.ndarray:
-    """Per primitive: max over the tets holding its probe points of |A_j − A_c|₂ / |A_c|₂, with
-    A_c the map of its centre's tet (0 for a uniform neighbourhood). `cache` (a dict kept by the
-    caller) remembers the probes' tets of a field deformed again and again (animation frames)."""
+def nonuniformity(fld: Field, a_tet: np.ndarray, cache: dict | None = None,
+                  fitted: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Per primitive: max over its probe points of |A_j − A_c|₂ / |A_c|₂ (0 for a uniform
+    neighbourhood). A at a point: the map of the tet holding it, A_c that of its centre's tet ("tet",
+    "centre"); with `fitted` (the vertex fits (F, H) of `fitted_gradients`) the smooth mode's own
+    field `smooth_jacobians` at the probe points, A_c at the centre. The tets' piecewise-constant
+    maps jump at every tet face by O(h) even where the map barely bends, so measured on them many
+    primitives of a coarse cage straddle a "bend" that is not there (the 128 px objects run on a
+    4³ box cage twisted 45°/unit: 353 of 1413 primitives split, 1.5 dB of alpha PSNR lost to the
+    halves' approximation, docs/studies/edit-truth.md); the smooth field varies as the map does,
+    as the Jacobians of `map_field`'s criterion (none split there either). `cache` (a dict kept by the
+    caller) remembers the probes' binding of a field deformed again and again (animation frames)."""
     key = (id(fld.prims), id(fld.cage_vertices))
     if cache is not None and key in cache:
-        tets = cache[key][1]
+        probes, tets, bary = cache[key][1:]
     else:
-        probes = _probe_points(fld.prims)
-        tets, _ = bind_to_cage(probes.reshape(-1, 3), (fld.cage_vertices, fld.cage_tets))
+        probes = _probe_points(fld.prims).reshape(-1, 3)
+        tets, bary = bind_to_cage(probes, (fld.cage_vertices, fld.cage_tets))
         if cache is not None:
-            cache[key] = (fld.prims, tets)   # holds the objects, so their ids stay theirs
+            cache[key] = (fld.prims, probes, tets, bary)   # holds the objects, so their ids stay theirs
     p = len(fld.prims)
-    a_probe = a_tet[tets].reshape(p, 7, 3, 3)
-    a_c = a_tet[fld.tet][:, None]
+    if fitted is None:
+        a_probe = a_tet[tets].reshape(p, 7, 3, 3)
+        a_c = a_tet[fld.tet][:, None]
+    else:
+        a_probe = smooth_jacobians(probes, tets, bary, fld.cage_vertices, fld.cage_tets, *fitted).reshape(p, 7, 3, 3)
+        a_c = a_probe[:, :1]
     diff = np.linalg.norm(a_probe - a_c, ord=2, axis=(-2, -1)).max(1)
-    return diff / np.linalg.norm(a_tet[fld.tet], ord=2, axis=(-2, -1))
+    return diff / np.linalg.norm(a_c[:, 0], ord=2, axis=(-2, -1))
 
 
 def split_primitives(prims, index: np.ndarray):
@@ -361,15 +425,19 @@ def deform_field(fld: Field, new_vertices: np.ndarray, *, gradient: str = DEFAUL
     check_cage_orientation(fld, where)
     check_deformed_cage(fld.cage_vertices, new, fld.cage_tets, where)
     a_tet, _, moved = tet_maps(fld.cage_vertices, new, fld.cage_tets)
+    fitted = None
+    if gradient == "smooth" and moved.any():   # the vertex fits, for the split criterion and the map
+        grad, _ = vertex_gradients(a_tet, moved, fld.cage_tets, fld.cage_vertices)
+        fitted = fitted_gradients(fld.cage_vertices, new, fld.cage_tets, grad, cache)
     n_split = 0
     if split is not None and moved.any():
         for _ in range(MAX_SPLIT_ROUNDS):
-            flagged = np.flatnonzero(nonuniformity(fld, a_tet, cache) > split)
+            flagged = np.flatnonzero(nonuniformity(fld, a_tet, cache, fitted) > split)
             if flagged.size == 0:
                 break
             n_split += flagged.size
             fld = fld.with_prims(split_primitives(fld.prims, flagged))
-    a, means, changed = primitive_maps(fld, new, gradient, cache)
+    a, means, changed = primitive_maps(fld, new, gradient, cache, fitted)
     prims = map_primitives(fld.prims, a, means, changed, preserve_opacity)
     out = replace(fld, prims=prims, cage_vertices=new, notes=list(fld.notes))
     if gradient == "smooth" and rebind:

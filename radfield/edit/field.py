@@ -19,7 +19,8 @@ import numpy as np
 
 from radfield.util.atomic import atomic_write
 from radfield.core.geometry.cage import bind_to_cage, read_cage, write_cage
-from radfield.model_file import load_model, save_model
+from radfield.model_file import save_model
+from radfield.model_formats import load
 from radfield.core.kinds import Primitives
 from radfield import run as layout
 
@@ -70,7 +71,7 @@ class Field:
 def load_field(model: str | Path, cage: str | Path | None = None, binding: str | Path | None = None) -> Field:
     """A Field from a model file and optionally its cage (any format read_cage reads) and binding
     (`binding.npz`; recomputed from the cage when absent or of another length)."""
-    prims = load_model(model, device="cpu")
+    prims = load(model)
     if cage is None:
         return Field(prims)
     vertices, tets = read_cage(cage)

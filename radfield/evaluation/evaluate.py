@@ -57,7 +57,8 @@ from radfield.errors import RadfieldError
 from radfield.evaluation import lpips as lpips_metric
 from radfield.evaluation import report
 from radfield.evaluation.metrics import per_condition, psnr, ssim
-from radfield.model_file import load_model, read_metadata
+from radfield.model_file import read_metadata
+from radfield.model_formats import detect, load as load_model
 from radfield.pipeline.config import load_config
 from radfield.run import MODEL_STAGE, Run, is_run_dir
 from radfield.util.atomic import atomic_folder, atomic_write_bytes, atomic_write_text
@@ -227,7 +228,8 @@ def check_conditions(model_file: Path, scene: Scene, dataset: Path) -> None:
     data.light ignore baselines)."""
     from radfield.core import kinds
 
-    kind = read_metadata(model_file).get("kind")
+    # the other formats hold static kinds only (Gaussians; stn-ply: neural primitives)
+    kind = read_metadata(model_file).get("kind") if detect(model_file).name == "radfield" else None
     carried = conditions.view_conditions(scene.splits)
     for condition in kinds.get(kind).conditions if kind in kinds.names() else ():
         if condition not in carried:

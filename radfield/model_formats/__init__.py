@@ -10,6 +10,9 @@ in the tuple at the end (or a `register` call from anywhere: a plugin, a test).
     writable()         the names of those radfield writes
     detect(path)       the first format, in priority order, that recognises `path`
     read(path)         detect(path).read(path): the model in the file
+    load(path, device) read(path) on `device`: what the commands that take a model file call, so
+                       that each takes a file of any format read here (a radfield model file is
+                       read by radfield.model_file.load_model, exactly)
     write(name, gaussians, path)   write 3D Gaussians as format `name`; figures for the report
 
 Formats: `radfield` (the model file, every kind), `ply-3dgs` (the Inria 3DGS PLY), `compressed-ply`
@@ -28,7 +31,7 @@ from radfield.model_formats import compressed_ply, glb, ply_3dgs, radfield_model
 from radfield.model_formats.base import ModelFormat
 from radfield.util.registry import Registry
 
-__all__ = ["ModelFormat", "detect", "get", "names", "read", "register", "unregister", "writable", "write"]
+__all__ = ["ModelFormat", "detect", "get", "load", "names", "read", "register", "unregister", "writable", "write"]
 
 _REGISTRY: Registry[ModelFormat] = Registry("model format", order=lambda fmt: fmt.priority)
 
@@ -73,6 +76,11 @@ def read(path: str | Path, format: str | None = None):
     """The model in `path` (Gaussians for the 3DGS formats), by `format` or detected."""
     fmt = get(format) if format else detect(path)
     return fmt.read(Path(path))
+
+
+def load(path: str | Path, device="cpu"):
+    """The model in the file at `path`, whatever its format (detected), on `device`."""
+    return read(path).to(device)
 
 
 def write(name: str, gaussians, path: str | Path) -> dict:

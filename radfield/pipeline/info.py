@@ -13,6 +13,13 @@ The JSON of `run_info` is a stable interface (scripts and docs/formats.md rely o
         "stage": "train", "step": 1500,           #   it resumes from, the step it reached and the steps asked
         "iterations": 3000, "path": "/abs/..."    #   for (the run's config; null if unreadable)
       } | null,
+      "imported_from": {                          # an imported run (`radfield import`; an edit of one
+        "source": "/abs/path/MODEL.ply",          #   answers for it), else null: the model file, its
+        "format": "ply-3dgs", "kind": "gaussian", #   format, kind and primitive count, its sha256, and
+        "primitives": 1000, "sha256": "...",      #   the orbit rendered as the run's dataset (views,
+        "views": 56, "test_views": 8, "size": 256, #  test_views, size, centre, radius)
+        "centre": [0, 0, 0], "radius": 1.0
+      } | null,
       "edited_from": "/abs/path/SOURCE" | null,   # an edited run (`radfield edit`): the run directory
                                                   # or model file it was made from; else null
       "edit": {                                   # an edited run (else null): when it was written, the
@@ -88,6 +95,7 @@ def run_info(run_dir: Path) -> dict[str, Any]:
         "normalization": str(normalization.resolve()) if normalization.is_file() else None,
         "pending_checkpoint": pending_checkpoint(run),
         "stages": stages,
+        "imported_from": run.imported_from(),
         "edited_from": str(run.edited_from) if run.edited_from is not None else None,
         "edit": edit_info(run),
         "artifacts": artifacts,
@@ -150,6 +158,11 @@ def format_info(info: dict[str, Any]) -> str:
         step = pending["step"] if pending["step"] is not None else "? (unreadable)"
         console.print(f"pending checkpoint: {pending['stage']} interrupted at step {step}{of}; "
                       f"`radfield reconstruct` on the run resumes it ({pending['path']})")
+    imported = info.get("imported_from")
+    if imported:
+        console.print(f"imported from: {imported.get('source')} ({imported.get('format')}, {imported.get('primitives')} "
+                      f"{imported.get('kind')} primitives; its dataset: {imported.get('views')} + {imported.get('test_views')} "
+                      f"views of it, {imported.get('size')} px)", soft_wrap=True)
     if info.get("edited_from"):
         console.print(f"edited from: {info['edited_from']}")
     edit = info.get("edit")

@@ -212,11 +212,12 @@ def _check_input(plan: Sequence[Stage], input_path: Path | None) -> None:
 
 
 def _check_run_dir(layout: Run, plan: Sequence[Stage], input_path: Path | None, forced: set[str]) -> None:
-    """Refuse to write into a folder that is not ours, or a run made from another input."""
+    """Refuse to write into a folder that is not ours, or a run made from another input. A folder
+    that holds nothing but the run's own INPUT (an imported run's RUN/import/) is a new run."""
     run_dir = layout.path
     if run_dir.exists() and not run_dir.is_dir():
         raise RadfieldError(f"run directory {run_dir} exists and is not a directory")
-    if not run_dir.exists() or not [p for p in run_dir.iterdir() if p != layout.lock_file]:
+    if not run_dir.exists() or not [p for p in run_dir.iterdir() if p != layout.lock_file and p.resolve() != input_path]:
         return
     if not layout.exists:
         raise RadfieldError(f"{run_dir} exists and is not a radfield run directory; choose another output "

@@ -122,6 +122,7 @@ class PrimitiveKind:
     attributes: tuple[str, ...] = ()           # non-tensor fields training and model files carry
     retrainable_locally: bool = False          # edit/retrain.py can refit a region: one density σ(x), an SH colour
     exact_gaussians: bool = False              # its primitives are 3D Gaussians (exported as they are)
+    support_radius: float = 1.0                # its extent in units of its scales: the ellipsoid (Gaussians: 3σ)
     bench_variants: tuple[str, ...] = ()       # the rows it adds to bench-render / bench-train
     # what a view must carry for the kind to be drawn, by condition name (radfield/conditions; "time":
     # Camera.conditions["time"], the moment ξ_t in [0, 1] of a time-conditioned kind, kinds/dynamic.py);

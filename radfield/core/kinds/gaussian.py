@@ -93,6 +93,7 @@ class GaussianKind(PrimitiveKind):
     primitives = Gaussians
     own_params = {"opacities": ()}
     exact_gaussians = True
+    support_radius = 3.0        # the 3σ ellipsoid the splat's bounds cover too
     bench_variants = ("gaussian",)
 
     def twin_view(self, prims, frame: ViewFrame):

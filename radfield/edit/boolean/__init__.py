@@ -40,6 +40,7 @@ One module per phase of the operation (operation.py: `boolean`, which runs them 
     classification.py  each primitive kept, dropped or straddling
     caps.py            the cap of a cut face, on the operand's boundary (surface.py)
     retraining.py      the straddling primitives and the caps refitted to the teacher
+    gaussian_cut.py    a Gaussian field's straddling Gaussians split, not retrained (no cap)
 """
 
 from radfield.edit.boolean.caps import cap_primitives, cut_caps

@@ -1,11 +1,16 @@
-"""Classification of primitives by a mask over their ellipsoids: wholly kept, wholly removed, or
-straddling the boundary (those are retrained)."""
+"""Classification of primitives by a mask over their ellipsoids (a Gaussian's: its 3σ support, the
+kind's support_radius): wholly kept, wholly removed, or straddling the boundary (those are retrained,
+or split: gaussian_cut.py)."""
 
 from __future__ import annotations
+
+import math
+from dataclasses import replace
 
 import numpy as np
 import torch
 
+from radfield.core import kinds
 from radfield.core.geometry.rotations import quat_to_rotmat
 from radfield.core.kinds import neural_density
 
@@ -19,6 +24,9 @@ def classify(prims, keep_fn, shape: Shape | None = None, keep_inside: bool = Tru
     keep_fn maps points -> bool (the mask). With a shape, the bounding-sphere test on its signed
     distance (exact, 1-Lipschitz) settles most primitives before sampling; keep_inside says
     whether the mask is the shape's inside or its outside."""
+    support = kinds.of(prims).support_radius
+    if support != 1.0:   # the ellipsoid tested is the primitive's support
+        prims = replace(prims, log_scales=prims.log_scales + math.log(support))
     n = len(prims)
     out = np.full(n, -2)
     means = prims.means.detach().cpu().double().numpy()

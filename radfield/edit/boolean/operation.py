@@ -13,10 +13,11 @@ from radfield.core.geometry.cage import bind_to_cage
 from radfield.core import kinds
 from radfield.edit.boolean.caps import cut_caps
 from radfield.edit.boolean.classification import mask_classes
+from radfield.edit.boolean.gaussian_cut import refine_boundary
 from radfield.edit.boolean.masks import gridded_masks, operand_masks
 from radfield.edit.boolean.operands import read_operand
 from radfield.edit.boolean.retraining import retrain_boundary
-from radfield.edit.compose import merge_fields
+from radfield.edit.compose import concat_prims, merge_fields
 from radfield.edit.field import Field
 from radfield.edit.select import number
 from radfield.edit.spec import check_keys, operation
@@ -58,7 +59,8 @@ class Split:
 @operation("boolean")
 def boolean(fld: Field, args, ctx) -> Field:
     """E op operand (package docstring): read the entry, classify the primitives by their masks,
-    cap a cut, retrain the straddling primitives (and the cap) against the teacher, assemble."""
+    cap a cut, retrain the straddling primitives (and the cap) against the teacher, assemble; a
+    Gaussian field's straddling primitives are split instead (gaussian_cut.py)."""
     opts = read_options(fld, args, ctx.where)
     t0 = time.perf_counter()
     operand = read_operand(fld, args, opts.op, ctx)
@@ -73,6 +75,8 @@ def boolean(fld: Field, args, ctx) -> Field:
     t2 = time.perf_counter()
     note["classify_seconds"] = round(t2 - t1, 2)
 
+    if kinds.of(prims).exact_gaussians:   # Gaussians: the boundary split, not retrained (gaussian_cut.py)
+        return _assemble(fld, split, cut_gaussians(split, operand.shape, opts.op, note), note, t0, ctx.log)
     caps = prims.select(torch.zeros(0, dtype=torch.int64))
     if opts.cap and straddle.size and opts.op in ("difference", "intersection"):
         # the cut face: the operand's boundary where it lies inside E (union and xor add F's own surface)
@@ -93,7 +97,28 @@ def boolean(fld: Field, args, ctx) -> Field:
                                      opts.steps, opts.views, opts.size, ctx, note)
         inside = sum(float(note.get(key, 0.0)) for key in ("teacher_seconds", "stage1_seconds", "stage2_seconds"))
         note["retrain_other_seconds"] = round(max(time.perf_counter() - t3 - inside, 0.0), 2)
-    out = result_field(fld, split.base, kept, out_prims)
+    return _assemble(fld, split, out_prims, note, t0, ctx.log)
+
+
+def cut_gaussians(split: Split, shape, op: str, note: dict):
+    """The kept Gaussians, then the straddling ones refined against their masks (gaussian_cut.py);
+    the splits made and the boundary Gaussians kept go in `note`."""
+    prims = split.base.prims
+    out = prims.select(torch.as_tensor(split.kept))
+    note.update(retrained=0, straddling=int(split.straddle.size), splits=0, boundary_kept=0)
+    for k, mask in enumerate(split.masks):
+        ids = split.straddle[split.mask_id[split.straddle] == k]
+        if ids.size:
+            refined, figures = refine_boundary(prims.select(torch.as_tensor(ids)), mask, shape, op == "intersection")
+            out = concat_prims(out, refined)
+            note.update({key: note[key] + value for key, value in figures.items()})
+    return out
+
+
+def _assemble(fld: Field, split: Split, out_prims, note: dict, t0: float, log) -> Field:
+    """The edited field (result_field) with the boolean's note, its phases adding up to its seconds
+    (logged)."""
+    out = result_field(fld, split.base, split.kept, out_prims)
     seconds = round(time.perf_counter() - t0, 2)
     # the phases add up to `seconds` (to the rounding): what no phase measured is `other`
     for key in PHASES[:-1]:   # in PHASES' order, after the other figures
@@ -101,7 +126,7 @@ def boolean(fld: Field, args, ctx) -> Field:
     note["other_seconds"] = round(max(seconds - sum(note[key] for key in PHASES[:-1]), 0.0), 2)
     note["seconds"] = seconds
     out.notes.append(note)
-    ctx.log(f"boolean {opts.op}: {note}")
+    log(f"boolean {note['op']}: {note}")
     return out
 
 
@@ -120,8 +145,12 @@ def read_options(fld: Field, args, where: str) -> Options:
     cap = args.get("cap", True)
     if not isinstance(cap, bool):
         raise RadfieldError(f"{where}.cap: expected true or false, got {cap!r}")
-    if not kinds.of(fld.prims).retrainable_locally:
-        raise RadfieldError(f"{where}: boolean operations need a neural-primitive model (Gaussians have no line-integral density to mask)")
+    kind = kinds.of(fld.prims)
+    if not (kind.retrainable_locally or kind.exact_gaussians):
+        raise RadfieldError(f"{where}: boolean operations need a neural-primitive or a 3D Gaussian model, not {kind.name}")
+    if kind.exact_gaussians and given[0] == "model":
+        raise RadfieldError(f"{where}: a Gaussian field is cut by a shape or a mesh (a model operand's boolean field needs "
+                            f"neural densities)")
     if any(k in args for k in ("rotate", "translate", "scale")) and "model" not in args:
         raise RadfieldError(f"{where}: rotate/translate/scale place a model operand; shapes take their own coordinates")
     return Options(op, given[0], steps, views, size, cap)
