@@ -53,11 +53,11 @@ def imported(tmp_path_factory, run_radfield) -> dict[str, Path]:
     rest = generate_scene("objects", root / "rest", n_train=TRAIN, n_test=TEST, size=SIZE, mesh=False)
     twist = generate_scene("objects", root / "twist", n_train=TRAIN, n_test=TEST, size=SIZE, mesh=False, deform="twist")
     original = root / "original"
-    assert run_radfield("reconstruct", rest, "-o", original, "--primitive", "gaussian", "--iterations", "600",
+    assert run_radfield("reconstruct", rest, "-o", original, "--primitive", "gaussian", "--iterations", "300",
                         "--set", "stages=[sfm,data,triangulate,envelope,tetra,init,train,bind]", "-q") == 0
     ply = root / "model.ply"
     assert run_radfield("export", original, "-f", "ply-3dgs", "-o", ply, "-q") == 0
-    assert run_radfield("import", ply, "-o", root / "run", "--views", "40", "--size", "96", "-q") == 0
+    assert run_radfield("import", ply, "-o", root / "run", "--views", "24", "--size", "64", "-q") == 0
     return {"rest": rest, "twist": twist, "original": original, "ply": ply, "run": root / "run", "root": root}
 
 
@@ -67,7 +67,7 @@ def test_an_imported_run_says_where_it_came_from_and_renders_its_model(imported,
     info = json.loads(out)
     record = info["imported_from"]
     assert code == 0 and record["source"] == str(imported["ply"].resolve()) and record["format"] == "ply-3dgs"
-    assert record["kind"] == "gaussian" and record["views"] == 40 and record["size"] == 96
+    assert record["kind"] == "gaussian" and record["views"] == 24 and record["size"] == 64
     assert info["stages"]["tetra"]["tets"] > 100 and info["stages"]["bind"]["bound"] == record["primitives"]
     assert info["stages"]["envelope"]["source"] == "hull"
     # the model is the file's, exactly, and its renders are the run's dataset (16-bit PNGs)

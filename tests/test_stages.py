@@ -367,8 +367,8 @@ def test_eval_stage_info_json_and_eval_command(scene_dir, tmp_path, cli):
     code, out, _ = cli("info", run_dir, "--json")
     info = json.loads(out)
     assert code == 0 and set(info) == {"run", "input", "model", "normalization", "pending_checkpoint", "stages",
-                                       "edited_from", "edit", "artifacts"}
-    assert info["edited_from"] is None and info["edit"] is None
+                                       "imported_from", "edited_from", "edit", "artifacts"}
+    assert info["edited_from"] is None and info["edit"] is None and info["imported_from"] is None
     # what each stage wrote, in pipeline order, and the table says it too (it promised "artifacts")
     assert list(info["artifacts"]) == [s for s in info["stages"] if info["stages"][s]["applicable"]]
     assert info["artifacts"]["train"][0] == info["model"] and str(run_dir / "eval" / "report.md") in info["artifacts"]["eval"]
