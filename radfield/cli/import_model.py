@@ -30,20 +30,20 @@ def import_model(
 
     Renders the model from an orbit about it (RGBA, RUN/import/: the run's dataset), carves the
     visual hull of those silhouettes into an envelope, fills it with a tetrahedral cage (fTetWild)
-    and binds the model to it. edit (every operation), animate, render, eval (against its own
-    renders, or --dataset), bake, view and export then work on RUN as on a trained run; `info`
-    says where it came from. Static kinds only (a time- or light-conditioned radfield model is
+    and binds the model to it. edit, animate, render, eval (against its own renders, or
+    --dataset), bake, view and export then work on RUN as on a trained run of the model's kind;
+    `info` says where it came from. Static kinds only (a time- or light-conditioned radfield model is
     edited, rendered, viewed and exported as a file directly)."""
     from radfield.pipeline.config import load_config
-    from radfield.run import Run
     from radfield.pipeline.info import run_info
     from radfield.pipeline.runner import run_pipeline
     from radfield.pipeline.schema import typed
+    from radfield.run import Run
     from radfield.stages import imported, registry
 
     check_options({"--views": (views, AT_LEAST_1), "--test-views": (test_views, AT_LEAST_1), "--size": (size, IMAGE_SIZE)})
     check_output(output, False, folder=True)
-    prims, _ = imported.read_foreign(model)   # refused before anything is written
+    prims, fmt = imported.read_foreign(model)   # refused before anything is written
     options = {"stages": list(imported.STAGE_NAMES), "train.primitive": prims.kind, "envelope.source": "hull",
                "data.downscale": 1}
     if background is not None:
@@ -52,7 +52,7 @@ def import_model(
     given_empty = output.is_dir()
     run = Run(output)
     try:
-        record = imported.write_import(model, run.import_dir, views, test_views, size, quiet=quiet)
+        record = imported.write_import(prims, fmt, model, run.import_dir, views, test_views, size, quiet=quiet)
         stages = [stage for stage in registry.stages() if stage.name != "train"] + [imported.STAGE]
         run_pipeline(stages, output, typed(cfg), input_path=run.import_dir, quiet=quiet,
                      log=lambda line: typer.echo(line, err=True))

@@ -3,19 +3,20 @@ glTF, `.splat`, an official Splat the Net PLY, a radfield model file without its
 run directory, so that edit, animate, render, eval, bake, view and export work on it as on a
 trained run.
 
-`write_import(model_file, folder, ...)` writes RUN/import/, the run's INPUT: the model converted to
-radfield's model file (`model.safetensors`), and the model's own renders from an orbit about it as
-a NeRF-synthetic dataset (radfield.delivery.orbit_dataset: RGBA, so the silhouettes carve a visual
+`write_import(prims, format, model_file, folder, ...)` (the model as `read_foreign` read it) writes
+RUN/import/, the run's INPUT: the model converted to radfield's model file (`model.safetensors`),
+and the model's own renders from an orbit about it as a NeRF-synthetic dataset (radfield.delivery.orbit_dataset: RGBA, so the silhouettes carve a visual
 hull), with the model's centres as its point cloud (`mesh.ply`, coloured by their SH's constant
 term: the dataset's own points, so there is nothing to triangulate); `import.json` records where
 the model came from. Then the usual stages run on that input:
 
-    sfm (not applicable) → data → triangulate (not applicable) → envelope (the visual hull of the renders' alpha) → tetra
-         → train → bind
+    sfm (not applicable) → data → triangulate (not applicable)
+        → envelope (the visual hull of the renders' alpha) → tetra → train → bind
 
 where "train" is `STAGE` here: it trains nothing, it takes the imported model. The renders are what
 every later command that needs a dataset reads: the teacher and the cameras of eval, render and
-view, the training views of bake.
+view, the training views of bake. The model's own renders are also what eval scores it against by
+default (a lossless import scores above 100 dB there; `--dataset` scores it against photos).
 """
 
 from __future__ import annotations
@@ -53,9 +54,10 @@ def read_foreign(model_file: Path):
     return prims, fmt.name
 
 
-def write_import(model_file: Path, folder: Path, views: int, test_views: int, size: int, quiet: bool = False) -> dict[str, Any]:
-    """Write RUN/import/ (module docstring) into `folder`, which must not exist; the figures."""
-    prims, fmt = read_foreign(model_file)
+def write_import(prims, fmt: str, model_file: Path, folder: Path, views: int, test_views: int, size: int,
+                 quiet: bool = False) -> dict[str, Any]:
+    """Write RUN/import/ (module docstring) into `folder`, which must not exist, for the model
+    `prims` read from `model_file` (of format `fmt`: read_foreign); the record (import.json)."""
     folder.mkdir(parents=True)
     save_model(folder / IMPORTED_MODEL, prims)
     _write_points(prims, folder / POINTS)
