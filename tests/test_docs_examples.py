@@ -177,6 +177,7 @@ CHEAP_RUN = ["--iterations", "30", "--set", "init.num_points=300"]
 CHEAPER = {   # the start of a printed command -> what this test adds to it
     "demo-scene smoke -o demo/smoke": ["--size", "16", "--times", "3", "--train-views", "4", "--test-views", "2"],
     "reconstruct demo/smoke -o demo/smoke-run": ["--no-cage", *CHEAP_RUN],
+    "import demo/model.ply -o demo/imported": ["--views", "12", "--size", "64"],
 }
 SKIPPED = {   # the start of a command -> why it does not run here
     "radfield reconstruct demo/blobs -o demo/run --iterations 6000": "continues training to 6000 steps (minutes)",

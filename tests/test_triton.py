@@ -273,8 +273,8 @@ def test_the_forward_writes_every_output_it_allocates(scene, monkeypatch, render
 def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     """loop.train on the Triton path (the code a GPU runs: the kernels, the per-view preparation
     in torch, a conditioned kind's primitives of the view, loss, D-SSIM, Adam, the strategy's
-    statistics, the rules), 6 steps of 2 views with log_every 3: between the reads of the step
-    records (steps 3 and 6) the host reads one number a view, the binning's pair count
+    statistics, the rules), 4 steps of 2 views with log_every 2: between the reads of the step
+    records (steps 2 and 4) the host reads one number a view, the binning's pair count
     (binning.pair_count), and nothing else: no render counter, no visible count (conftest.HostReads;
     the blocking copies to the device are test_cuda.py's)."""
     from radfield.core.geometry.cameras import Light
@@ -291,7 +291,7 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     if kind.endswith("relight"):
         cams = [c.at(light=Light(position=(2.0, i - 1.0, 2.0))) for i, c in enumerate(cams)]
     cfg = load_defaults()["train"]
-    cfg.update(iterations=6, batch_views=2, log_every=3, checkpoint_every=100, eval_every=0, nonnegative_density=180.0,
+    cfg.update(iterations=4, batch_views=2, log_every=2, checkpoint_every=100, eval_every=0, nonnegative_density=180.0,
                min_footprint=0.5, ray_jitter=0.5, random_background=True, sh_degree=0)
     cfg["densify"].update(start=1, stop=100, every=100)   # gathers the statistics every step, refines never
     start = (random_neural if kind.startswith("neural") else random_gaussians)(20, seed=2)
@@ -301,11 +301,11 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
     with backends.using(backends.TRITON), training_reads as reads:
         loop.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
                       device=DEVICE, alphas=torch.ones(3, 16, 16), on_step=lambda step, info: log.append(step))
-    assert log == list(range(1, 7))
-    per_step = {step: sorted(f"{op} {where}" for s, op, where in reads.seen if s == step) for step in range(1, 7)}
+    assert log == list(range(1, 5))
+    per_step = {step: sorted(f"{op} {where}" for s, op, where in reads.seen if s == step) for step in range(1, 5)}
     pair_counts = ["__int__ radfield.core.backends.gpu.binning.pair_count"] * 2
     for step, seen in per_step.items():
-        if step in (3, 6):
+        if step in (2, 4):
             assert seen == sorted([*pair_counts, "tolist radfield.core.trainer.loop.flush"]), (step, seen)
         else:
             assert seen == pair_counts, (step, seen)
@@ -313,7 +313,7 @@ def test_a_training_step_reads_the_device_once_a_view(kind, training_reads):
 
 @pytest.mark.parametrize("kind", ["neural", "gaussian"])
 def test_training_on_the_triton_path_is_the_twins(kind):
-    """loop.train, 4 steps of 2 views each, on the Triton path (the views, the loss, the
+    """loop.train, 2 steps of 2 views each, on the Triton path (the views, the loss, the
     projection, the statistics: gradients of two views summed into one buffer's views) and on the
     torch twins: the same parameters after the last step, to float32 rounding."""
     from radfield.core.kinds import random_neural
@@ -327,7 +327,7 @@ def test_training_on_the_triton_path_is_the_twins(kind):
     states = []
     for backend in (backends.TRITON, backends.TORCH):
         cfg = load_defaults()["train"]
-        cfg.update(iterations=4, batch_views=2, log_every=100, checkpoint_every=100, eval_every=0, sh_degree=1,
+        cfg.update(iterations=2, batch_views=2, log_every=100, checkpoint_every=100, eval_every=0, sh_degree=1,
                    nonnegative_density=180.0)
         cfg["densify"].update(start=1, stop=100, every=100)
         start = (random_neural if kind == "neural" else random_gaussians)(20, seed=2, sh_degree=1)
@@ -337,7 +337,7 @@ def test_training_on_the_triton_path_is_the_twins(kind):
             states.append(loop.train(start, cams, images, cfg, background=(1.0, 1.0, 1.0), extent=1.0, seed=0,
                                         device=DEVICE))
     fast, slow = states
-    assert fast.step == slow.step == 4 and fast.params.keys() == slow.params.keys()
+    assert fast.step == slow.step == 2 and fast.params.keys() == slow.params.keys()
     for name, theirs in slow.params.items():
         torch.testing.assert_close(fast.params[name].cpu(), theirs.cpu(), rtol=1e-4, atol=2e-5, msg=name)
     assert not torch.equal(slow.params["log_scales"].cpu(), start.tensors()["log_scales"])   # training moved them
