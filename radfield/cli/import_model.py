@@ -39,7 +39,7 @@ def import_model(
     from radfield.pipeline.runner import run_pipeline
     from radfield.pipeline.schema import typed
     from radfield.run import Run
-    from radfield.stages import imported, registry
+    from radfield.stages import imported
 
     check_options({"--views": (views, AT_LEAST_1), "--test-views": (test_views, AT_LEAST_1), "--size": (size, IMAGE_SIZE)})
     check_output(output, False, folder=True)
@@ -53,8 +53,7 @@ def import_model(
     run = Run(output)
     try:
         record = imported.write_import(prims, fmt, model, run.import_dir, views, test_views, size, quiet=quiet)
-        stages = [stage for stage in registry.stages() if stage.name != "train"] + [imported.STAGE]
-        run_pipeline(stages, output, typed(cfg), input_path=run.import_dir, quiet=quiet,
+        run_pipeline(imported.stages(), output, typed(cfg), input_path=run.import_dir, quiet=quiet,
                      log=lambda line: typer.echo(line, err=True))
     except BaseException:
         # a half-made import is no run: nothing of it stays (an empty folder given as OUTPUT stays, empty)

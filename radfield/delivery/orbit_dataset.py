@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from radfield.core.geometry.camera_path import fibonacci_directions
 from radfield.core.geometry.cameras import Camera, look_at, opencv_to_opengl
 from radfield.core.render.antialias import render_model
 from radfield.datasets.images import write_image
@@ -55,19 +56,16 @@ def orbit_cameras(centre: np.ndarray, radius: float, views: int, test_views: int
     """Train and test cameras (size × size pixels) on a Fibonacci spiral over the whole sphere about
     `centre`, looking at it (+z up), the sphere of `radius` filling the view (module docstring)."""
     n = views + test_views
-    k = np.arange(n)
-    z = 1 - 2 * (k + 0.5) / n                      # uniform in height: uniform over the sphere
-    azimuth = k * math.pi * (3 - math.sqrt(5))
-    ring = np.sqrt(1 - z**2)
+    directions = fibonacci_directions(n)
     distance = MARGIN * radius / math.sin(CAMERA_ANGLE / 2)
-    eyes = np.asarray(centre) + distance * np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], -1)
+    eyes = np.asarray(centre) + distance * directions
     is_test = np.zeros(n, dtype=bool)
     is_test[np.round(np.linspace(0, n - 1, test_views)).astype(int)] = True
     focal = 0.5 * size / math.tan(CAMERA_ANGLE / 2)
 
     def camera(index: int, name: str) -> Camera:
         # look_at's up must not be the viewing direction: near the poles +y serves
-        up = (0, 0, 1) if abs(z[index]) < 0.99 else (0, 1, 0)
+        up = (0, 0, 1) if abs(directions[index, 2]) < 0.99 else (0, 1, 0)
         return Camera(focal, focal, size / 2, size / 2, size, size, look_at(eyes[index], centre, up), name)
 
     train = [camera(i, f"r_{m}") for m, i in enumerate(np.flatnonzero(~is_test))]

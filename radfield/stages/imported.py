@@ -33,6 +33,7 @@ from radfield.delivery.orbit_dataset import write_orbit_dataset
 from radfield.errors import RadfieldError
 from radfield.model_file import save_model
 from radfield.pipeline.runner import INPUT, Context, Stage
+from radfield.stages import registry
 from radfield.util.progress import progress_bar
 from radfield import run as layout
 
@@ -41,6 +42,11 @@ IMPORTED_MODEL = "model.safetensors"   # in RUN/import/: the model converted to 
 RECORD = layout.IMPORT_RECORD      # in RUN/import/: where it came from
 POINTS = "mesh.ply"                # in RUN/import/: the model's centres as the dataset's point cloud
 STAGE_NAMES = ("sfm", "data", "triangulate", "envelope", "tetra", "train", "bind")   # an imported run's `stages:`   # an imported run's `stages:`
+
+
+def stages() -> list[Stage]:
+    """The pipeline's stages with this module's `train` in place of the trainer (STAGE_NAMES picks them)."""
+    return [stage for stage in registry.stages() if stage.name != "train"] + [STAGE]
 
 
 def read_foreign(model_file: Path):

@@ -27,6 +27,16 @@ from radfield.core.geometry.cameras import Camera, look_at, opengl_to_opencv
 from radfield.errors import RadfieldError
 
 
+def fibonacci_directions(n: int) -> np.ndarray:
+    """`n` unit vectors (n, 3) spread evenly over the sphere: the golden-angle (Fibonacci) spiral,
+    uniform in height z = 1 − 2(k + ½)/n, so never exactly at a pole."""
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (1 + 5**0.5) * i
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+
 def orbit(target, radius: float, elevation: float, frames: int, template: Camera, up=(0.0, 0.0, 1.0),
           start: float = 0.0) -> list[Camera]:
     """`frames` cameras (intrinsics of `template`) turning once around `target` (module docstring)."""

@@ -3,12 +3,11 @@ lies inside the original object, so that the retrained cut face is closed, not h
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from radfield.core.geometry.camera_path import fibonacci_directions
 from radfield.core.geometry.rotations import rotmat_to_quat
 from radfield.core.kinds import NeuralPrimitives
 from radfield.core.splat.sh import rgb_to_sh_dc, sh_to_color
@@ -33,14 +32,6 @@ def cut_caps(original: NeuralPrimitives, straddlers: NeuralPrimitives, shape: Sh
     return cap_primitives(original, pts, -outward if inward else outward, spacing, seed=seed)
 
 
-def _sphere_directions(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    z = 1 - 2 * i / n
-    phi = math.pi * (1 + 5**0.5) * i
-    r = np.sqrt(1 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
-
-
 def cap_primitives(original: NeuralPrimitives, pts: np.ndarray, normal: np.ndarray, spacing: float,
                    seed: int = 0) -> NeuralPrimitives:
     """Thin opaque discs at the cut-surface points `pts` (n, 3) that lie inside the original object,
@@ -49,7 +40,7 @@ def cap_primitives(original: NeuralPrimitives, pts: np.ndarray, normal: np.ndarr
     empty = original.select(torch.zeros(0, dtype=torch.int64))
     if len(pts) == 0:
         return empty
-    dirs = _sphere_directions(14)
+    dirs = fibonacci_directions(14)
     occ = retrain.opacity_from(original, np.repeat(pts, 14, 0), np.tile(dirs, (len(pts), 1))).reshape(len(pts), 14)
     solid = (occ > 0.5).sum(1) >= 12
     pts, normal = pts[solid], normal[solid]
