@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -102,11 +103,15 @@ def headless_chromium(gpu: bool = False) -> Iterator[Page]:
     if binary is None:
         raise RadfieldError("chromium is not installed (apt-get install chromium, or set RADFIELD_CHROMIUM)")
     gl = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"] if not gpu else ["--enable-gpu", "--ignore-gpu-blocklist"]
-    with tempfile.TemporaryDirectory(prefix="radfield-chromium-") as profile:
+    # Chromium's helpers (renderer, GPU, crashpad) outlive a killed parent and go on writing into
+    # the profile, so the browser gets its own process group, killed whole, and the profile's removal
+    # retries rather than failing a finished run on a file written a moment late.
+    with tempfile.TemporaryDirectory(prefix="radfield-chromium-", ignore_cleanup_errors=True) as profile:
         browser = subprocess.Popen([binary, "--headless", "--no-sandbox", "--disable-gpu-sandbox", *gl,
                                     "--no-first-run", "--disable-extensions", f"--user-data-dir={profile}",
                                     "--remote-debugging-address=127.0.0.1", "--remote-debugging-port=0",
-                                    "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                    "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   start_new_session=True)
         try:
             active = Path(profile) / "DevToolsActivePort"
             end = time.monotonic() + WAIT
@@ -120,5 +125,15 @@ def headless_chromium(gpu: bool = False) -> Iterator[Page]:
             with connect(target["webSocketDebuggerUrl"], max_size=None, open_timeout=30) as ws:
                 yield Page(ws)
         finally:
-            browser.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(browser.pid, signal.SIGKILL)
             browser.wait(timeout=30)
+            _remove_profile(Path(profile))
+
+
+def _remove_profile(profile: Path, attempts: int = 20) -> None:
+    for _ in range(attempts):
+        shutil.rmtree(profile, ignore_errors=True)
+        if not profile.exists():
+            return
+        time.sleep(0.1)
