@@ -336,8 +336,12 @@ struct ChordTile {
   std::vector<T> delta, tau_m;           // Δ = max(ℓ_out − ℓ_in, 0)/max(s), τ_m = (ℓ_in + ℓ_out)/2/max(s)
   std::vector<T> clip, kappa;            // window: e = (ℓ_in − ℓ_in,raw)/max(s), the near plane's cut; κ = A max(s)²
   // step 2, the MLP integral, for pixel j and unit k at [j * units + k] (SIMD over both: a batch
-  // of a small splat has few pixels, but every pixel has `units` terms)
+  // of a small splat has few pixels, but every pixel has `units` terms); a `wide` batch (windowed,
+  // kWideBatch pixels or more: the usual batch of a full-size view) at [k * n + j] instead, so that
+  // the loops over units run in SIMD over the pixels with no horizontal sum per pixel
   int64_t units;
+  bool wide = false;
+  static constexpr int64_t kWideBatch = 16;
   std::vector<T> w_t;                    // the primitive's w_cam transposed, (3, N)
   std::vector<T> a;                      // a_k = w_cam_k · d̂
   // the phases a_k τ_m + c_k at [0, L) and x = a_k Δ/2 at [L, 2L) of one buffer (L = n · units),
@@ -349,6 +353,7 @@ struct ChordTile {
   std::vector<T> inner, g_clip, g_kappa; // window: I / (1.5 κ) per pixel; backward: ∂L/∂e, ∂L/∂κ
   std::vector<double> sum_c, sum_w2, sum_wx, sum_wy, sum_wz;  // backward: per-unit gradient sums
   std::vector<T> integral;               // I
+  std::vector<T> g_scaled;               // backward of a wide batch: ∂L/∂I · 1.5 κ per pixel
   std::vector<T> neg_depth, expm1_neg;   // −max(I, 0) and expm1 of it (eq. 9)
   // backward: ∂L/∂I, ∂L/∂τ_m, ∂L/∂Δ, ∂L/∂p_r, ∂L/∂ℓ* / A, ∂L/∂A
   std::vector<T> g_I, g_tau, g_delta, g_p0, g_p1, g_p2, g_mid, g_A;
@@ -363,7 +368,8 @@ struct ChordTile {
     if (backward) {
       for (auto* buf : {&slope, &win_slope}) buf->resize(cap * units);
       for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) buf->resize(units);
-      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_clip, &g_kappa}) buf->resize(cap);
+      for (auto* buf : {&g_tau, &g_delta, &g_p0, &g_p1, &g_p2, &g_mid, &g_A, &g_clip, &g_kappa, &g_scaled})
+        buf->resize(cap);
     }
   }
 
@@ -460,6 +466,20 @@ struct ChordTile {
     const T* c = q.c;
     phase = px.data(), x = px.data() + L;
     sin_p = sin_px.data(), sin_x = sin_px.data() + L, cos_p = cos_px.data(), cos_x = cos_px.data() + L;
+    wide = q.gain != T(0) && n >= kWideBatch;
+    if (wide) {
+      for (int64_t k = 0; k < N; ++k) {
+        const T wxk = wx[k], wyk = wy[k], wzk = wz[k], ck = c[k];
+        T *ak = a.data() + k * n, *pk = phase + k * n, *xk = x + k * n;
+#pragma omp simd
+        for (int64_t j = 0; j < n; ++j) {
+          ak[j] = wxk * d0[j] + wyk * d1[j] + wzk * d2[j];
+          pk[j] = ak[j] * tau_m[j] + ck;
+          xk[j] = T(0.5) * ak[j] * delta[j];
+        }
+      }
+      return windowed_optical_depth(q, backward, N, L);
+    }
     for (int64_t j = 0; j < n; ++j) {
       const T dx = d0[j], dy = d1[j], dz = d2[j], tm = tau_m[j], dl = delta[j];
       T *aj = a.data() + j * N, *pj = phase + j * N, *xj = x + j * N;
@@ -524,6 +544,7 @@ struct ChordTile {
 #pragma omp simd
       for (int64_t e = 0; e < L; ++e) ws[e] = window_slope(xs[e], sx[e], w[e]);
     }
+    if (wide) return windowed_sums_wide(q, N, cut_any);
     for (int64_t j = 0; j < n; ++j) {
       const T dl = delta[j], cut = clip[j];
       const T d3 = T(0.25) * dl * dl * dl, d2 = T(0.5) * dl * dl;
@@ -542,12 +563,44 @@ struct ChordTile {
     simd_expm1(neg_depth.data(), expm1_neg.data(), n);
   }
 
+  // windowed_optical_depth's sums for a wide batch: the same terms in the same order per pixel
+  // (units ascending), each unit's in SIMD over the pixels
+  void windowed_sums_wide(const NeuralParams<T>& q, int64_t N, bool cut_any) {
+    T* sum = inner.data();
+    std::fill(sum, sum + n, T(0));
+    const T *dl = delta.data(), *cut = clip.data();
+    for (int64_t k = 0; k < N; ++k) {
+      const T w2k = q.w2[k];
+      const T *C = cos_p + k * n, *W = win.data() + k * n;
+      if (!cut_any) {  // sin φ was not computed: only the whole chord's term
+#pragma omp simd
+        for (int64_t j = 0; j < n; ++j) sum[j] += w2k * (C[j] * (T(0.25) * dl[j] * dl[j] * dl[j]) * W[j]);
+      } else {
+        const T *S = sinc_x.data() + k * n, *SP = sin_p + k * n, *X = x + k * n;
+#pragma omp simd
+        for (int64_t j = 0; j < n; ++j) {
+          const T d3 = T(0.25) * dl[j] * dl[j] * dl[j], dl2 = T(0.5) * dl[j] * dl[j];
+          const T whole = C[j] * d3 * W[j];
+          sum[j] += cut[j] == T(0) ? w2k * whole : w2k * (whole + cut[j] * dl2 * (C[j] * S[j] + SP[j] * (T(0.5) * X[j] * W[j])));
+        }
+      }
+    }
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) {
+      inner[j] = sum[j] + q.b2 * (dl[j] * dl[j] * dl[j] / T(6) + cut[j] * (T(0.5) * dl[j] * dl[j]));
+      integral[j] = q.gain * kappa[j] * inner[j];
+      neg_depth[j] = -std::max(integral[j], T(0));
+    }
+    simd_expm1(neg_depth.data(), expm1_neg.data(), n);
+  }
+
   // Step 2 backward for the windowed density: from g_I to g_tau, g_delta, g_clip and g_kappa, and
   // the sums for c, w2, w_cam and b2 (sinc' = −j1 and j1' = f2 with j1 = x W/2, f2 = (W + x W')/2).
   // A whole chord (e = 0, the usual case) takes the loop without the cut's terms; e's gradient
   // there would reach ℓ_in and ℓ_in_raw alike and cancel (chords_backward), so g_clip = 0.
   void windowed_optical_depth_backward(const NeuralParams<T>& q, const NeuralGradRefs& acc) {
     const int64_t N = kUnits > 0 ? kUnits : units;
+    if (wide) return windowed_backward_wide(q, acc, N);
     for (auto* buf : {&sum_c, &sum_w2, &sum_wx, &sum_wy, &sum_wz}) std::fill(buf->begin(), buf->end(), 0.0);
     double sum_b2 = 0;
     for (int64_t j = 0; j < n; ++j) {
@@ -560,6 +613,81 @@ struct ChordTile {
       g_kappa[j] = g_I[j] * q.gain * inner[j];
     }
     add_unit_sums(acc, N, sum_b2);
+  }
+
+  // windowed_optical_depth_backward for a wide batch: the per-pixel sums over the units accumulate
+  // in g_tau, g_delta and g_clip, each unit's sums are SIMD reductions over the pixels
+  void windowed_backward_wide(const NeuralParams<T>& q, const NeuralGradRefs& acc, int64_t N) {
+    const T *dl = delta.data(), *cut = clip.data(), *tm = tau_m.data();
+    T* gk = g_scaled.data();
+    bool cut_any = false;
+    double sum_b2 = 0;
+#pragma omp simd reduction(+ : sum_b2) reduction(|| : cut_any)
+    for (int64_t j = 0; j < n; ++j) {
+      const T dl2 = T(0.5) * dl[j] * dl[j];
+      gk[j] = g_I[j] * q.gain * kappa[j];
+      sum_b2 += double(gk[j] * (dl[j] * dl[j] * dl[j] / T(6) + cut[j] * dl2));
+      g_tau[j] = T(0);
+      g_delta[j] = gk[j] * q.b2 * (dl2 + cut[j] * dl[j]);
+      g_clip[j] = gk[j] * q.b2 * dl2;
+      g_kappa[j] = g_I[j] * q.gain * inner[j];
+      cut_any = cut_any || cut[j] != T(0);
+    }
+    for (int64_t k = 0; k < N; ++k) {
+      const int64_t o = k * n;
+      const T w2k = q.w2[k];
+      const T *ak = a.data() + o, *S = sinc_x.data() + o, *C = cos_p + o, *SP = sin_p + o;
+      const T *W = win.data() + o, *WS = win_slope.data() + o, *X = x + o;
+      double s_c = 0, s_w2 = 0, s_x = 0, s_y = 0, s_z = 0;
+      if (!cut_any) {
+#pragma omp simd reduction(+ : s_c, s_w2, s_x, s_y, s_z)
+        for (int64_t j = 0; j < n; ++j) {
+          const T d3 = T(0.25) * dl[j] * dl[j] * dl[j], d3_dl = T(0.75) * dl[j] * dl[j], gw = gk[j] * w2k;
+          const T f = C[j] * d3 * W[j], f_phase = -SP[j] * d3 * W[j], f_x = C[j] * d3 * WS[j], f_dl = C[j] * d3_dl * W[j];
+          const T g_phase = gw * f_phase, g_x = gw * f_x;
+          const T g_a = g_phase * tm[j] + T(0.5) * g_x * dl[j];
+          g_tau[j] += g_phase * ak[j];
+          g_delta[j] += gw * f_dl + T(0.5) * g_x * ak[j];
+          s_c += double(g_phase);
+          s_w2 += double(gk[j] * f);
+          s_x += double(g_a * d0[j]);  // a_k = w_cam_k · d̂
+          s_y += double(g_a * d1[j]);
+          s_z += double(g_a * d2[j]);
+        }
+      } else {  // windowed_pixel_backward<true>'s terms; a whole chord's cut terms are × e = 0
+#pragma omp simd reduction(+ : s_c, s_w2, s_x, s_y, s_z)
+        for (int64_t j = 0; j < n; ++j) {
+          const T e = cut[j], d3 = T(0.25) * dl[j] * dl[j] * dl[j], dl2 = T(0.5) * dl[j] * dl[j];
+          const T d3_dl = T(0.75) * dl[j] * dl[j], gw = gk[j] * w2k;
+          const T Cj = C[j], Sj = SP[j], Wj = W[j];
+          const T j1 = T(0.5) * X[j] * Wj, f2 = T(0.5) * (Wj + X[j] * WS[j]);
+          const T cut_term = Cj * S[j] + Sj * j1;
+          const T f = Cj * d3 * Wj + e * dl2 * cut_term;
+          const T f_phase = -Sj * d3 * Wj + e * dl2 * (Cj * j1 - Sj * S[j]);
+          const T f_x = Cj * d3 * WS[j] + e * dl2 * (Sj * f2 - Cj * j1);
+          const T f_dl = Cj * d3_dl * Wj + e * dl[j] * cut_term;
+          g_clip[j] += gw * dl2 * cut_term;
+          const T g_phase = gw * f_phase, g_x = gw * f_x;
+          const T g_a = g_phase * tm[j] + T(0.5) * g_x * dl[j];
+          g_tau[j] += g_phase * ak[j];
+          g_delta[j] += gw * f_dl + T(0.5) * g_x * ak[j];
+          s_c += double(g_phase);
+          s_w2 += double(gk[j] * f);
+          s_x += double(g_a * d0[j]);
+          s_y += double(g_a * d1[j]);
+          s_z += double(g_a * d2[j]);
+        }
+      }
+      acc.c[k] += s_c;
+      acc.w2[k] += s_w2;
+      acc.w_cam[3 * k] += s_x;
+      acc.w_cam[3 * k + 1] += s_y;
+      acc.w_cam[3 * k + 2] += s_z;
+    }
+    *acc.b2 += sum_b2;
+    // a whole chord's e gets no gradient (see windowed_optical_depth_backward)
+    for (int64_t j = 0; j < n; ++j)
+      if (cut[j] == T(0)) g_clip[j] = T(0);
   }
 
   // the batch's per-unit sums (and b2's) into the primitive's gradient sums
