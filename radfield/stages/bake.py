@@ -65,8 +65,10 @@ def bake_model(model_file: Path, scene: Scene, out: Path, *, min_weight: float, 
               "min_weight": min_weight, "fp16": fp16, "primitives_before": len(model), "primitives_after": len(baked)}
     save_model(out, baked.to("cpu"), extra={"baked": json.dumps(recipe, sort_keys=True)},
                dtype=torch.float16 if fp16 else torch.float32)
-    before = mean_psnr(model, held_out, photos.to(device), background=scene.background, near=near)
-    after = mean_psnr(baked, held_out, photos.to(device), background=scene.background, near=near)
+    # over the valid pixels, as eval scores (undistorted photos have an invalid border)
+    masks = scene.valid_masks(split)
+    before = mean_psnr(model, held_out, photos.to(device), background=scene.background, near=near, masks=masks)
+    after = mean_psnr(baked, held_out, photos.to(device), background=scene.background, near=near, masks=masks)
     return {"primitives_before": len(model), "primitives_after": len(baked), "pruned": int((~keep).sum()),
             "size_before": len(source), "size_after": Path(out).stat().st_size, "fp16": fp16,
             "psnr_before": before, "psnr_after": after, "psnr_change": after - before, "split": split}

@@ -618,7 +618,7 @@ struct ChordTile {
   // windowed_optical_depth_backward for a wide batch: the per-pixel sums over the units accumulate
   // in g_tau, g_delta and g_clip, each unit's sums are SIMD reductions over the pixels
   void windowed_backward_wide(const NeuralParams<T>& q, const NeuralGradRefs& acc, int64_t N) {
-    const T *dl = delta.data(), *cut = clip.data(), *tm = tau_m.data();
+    const T *dl = delta.data(), *cut = clip.data();
     T* gk = g_scaled.data();
     bool cut_any = false;
     double sum_b2 = 0;
@@ -634,60 +634,57 @@ struct ChordTile {
       cut_any = cut_any || cut[j] != T(0);
     }
     for (int64_t k = 0; k < N; ++k) {
-      const int64_t o = k * n;
-      const T w2k = q.w2[k];
-      const T *ak = a.data() + o, *S = sinc_x.data() + o, *C = cos_p + o, *SP = sin_p + o;
-      const T *W = win.data() + o, *WS = win_slope.data() + o, *X = x + o;
-      double s_c = 0, s_w2 = 0, s_x = 0, s_y = 0, s_z = 0;
-      if (!cut_any) {
-#pragma omp simd reduction(+ : s_c, s_w2, s_x, s_y, s_z)
-        for (int64_t j = 0; j < n; ++j) {
-          const T d3 = T(0.25) * dl[j] * dl[j] * dl[j], d3_dl = T(0.75) * dl[j] * dl[j], gw = gk[j] * w2k;
-          const T f = C[j] * d3 * W[j], f_phase = -SP[j] * d3 * W[j], f_x = C[j] * d3 * WS[j], f_dl = C[j] * d3_dl * W[j];
-          const T g_phase = gw * f_phase, g_x = gw * f_x;
-          const T g_a = g_phase * tm[j] + T(0.5) * g_x * dl[j];
-          g_tau[j] += g_phase * ak[j];
-          g_delta[j] += gw * f_dl + T(0.5) * g_x * ak[j];
-          s_c += double(g_phase);
-          s_w2 += double(gk[j] * f);
-          s_x += double(g_a * d0[j]);  // a_k = w_cam_k · d̂
-          s_y += double(g_a * d1[j]);
-          s_z += double(g_a * d2[j]);
-        }
-      } else {  // windowed_pixel_backward<true>'s terms; a whole chord's cut terms are × e = 0
-#pragma omp simd reduction(+ : s_c, s_w2, s_x, s_y, s_z)
-        for (int64_t j = 0; j < n; ++j) {
-          const T e = cut[j], d3 = T(0.25) * dl[j] * dl[j] * dl[j], dl2 = T(0.5) * dl[j] * dl[j];
-          const T d3_dl = T(0.75) * dl[j] * dl[j], gw = gk[j] * w2k;
-          const T Cj = C[j], Sj = SP[j], Wj = W[j];
-          const T j1 = T(0.5) * X[j] * Wj, f2 = T(0.5) * (Wj + X[j] * WS[j]);
-          const T cut_term = Cj * S[j] + Sj * j1;
-          const T f = Cj * d3 * Wj + e * dl2 * cut_term;
-          const T f_phase = -Sj * d3 * Wj + e * dl2 * (Cj * j1 - Sj * S[j]);
-          const T f_x = Cj * d3 * WS[j] + e * dl2 * (Sj * f2 - Cj * j1);
-          const T f_dl = Cj * d3_dl * Wj + e * dl[j] * cut_term;
-          g_clip[j] += gw * dl2 * cut_term;
-          const T g_phase = gw * f_phase, g_x = gw * f_x;
-          const T g_a = g_phase * tm[j] + T(0.5) * g_x * dl[j];
-          g_tau[j] += g_phase * ak[j];
-          g_delta[j] += gw * f_dl + T(0.5) * g_x * ak[j];
-          s_c += double(g_phase);
-          s_w2 += double(gk[j] * f);
-          s_x += double(g_a * d0[j]);
-          s_y += double(g_a * d1[j]);
-          s_z += double(g_a * d2[j]);
-        }
-      }
-      acc.c[k] += s_c;
-      acc.w2[k] += s_w2;
-      acc.w_cam[3 * k] += s_x;
-      acc.w_cam[3 * k + 1] += s_y;
-      acc.w_cam[3 * k + 2] += s_z;
+      if (cut_any)
+        wide_unit_backward<true>(k, q, acc);
+      else
+        wide_unit_backward<false>(k, q, acc);
     }
     *acc.b2 += sum_b2;
     // a whole chord's e gets no gradient (see windowed_optical_depth_backward)
     for (int64_t j = 0; j < n; ++j)
       if (cut[j] == T(0)) g_clip[j] = T(0);
+  }
+
+  // unit k of windowed_backward_wide, in SIMD over the pixels: windowed_pixel_backward's terms
+  // (kCut: the batch has a cut chord; a whole chord's cut terms are then × e = 0)
+  template <bool kCut>
+  void wide_unit_backward(int64_t k, const NeuralParams<T>& q, const NeuralGradRefs& acc) {
+    const int64_t o = k * n;
+    const T w2k = q.w2[k];
+    const T *dl = delta.data(), *cut = clip.data(), *tm = tau_m.data(), *gk = g_scaled.data();
+    const T *ak = a.data() + o, *SC = sinc_x.data() + o, *C = cos_p + o, *SP = sin_p + o;
+    const T *W = win.data() + o, *WS = win_slope.data() + o, *X = x + o;
+    double s_c = 0, s_w2 = 0, s_x = 0, s_y = 0, s_z = 0;
+#pragma omp simd reduction(+ : s_c, s_w2, s_x, s_y, s_z)
+    for (int64_t j = 0; j < n; ++j) {
+      const T d3 = T(0.25) * dl[j] * dl[j] * dl[j], d3_dl = T(0.75) * dl[j] * dl[j], gw = gk[j] * w2k;
+      const T Cj = C[j], Sj = SP[j], Wj = W[j];
+      T f = Cj * d3 * Wj, f_phase = -Sj * d3 * Wj, f_x = Cj * d3 * WS[j], f_dl = Cj * d3_dl * Wj;  // F and ∂F/∂(φ, x, Δ)
+      if constexpr (kCut) {
+        const T e = cut[j], dl2 = T(0.5) * dl[j] * dl[j];
+        const T j1 = T(0.5) * X[j] * Wj, f2 = T(0.5) * (Wj + X[j] * WS[j]);
+        const T cut_term = Cj * SC[j] + Sj * j1;  // the near plane's bracket
+        f += e * dl2 * cut_term;
+        f_phase += e * dl2 * (Cj * j1 - Sj * SC[j]);
+        f_x += e * dl2 * (Sj * f2 - Cj * j1);
+        f_dl += e * dl[j] * cut_term;
+        g_clip[j] += gw * dl2 * cut_term;
+      }
+      const T g_phase = gw * f_phase, g_x = gw * f_x;
+      const T g_a = g_phase * tm[j] + T(0.5) * g_x * dl[j];
+      g_tau[j] += g_phase * ak[j];
+      g_delta[j] += gw * f_dl + T(0.5) * g_x * ak[j];
+      s_c += double(g_phase);
+      s_w2 += double(gk[j] * f);
+      s_x += double(g_a * d0[j]);  // a_k = w_cam_k · d̂
+      s_y += double(g_a * d1[j]);
+      s_z += double(g_a * d2[j]);
+    }
+    acc.c[k] += s_c;
+    acc.w2[k] += s_w2;
+    acc.w_cam[3 * k] += s_x;
+    acc.w_cam[3 * k + 1] += s_y;
+    acc.w_cam[3 * k + 2] += s_z;
   }
 
   // the batch's per-unit sums (and b2's) into the primitive's gradient sums
