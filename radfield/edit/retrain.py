@@ -24,6 +24,7 @@ import time
 import numpy as np
 import torch
 
+from radfield.core.geometry.camera_path import fibonacci_directions
 from radfield.core.geometry.cameras import Camera, look_at, pixel_rays
 from radfield.core.splat.composite import composite_pairs
 from radfield.core.splat.kernels import ALPHA_MAX, ALPHA_MIN, ellipsoid_frame, neural_optical_depth, ray_ellipsoid, windowed_optical_depth
@@ -161,12 +162,9 @@ def orbit_around(prims, idx, views: int, size: int) -> list[Camera]:
     dist = 3.0 * radius
     focal = (size / 2) / math.tan(math.asin(1 / 3.0) * 1.15)
     cams = []
-    for k in range(views):
-        z = 1 - 2 * (k + 0.5) / views
-        phi = math.pi * (1 + 5**0.5) * (k + 0.5)
-        dvec = torch.tensor([math.sqrt(1 - z * z) * math.cos(phi), math.sqrt(1 - z * z) * math.sin(phi), z], dtype=torch.float64)
-        eye = centre + dist * dvec
-        up = (0.0, 0.0, 1.0) if abs(z) < 0.95 else (0.0, 1.0, 0.0)
+    for k, direction in enumerate(fibonacci_directions(views)):
+        eye = centre + dist * torch.from_numpy(direction)
+        up = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.95 else (0.0, 1.0, 0.0)
         cams.append(Camera(fx=focal, fy=focal, cx=size / 2, cy=size / 2, width=size, height=size,
                            c2w=look_at(eye.tolist(), centre.tolist(), up), name=f"local{k}"))
     return cams

@@ -5,8 +5,8 @@ trained run.
 
 `write_import(prims, format, model_file, folder, ...)` (the model as `read_foreign` read it) writes
 RUN/import/, the run's INPUT: the model converted to radfield's model file (`model.safetensors`),
-and the model's own renders from an orbit about it as a NeRF-synthetic dataset (radfield.delivery.orbit_dataset: RGBA, so the silhouettes carve a visual
-hull), with the model's centres as its point cloud (`mesh.ply`, coloured by their SH's constant
+and the model's own renders from an orbit about it as a NeRF-synthetic dataset
+(radfield.delivery.orbit_dataset: RGBA, so the silhouettes carve a visual hull), with the model's centres as its point cloud (`mesh.ply`, coloured by their SH's constant
 term: the dataset's own points, so there is nothing to triangulate); `import.json` records where
 the model came from. Then the usual stages run on that input:
 
@@ -41,7 +41,7 @@ MODEL_FILE = layout.MODEL_FILE     # the train stage's output, as the trained ru
 IMPORTED_MODEL = "model.safetensors"   # in RUN/import/: the model converted to radfield's file
 RECORD = layout.IMPORT_RECORD      # in RUN/import/: where it came from
 POINTS = "mesh.ply"                # in RUN/import/: the model's centres as the dataset's point cloud
-STAGE_NAMES = ("sfm", "data", "triangulate", "envelope", "tetra", "train", "bind")   # an imported run's `stages:`   # an imported run's `stages:`
+STAGE_NAMES = ("sfm", "data", "triangulate", "envelope", "tetra", "train", "bind")   # an imported run's `stages:`
 
 
 def stages() -> list[Stage]:
