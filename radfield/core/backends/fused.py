@@ -110,8 +110,14 @@ def _build():
         # no FMA contraction: with it GCC fuses a·b + c wherever -mfma allows, so AVX2/AVX-512
         # builds rounded differently from the default build and from torch's eager twins, which
         # decided whether an ill-conditioned float32 gradient landed just inside or outside a
-        # test bound that was relative to the twin's own error
-        extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off", *_simd_flags()],
+        # test bound that was relative to the twin's own error. -fno-trapping-math changes no
+        # result either (nothing is reordered or contracted), but lets a loop with a guarded
+        # division (sinc at x = 0, the window's series below |x| = 1, a missed chord) divide on
+        # every lane and select: without it GCC vectorises such loops only with AVX-512's masked
+        # division, and the AVX2 build ran the neural primitive's sinc and window scalar (a
+        # branch-free rewrite does not help: GCC sinks the division back under the branch)
+        extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off",
+                      *_simd_flags()],
         extra_ldflags=["-fopenmp"],
         is_python_module=False,   # registers torch.ops.radfield.* (TORCH_LIBRARY), no pybind11
         verbose=False,
