@@ -6,8 +6,9 @@ trained run.
 `write_import(prims, format, model_file, folder, ...)` (the model as `read_foreign` read it) writes
 RUN/import/, the run's INPUT: the model converted to radfield's model file (`model.safetensors`),
 and the model's own renders from an orbit about it as a NeRF-synthetic dataset
-(radfield.delivery.orbit_dataset: RGBA, so the silhouettes carve a visual hull), with the model's centres as its point cloud (`mesh.ply`, coloured by their SH's constant
-term: the dataset's own points, so there is nothing to triangulate); `import.json` records where
+(radfield.delivery.orbit_dataset: RGBA, so the silhouettes carve a visual hull), with the model's
+centres as its point cloud (`mesh.ply`, coloured by their SH's constant term: the dataset's own
+points, so there is nothing to triangulate); `import.json` records where
 the model came from. Then the usual stages run on that input:
 
     sfm (not applicable) → data → triangulate (not applicable)

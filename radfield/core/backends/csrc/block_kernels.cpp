@@ -181,13 +181,7 @@ void gaussian_forward_kernel(const T* u, const T* v, const T* mean2d, const T* c
     for (int64_t item = 0; item < P * tiles; ++item) {
       const int64_t p = item / tiles, a0 = (item % tiles) * kTile, a1 = std::min(a0 + kTile, A);
       gaussian_tile(u, v, mean2d, conic, A, p, a0, a1, power.data(), e.data());
-      // two loops, as view_kernels.cpp's GaussianKind::alpha (one stays scalar with -fno-trapping-math)
-      T* out = alpha + p * A + a0;
-      const T op = opacity[p];
-#pragma omp simd
-      for (int64_t a = 0; a < a1 - a0; ++a) out[a] = std::min(T(kAlphaMax), op * e[a]);
-#pragma omp simd
-      for (int64_t a = 0; a < a1 - a0; ++a) out[a] = gaussian_alpha(power[a], out[a]);
+      gaussian_alpha_batch(power.data(), e.data(), opacity[p], a1 - a0, alpha + p * A + a0);
     }
   }
 }

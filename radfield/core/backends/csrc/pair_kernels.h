@@ -871,6 +871,17 @@ inline T gaussian_alpha(T power, T value) {
   return (value < T(kAlphaMin) || power > T(0)) ? T(0) : value;
 }
 
+// α of a batch of m pixels from power and e = exp(min(power, 0)), the opacity clamped at 0.99, in
+// two loops: written as one, GCC (with -fno-trapping-math) loads e only where power ≤ 0 and then
+// leaves the loop scalar
+template <typename T>
+inline void gaussian_alpha_batch(const T* power, const T* e, T opacity, int64_t m, T* out) {
+#pragma omp simd
+  for (int64_t j = 0; j < m; ++j) out[j] = std::min(T(kAlphaMax), opacity * e[j]);
+#pragma omp simd
+  for (int64_t j = 0; j < m; ++j) out[j] = gaussian_alpha(power[j], out[j]);
+}
+
 // the gradient passes where α is neither skipped (α < 1/255 or power > 0) nor clamped at 0.99
 template <typename T>
 inline bool gaussian_passes(T power, T value) {

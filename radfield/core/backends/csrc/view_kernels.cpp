@@ -186,13 +186,7 @@ struct GaussianKind {
   void alpha(int64_t p, const TileBatch<T>& b, T* out) {
     const int64_t m = b.m;
     splat(p, b.u.data(), b.v.data(), m);
-    // two loops: in one, GCC (with -fno-trapping-math) loads e only where power ≤ 0 and then
-    // leaves the loop scalar
-    const T op = opacity[p];
-#pragma omp simd
-    for (int64_t j = 0; j < m; ++j) out[j] = std::min(T(kAlphaMax), op * e[j]);
-#pragma omp simd
-    for (int64_t j = 0; j < m; ++j) out[j] = gaussian_alpha(power[j], out[j]);
+    gaussian_alpha_batch(power.data(), e.data(), opacity[p], m, out);
   }
 
   template <typename GradOf>
