@@ -1,9 +1,11 @@
 """The triangulate stage and the starts it serves, on fern (../shared/datasets/fern: 17 posed training
 photos, no points, no alpha) at 1/4 of its 504x378 (126x94, so the whole front end takes seconds): its
-points, the init stage starting from them, and the random fallback's few-pixel primitives."""
+points, the init stage starting from them (and capped by init.footprint_px), and the random
+fallback's few-pixel primitives."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +83,24 @@ def test_init_starts_from_the_triangulated_points_with_small_primitives(fern_run
     _, means, _ = init.initial_centres(scene, {}, "random", 300, np.random.default_rng(0))
     spread = init.make_primitives(means, None, "neural", 0, scene.extent, 0, {"window": model.window})
     assert np.nanmedian(projected_radii(run_dir)) < 0.5 * np.nanmedian(projected_radii(run_dir, spread))
+
+
+def test_init_footprint_px_caps_the_triangulated_start(fern_run, tmp_path):
+    fern, default_run = fern_run
+    uncapped = projected_radii(default_run)
+    largest = np.nanmax(uncapped, 0)   # each primitive's radius in pixels where it looks largest
+    cap = float(np.round(np.nanmedian(largest)))   # half the primitives above it
+    run_dir = tmp_path / "run"
+    shutil.copytree(default_run, run_dir)   # the triangulation cached: only init runs again
+    assert run_until("init", fern, run_dir, f"init.footprint_px={cap}")["init"] == "ran"
+    figures = read_manifest(run_dir / "init")["figures"]
+    assert figures["source"] == "triangulate" and figures["footprint_px"] == cap
+    radii = projected_radii(run_dir)
+    # none larger than the cap in any view that has it in front, the larger ones at it, the others unchanged
+    assert np.nanmax(radii) <= cap * (1 + 1e-4)
+    assert np.allclose(np.nanmax(radii, 0)[largest > cap], cap, rtol=1e-4)
+    small = largest < cap
+    assert small.any() and np.allclose(radii[:, small], uncapped[:, small], equal_nan=True)
 
 
 def test_the_random_start_covers_a_few_pixels(fern_run, tmp_path):

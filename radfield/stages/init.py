@@ -22,7 +22,11 @@ Random centres know nothing of the surfaces, and 2,000 of them spread over a sce
 each is capped to cover RANDOM_FOOTPRINT_PX pixels in the training view where it looks largest
 (`footprint_radius`; figure `footprint_px`), so that a random start is many small primitives too,
 not a few that each cover most of a view (the volume samples beside a point source, below, keep
-their spacing: they fill what lies between the points).
+their spacing: they fill what lies between the points). `init.footprint_px` caps every other start
+the same way (off by default): a real capture's points are sparse, and the first steps, before
+densification splits them, cost what their footprints cover (fern at 504×378: 14.6 M
+pixel–primitive pairs a view, 1.0 M capped at 12 px; its whole run about 17 → 14 minutes and +0.28
+dB held-out, but fox_small's −0.65 dB: docs/studies/real-size.md).
 The kind is `train.primitive`'s, or for a dynamic scene (views that carry a time) its
 time-conditioned kind (`primitive_kind`: neural -> neural-dynamic, gaussian -> gaussian-dynamic;
 kinds/dynamic.py), which starts as the static kind with zero temporal tensors, and for a
@@ -111,18 +115,20 @@ def run(ctx: Context) -> dict[str, Any]:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     kind = primitive_kind(cfg, conditions.view_conditions(scene.splits))
-    # a random start covers a few pixels a primitive (RANDOM_FOOTPRINT_PX); the others, their spacing
-    cap = footprint_radius(means, scene.cameras("train"), RANDOM_FOOTPRINT_PX) if source == "random" else None
+    # a random start covers a few pixels a primitive (RANDOM_FOOTPRINT_PX); the others keep their
+    # spacing, capped at init.footprint_px pixels when it is set
+    pixels = RANDOM_FOOTPRINT_PX if source == "random" else cfg["init"]["footprint_px"]
+    cap = footprint_radius(means, scene.cameras("train"), pixels) if pixels > 0 else None
     prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
                             kinds.get(kind).init_settings(cfg), max_radius=cap)
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {SOURCE_WORDS[source]}"
-            + (f" of at most {RANDOM_FOOTPRINT_PX} px" if cap is not None else "")
+            + (f" of at most {pixels:g} px" if cap is not None else "")
             + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
             "cage_samples": in_volume, "bound": cage_file is not None,
-            **({"footprint_px": RANDOM_FOOTPRINT_PX} if cap is not None else {}),
+            **({"footprint_px": pixels} if cap is not None else {}),
             # a conditioned kind, chosen for views that carry a time or a light, is recorded (`radfield info`)
             **({"kind": prims.kind} if kinds.get(kind).conditions else {})}
 

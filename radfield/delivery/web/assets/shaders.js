@@ -361,7 +361,7 @@ void main() {
   float d2 = 0.5 * delta * delta, d3 = 0.25 * delta * delta * delta;
 #endif
   float depth = 0.0;
-  for (int k = 0; k < N_HIDDEN; k++) {
+  FOR_EACH(k, N_HIDDEN) {
 #ifdef UNITS_IN_VARYINGS
     float a = dot(vUnit[k].xyz, d);                     // a_k = omega0 W1_k . d-hat
     float c = vUnit[k].w;
@@ -460,6 +460,25 @@ void main() {
 }
 `;
 
+// The fragment shader's loop over the hidden units, FOR_EACH(k, N_HIDDEN) { body }, is written out:
+// one copy of the body per k, k a constant in each. SwiftShader (the software GL) reads an array of
+// varyings at a loop variable's index through memory, lane by lane: that loop alone took 210 of
+// 490 ms a frame (10k neural primitives at 800²; written out: 350 ms). It runs every instruction of a
+// fragment whatever its branches took, so the copies cost no more than the loop did. (The vertex
+// shaders' loops, written out, were not faster: they stay loops.) `counts`: each COUNT's value.
+function writeOut(source, counts) {
+  const loop = /FOR_EACH\((\w+), (\w+)\) \{/;
+  for (let m = source.match(loop); m; m = source.match(loop)) {
+    let depth = 1, end = m.index + m[0].length;
+    for (; depth > 0; end++) depth += source[end] === "{" ? 1 : source[end] === "}" ? -1 : 0;
+    const body = source.slice(m.index + m[0].length, end - 1);
+    const count = counts[m[2]];
+    const copies = Array.from({ length: count }, (_, i) => `{ const int ${m[1]} = ${i};${body}}`);
+    source = source.slice(0, m.index) + copies.join("\n") + source.slice(end);
+  }
+  return source;
+}
+
 // The program that splats one model: its kind and sizes as #defines (layout: renderer.js).
 // unitsInVaryings: the GPU has the varyings for one vec4 per hidden unit (renderer.js decides).
 export function splatShaders(model, layout, unitsInVaryings) {
@@ -488,7 +507,7 @@ export function splatShaders(model, layout, unitsInVaryings) {
   const head = HEADER + defines.join("\n") + "\n" + COMMON_UNIFORMS + FETCH + TRIG;
   const colour = SH_DC + SH + QUAT + (model.relight ? RELIGHT : "") + VIEW_COLOUR;
   return model.neural
-    ? { vertex: head + colour + QUAD + BOX + NEURAL_VS, fragment: head + BOX_FS + NEURAL_FS }
+    ? { vertex: head + colour + QUAD + BOX + NEURAL_VS, fragment: writeOut(head + BOX_FS + NEURAL_FS, { N_HIDDEN: Math.max(model.N, 1) }) }
     : { vertex: head + colour + QUAD + BOX + GAUSSIAN_VS, fragment: head + BOX_FS + GAUSSIAN_FS };
 }
 
