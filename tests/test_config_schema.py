@@ -30,10 +30,11 @@ PINNED = {
     # envelope: ("envelope", "sfm", "seed") until the triangulate stage took over its triangulation
     ("envelope",): "8126f92e78aaa0a352565306cc2634c8d9bf00891ee998223cf77414621f35c7",
     ("tetra",): "71b16c0932348c70d95a1190095f01668a48dbf9cb7e1a3c1f70a483029e0bd7",
-    # init: + footprint_px (issue 40; an existing run re-runs init once, which writes the same model,
-    # so that training stays cached)
+    # init: + footprint_px, then footprint_cone with footprint_px 12 by default (issue 40; an existing
+    # run re-runs init once, which writes the same model unless its views are forward-facing, so that
+    # training stays cached)
     ("init", "train.primitive", "train.sh_degree", "train.max_primitives", "render.omega0", "render.hidden",
-     "render.window", "render.time_frequency", "seed"): "6fb10afc206556d1d3833cf003bec86faeae89bf64783a58dbf67eeeba9cf753",
+     "render.window", "render.time_frequency", "seed"): "3a3ddfdeb83a855a84a67d7fda5a4df9950052cafa44cc4640737ec1f65d2d3d",
     # train: + coarse_levels and coarse_until (issue 40; an existing run retrains once)
     ("train", "render", *DATA, "seed"): "292fba2e848bae94cb391b04797a71d9641bf5b6329b84d9a0cb5edf29bcbb1c",
     ("bake", "eval.split", "render.near"): "3d9fc7d2f27f12fa81031e0f1540dfeed401142961cdf9a24fc82c803712cd2c",

@@ -195,10 +195,15 @@ class InitConfig(Section):
     spread). 0: automatic, k = √7 with the density window, √5 without
     (docs/studies/seeds-radius-sh-viewsize.md)."""
     footprint_px: float = setting(Range(0, 1000, note="pixels, 0 = off"))
-    """A cap on every initial radius: at most this many pixels in the training view where the
-    primitive looks largest, so that a sparse point set starts as small primitives, not large ones
-    that each cover much of a view (a random start is always capped at 4 px). 0: off. Fern at
-    504×378 with 12: 14 minutes instead of 17 and +0.28 dB; fox_small −0.65 dB
+    """A forward-facing capture's start (init.footprint_cone): every initial radius at most this many
+    pixels in the training view where the primitive looks largest, so that its sparse points start
+    as small primitives, not large ones that each cover much of every view (a random start is always
+    capped at 4 px). 0: off. Fern at 504×378: 17 → 12–14 minutes and +0.28 dB
+    (docs/studies/real-size.md)."""
+    footprint_cone: float = setting(Range(0, 180, note="degrees, 0 = off, 180 = every capture"))
+    """init.footprint_px caps the start when every training view's optical axis lies within a cone of
+    this half-angle about their mean direction (forward-facing, as LLFF's captures). 20: fern (axes
+    within 10°), not fox_small (52°) or lego_small (92°); capping fox_small's start costs 0.65 dB
     (docs/studies/real-size.md)."""
     cage_fraction: float = setting(FRACTION)
     """With an envelope: this fraction starts uniformly in its volume, the rest from the source inside

@@ -22,11 +22,14 @@ Random centres know nothing of the surfaces, and 2,000 of them spread over a sce
 each is capped to cover RANDOM_FOOTPRINT_PX pixels in the training view where it looks largest
 (`footprint_radius`; figure `footprint_px`), so that a random start is many small primitives too,
 not a few that each cover most of a view (the volume samples beside a point source, below, keep
-their spacing: they fill what lies between the points). `init.footprint_px` caps every other start
-the same way (off by default): a real capture's points are sparse, and the first steps, before
-densification splits them, cost what their footprints cover (fern at 504×378: 14.6 M
-pixel–primitive pairs a view, 1.0 M capped at 12 px; its whole run about 17 → 14 minutes and +0.28
-dB held-out, but fox_small's −0.65 dB: docs/studies/real-size.md).
+their spacing: they fill what lies between the points). A forward-facing capture's start is capped
+the same way, at `init.footprint_px` (12): one whose training views' optical axes all lie within
+`init.footprint_cone` (20°) of their mean direction (`axes_half_angle`), as LLFF's do. Seen from
+nearly one direction, its sparse points' large primitives cover the same pixels in every view and
+no view from the side carves them (fern at 504×378: axes within 10°; 14.6 M pixel–primitive pairs
+a view, 1.0 M capped; its whole run 17 → 12–14 minutes and +0.28 dB held-out), where capping a
+capture seen from around an object costs PSNR (fox_small, axes within 52°: −0.65 dB with every
+primitive capped; lego_small: 92°; docs/studies/real-size.md).
 The kind is `train.primitive`'s, or for a dynamic scene (views that carry a time) its
 time-conditioned kind (`primitive_kind`: neural -> neural-dynamic, gaussian -> gaussian-dynamic;
 kinds/dynamic.py), which starts as the static kind with zero temporal tensors, and for a
@@ -72,6 +75,7 @@ from radfield.core.splat.sh import num_sh_coeffs, rgb_to_sh_dc
 from radfield.datasets.scene import POINTS, SCENE, Scene, load_scene
 from radfield.pipeline.runner import Context, Stage
 from radfield.core.geometry.cage import CAGE_NPZ, write_binding
+from radfield.core.geometry.cameras import axes_half_angle
 from radfield.core.geometry.envelope import inside_envelope, read_envelope, sample_in_envelope
 from radfield import conditions
 from radfield.stages.envelope import ENVELOPE
@@ -115,20 +119,20 @@ def run(ctx: Context) -> dict[str, Any]:
         source, means, rgb, in_volume = centres_in_envelope(read_envelope(envelope_file), point_sets,
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     kind = primitive_kind(cfg, conditions.view_conditions(scene.splits))
-    # a random start covers a few pixels a primitive (RANDOM_FOOTPRINT_PX); the others keep their
-    # spacing, capped at init.footprint_px pixels when it is set
-    pixels = RANDOM_FOOTPRINT_PX if source == "random" else cfg["init"]["footprint_px"]
-    cap = footprint_radius(means, scene.cameras("train"), pixels) if pixels > 0 else None
-    prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed,
-                            kinds.get(kind).init_settings(cfg), max_radius=cap)
+    settings = kinds.get(kind).init_settings(cfg)
+    cap, pixels, capped = footprint_cap(source, means, initial_radii(means, kind, scene.extent, settings),
+                                        scene.cameras("train"), cfg["init"])
+    prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed, settings,
+                            max_radius=cap)
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {SOURCE_WORDS[source]}"
-            + (f" of at most {pixels:g} px" if cap is not None else "")
+            + ("" if cap is None else f" of at most {pixels:g} px ({capped} of them capped"
+               + ("" if source == "random" else ": the views are forward-facing") + ")")
             + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
             "cage_samples": in_volume, "bound": cage_file is not None,
-            **({"footprint_px": pixels} if cap is not None else {}),
+            **({"footprint_px": pixels, "footprint_capped": capped} if cap is not None else {}),
             # a conditioned kind, chosen for views that carry a time or a light, is recorded (`radfield info`)
             **({"kind": prims.kind} if kinds.get(kind).conditions else {})}
 
@@ -317,17 +321,37 @@ def footprint_radius(means: np.ndarray, cameras: list, pixels: float, chunk: int
     return pixels * out
 
 
+def footprint_cap(source: str, means: np.ndarray, radius: np.ndarray, cameras: list,
+                  init_cfg: dict) -> tuple[np.ndarray | None, float, int]:
+    """The cap on each initial radius (world units; None: none), its size in pixels and how many
+    primitives it shrinks (`radius`: the uncapped start). A random start: RANDOM_FOOTPRINT_PX.
+    Any other: init.footprint_px when the training views are forward-facing (`axes_half_angle`
+    under init.footprint_cone; 180: every capture); 0 in either turns it off."""
+    pixels = RANDOM_FOOTPRINT_PX if source == "random" else init_cfg["footprint_px"]
+    cone = 180.0 if source == "random" else init_cfg["footprint_cone"]
+    if pixels <= 0 or cone <= 0 or (cone < 180 and axes_half_angle(cameras) >= cone):
+        return None, 0.0, 0
+    cap = footprint_radius(means, cameras, pixels)
+    return cap, pixels, int((radius > cap).sum())
+
+
+def initial_radii(means: np.ndarray, kind: str, extent: float, settings: dict | None = None) -> np.ndarray:
+    """Each primitive's initial radius before any cap (world units): the kind's multiple of the mean
+    distance to the 3 nearest centres (see the module docstring)."""
+    radius = neighbour_distance(means) if len(means) > 1 else np.full(1, 0.01 * extent)
+    return kinds.get(kind).initial_radius(np.maximum(radius, 1e-6 * extent), settings or {})
+
+
 def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, extent: float,
                     seed: int, settings: dict | None = None, max_radius: np.ndarray | None = None) -> kinds.Primitives:
     """Isotropic primitives of `kind` at `means` (see the module docstring for every initial value);
     `settings`: the kind's init settings (kinds.get(kind).init_settings(config); None: its defaults,
     neural: ω0 30, 8 hidden units, hard-edged, W1 bound 1/3, the automatic radius factor); their
     "sh_degree", when the kind sets one, wins over `sh_degree` (the relightable kinds: 0, eq. 14).
-    `max_radius` (per primitive, world units): a cap on the initial radius (`footprint_radius`)."""
+    `max_radius` (per primitive, world units): a cap on the initial radius (`footprint_cap`)."""
     spec, settings = kinds.get(kind), settings or {}
     num = len(means)
-    radius = neighbour_distance(means) if num > 1 else np.full(1, 0.01 * extent)
-    radius = spec.initial_radius(np.maximum(radius, 1e-6 * extent), settings)
+    radius = initial_radii(means, kind, extent, settings)
     if max_radius is not None:
         radius = np.maximum(np.minimum(radius, max_radius), 1e-6 * extent)
     colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)

@@ -114,6 +114,15 @@ def distinct_poses(cameras: list[Camera]) -> tuple[list[Camera], list[int]]:
     return firsts, index
 
 
+def axes_half_angle(cameras: list[Camera]) -> float:
+    """The half-angle (degrees) of the cone about their mean direction that holds every camera's
+    optical axis: a few degrees for a forward-facing capture (LLFF's), 90 or more for views around
+    an object."""
+    axes = torch.stack([camera.c2w[:3, 2] for camera in cameras])   # OpenCV: +z looks forward
+    mean = torch.nn.functional.normalize(axes.sum(0), dim=0)
+    return math.degrees(math.acos(float((axes @ mean).min().clamp(-1.0, 1.0))))
+
+
 def opengl_to_opencv(c2w_gl: torch.Tensor) -> torch.Tensor:
     """Camera-to-world in OpenGL axes (NeRF-synthetic, nerfstudio) -> OpenCV axes."""
     return torch.as_tensor(c2w_gl, dtype=torch.float64) @ _GL_TO_CV
