@@ -1,8 +1,7 @@
 """The triangulate stage and the starts it serves, on fern (../shared/datasets/fern: 17 posed training
 photos, no points, no alpha) at 1/4 of its 504x378 (126x94, so the whole front end takes seconds): its
 points, the init stage starting from them (capped by init.footprint_px: fern is forward-facing),
-and the random
-fallback's few-pixel primitives."""
+and the random fallback's few-pixel primitives."""
 
 from __future__ import annotations
 

@@ -120,19 +120,19 @@ def run(ctx: Context) -> dict[str, Any]:
                                                             cfg["init"]["source"], count, cfg["init"]["cage_fraction"], rng)
     kind = primitive_kind(cfg, conditions.view_conditions(scene.splits))
     settings = kinds.get(kind).init_settings(cfg)
-    cap, pixels, capped = footprint_cap(source, means, initial_radii(means, kind, scene.extent, settings),
-                                        scene.cameras("train"), cfg["init"])
+    radius, pixels, capped = footprint_cap(source, means, initial_radii(means, kind, scene.extent, settings),
+                                           scene.cameras("train"), cfg["init"], scene.extent)
     prims = make_primitives(means, rgb, kind, cfg["train"]["sh_degree"], scene.extent, ctx.seed, settings,
-                            max_radius=cap)
+                            radius=radius)
     save_model(ctx.outputs[INIT_MODEL], prims)
     write_binding(ctx.outputs[BINDING], means, cage_file)
     ctx.log(f"{len(prims)} {prims.kind} primitives from {SOURCE_WORDS[source]}"
-            + ("" if cap is None else f" of at most {pixels:g} px ({capped} of them capped"
+            + ("" if not pixels else f" of at most {pixels:g} px ({capped} of them capped"
                + ("" if source == "random" else ": the views are forward-facing") + ")")
             + (f", {in_volume} of them sampled in the envelope's volume" if envelope_file is not None else ""))
     return {"primitives": len(prims), "params": prims.num_params(), "source": source,
             "cage_samples": in_volume, "bound": cage_file is not None,
-            **({"footprint_px": pixels, "footprint_capped": capped} if cap is not None else {}),
+            **({"footprint_px": pixels, "footprint_capped": capped} if pixels else {}),
             # a conditioned kind, chosen for views that carry a time or a light, is recorded (`radfield info`)
             **({"kind": prims.kind} if kinds.get(kind).conditions else {})}
 
@@ -321,18 +321,21 @@ def footprint_radius(means: np.ndarray, cameras: list, pixels: float, chunk: int
     return pixels * out
 
 
-def footprint_cap(source: str, means: np.ndarray, radius: np.ndarray, cameras: list,
-                  init_cfg: dict) -> tuple[np.ndarray | None, float, int]:
-    """The cap on each initial radius (world units; None: none), its size in pixels and how many
-    primitives it shrinks (`radius`: the uncapped start). A random start: RANDOM_FOOTPRINT_PX.
+def footprint_cap(source: str, means: np.ndarray, radius: np.ndarray, cameras: list, init_cfg: dict,
+                  extent: float) -> tuple[np.ndarray, float, int]:
+    """The initial radii `radius` (world units, uncapped) capped where the start calls for it, the
+    cap in pixels (0: none) and how many primitives it shrank. A random start: RANDOM_FOOTPRINT_PX.
     Any other: init.footprint_px when the training views are forward-facing (`axes_half_angle`
     under init.footprint_cone; 180: every capture); 0 in either turns it off."""
-    pixels = RANDOM_FOOTPRINT_PX if source == "random" else init_cfg["footprint_px"]
-    cone = 180.0 if source == "random" else init_cfg["footprint_cone"]
-    if pixels <= 0 or cone <= 0 or (cone < 180 and axes_half_angle(cameras) >= cone):
-        return None, 0.0, 0
+    if source == "random":
+        pixels = RANDOM_FOOTPRINT_PX
+    else:
+        pixels, cone = init_cfg["footprint_px"], init_cfg["footprint_cone"]
+        forward_facing = cone >= 180 or (cone > 0 and axes_half_angle(cameras) < cone)
+        if pixels <= 0 or not forward_facing:
+            return radius, 0.0, 0
     cap = footprint_radius(means, cameras, pixels)
-    return cap, pixels, int((radius > cap).sum())
+    return np.maximum(np.minimum(radius, cap), 1e-6 * extent), pixels, int((radius > cap).sum())
 
 
 def initial_radii(means: np.ndarray, kind: str, extent: float, settings: dict | None = None) -> np.ndarray:
@@ -343,17 +346,16 @@ def initial_radii(means: np.ndarray, kind: str, extent: float, settings: dict | 
 
 
 def make_primitives(means: np.ndarray, rgb: np.ndarray | None, kind: str, sh_degree: int, extent: float,
-                    seed: int, settings: dict | None = None, max_radius: np.ndarray | None = None) -> kinds.Primitives:
+                    seed: int, settings: dict | None = None, radius: np.ndarray | None = None) -> kinds.Primitives:
     """Isotropic primitives of `kind` at `means` (see the module docstring for every initial value);
     `settings`: the kind's init settings (kinds.get(kind).init_settings(config); None: its defaults,
     neural: ω0 30, 8 hidden units, hard-edged, W1 bound 1/3, the automatic radius factor); their
     "sh_degree", when the kind sets one, wins over `sh_degree` (the relightable kinds: 0, eq. 14).
-    `max_radius` (per primitive, world units): a cap on the initial radius (`footprint_cap`)."""
+    `radius` (per primitive, world units): the initial radii, when not `initial_radii`'s (the init
+    stage's are capped: `footprint_cap`)."""
     spec, settings = kinds.get(kind), settings or {}
     num = len(means)
-    radius = initial_radii(means, kind, extent, settings)
-    if max_radius is not None:
-        radius = np.maximum(np.minimum(radius, max_radius), 1e-6 * extent)
+    radius = initial_radii(means, kind, extent, settings) if radius is None else radius
     colour = torch.full((num, 3), 0.5) if rgb is None else torch.as_tensor(rgb, dtype=torch.float32)
     sh = torch.zeros(num, num_sh_coeffs(settings.get("sh_degree", sh_degree)), 3)
     sh[:, 0] = rgb_to_sh_dc(colour)
